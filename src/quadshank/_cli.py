@@ -1,0 +1,200 @@
+"""The ``quadshank`` command: wires the package's functions; no numerics here."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shlex
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["main"]
+
+EXPECTED_ERRORS: tuple[type[BaseException], ...] = (FileNotFoundError, KeyError, ValueError, NotADirectoryError)
+
+
+def _csv_list(text: str) -> list[str]:
+    return [x.strip() for x in text.split(",") if x.strip()]
+
+
+def _say(args, *lines: str) -> None:
+    if not args.quiet:
+        for line in lines:
+            print(line, file=sys.stderr)
+
+
+def _truth_beside(data: Path) -> dict | None:
+    from ._io import read_json
+
+    path = data / "truth.json" if data.is_dir() else data.with_name("truth.json")
+    return read_json(path) if path.exists() else None
+
+
+# ---------------------------------------------------------------------------- commands
+
+
+def cmd_simulate(args) -> int:
+    from ._interchange import write_interchange
+    from ._paper import LEGS
+    from ._simulate import simulate_cohort, write_truth
+
+    legs = _csv_list(args.legs) if args.legs else list(LEGS)
+    effects = _csv_list(args.effects) if args.effects else []
+    trials = [int(t) for t in _csv_list(args.trials)]
+    cohort, truth = simulate_cohort(
+        legs=legs, minutes=args.minutes, seed=args.seed, effects=effects, trials=trials, progress=not args.quiet
+    )
+    out = Path(args.out)
+    write_interchange(cohort, out)
+    write_truth(truth, out / "truth.json")
+    _say(args, f"simulated {len(cohort)} trials of {len(legs)} legs -> {out}/manifest.csv (truth: {out}/truth.json)")
+    return 0
+
+
+def cmd_convert(args) -> int:
+    from ._interchange import convert
+
+    dst = convert(args.src, args.dst)
+    _say(args, f"converted {args.src} -> {dst}")
+    return 0
+
+
+def cmd_identify(args) -> int:
+    from ._interchange import load_cohort
+    from ._pipeline import run_identify
+
+    data = Path(args.data)
+    cohort = load_cohort(data)
+    summary = run_identify(cohort, args.out, truth=_truth_beside(data), trial=args.trial, progress=not args.quiet)
+    _say(args, *(f"{leg}: d = {s['delay_samples']} samples" for leg, s in summary.items()))
+    _say(args, f"tables, figures and summary.json in {args.out}")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    from ._interchange import load_cohort
+    from ._pipeline import load_identification, models_from_summary, run_identify
+
+    data = Path(args.data)
+    cohort = load_cohort(data)
+    out = Path(args.out)
+    if args.identified:
+        models = load_identification(args.identified)
+    else:
+        _say(args, f"no --identified folder given: identifying from trial 1 into {out / 'identify'}")
+        models = models_from_summary(
+            run_identify(cohort, out / "identify", truth=_truth_beside(data), progress=not args.quiet)
+        )
+    summary = run_evaluate_and_report(args, cohort, models, out)
+    return 0 if summary else 1
+
+
+def run_evaluate_and_report(args, cohort, models, out):
+    from ._pipeline import run_evaluate
+
+    summary = run_evaluate(cohort, models, out, progress=not args.quiet)
+    for model, trials in summary["J"].items():
+        _say(args, f"{model}: " + "; ".join(
+            f"trial {t}: " + ", ".join(f"{h} ms {v:.1f}°" for h, v in hv.items()) for t, hv in trials.items()
+        ))
+    _say(args, f"Table V, sign tests, figures and summary.json in {out}")
+    return summary
+
+
+def cmd_reproduce(args, default_out: str | None = None) -> int:
+    from ._pipeline import run_reproduce
+
+    out = Path(args.out or default_out)
+    command = "quadshank " + " ".join(shlex.quote(a) for a in args.argv)
+    t0 = time.perf_counter()
+    summary = run_reproduce(
+        out,
+        minutes=args.minutes,
+        seed=args.seed,
+        effects=_csv_list(args.effects) if args.effects else (),
+        legs=_csv_list(args.legs) if args.legs else None,
+        progress=not args.quiet,
+        command=command,
+    )
+    _say(
+        args,
+        "mean RMS angle per trial: " + ", ".join(f"{t}: {v:.1f}°" for t, v in summary["rms_angle_deg"].items()),
+        "J [deg], mean over legs, trial 2: "
+        + "; ".join(f"{m}: " + ", ".join(f"{h} ms {v:.1f}" for h, v in summary["J"][m].get("2", {}).items())
+                    for m in sorted(summary["J"])),
+        f"parameters within tolerance of the truth: {'yes' if summary['recovery_ok'] else 'NO'}",
+        f"done in {time.perf_counter() - t0:.0f} s; report: {out / 'report.md'}",
+    )
+    return 0
+
+
+# ---------------------------------------------------------------------------- parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="quadshank", description=__doc__.splitlines()[0] if __doc__ else None)
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bars or messages (for scripts)")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def sim_options(sp, minutes_default):
+        sp.add_argument("--minutes", type=float, default=minutes_default, help="length of each trial [min]")
+        sp.add_argument("--seed", type=int, default=0)
+        sp.add_argument("--effects", default="", help="hidden effects to switch on, comma-separated")
+        sp.add_argument("--legs", default="", help="legs, comma-separated (default: the paper's five)")
+
+    s = sub.add_parser("simulate", help="simulate the paper's cohort into the interchange format")
+    s.add_argument("--out", required=True)
+    sim_options(s, 5.0)
+    s.add_argument("--trials", default="1,2,3", help="trial numbers, comma-separated")
+    s.set_defaults(func=cmd_simulate)
+
+    c = sub.add_parser("convert", help="interchange folder <-> NetCDF file, losslessly")
+    c.add_argument("src")
+    c.add_argument("dst")
+    c.set_defaults(func=cmd_convert)
+
+    i = sub.add_parser("identify", help="classical identification as the paper (Tables I-IV)")
+    i.add_argument("data", help="interchange folder or .nc cohort file")
+    i.add_argument("--out", required=True)
+    i.add_argument("--trial", type=int, default=1, help="identification trial (default 1, as the paper)")
+    i.set_defaults(func=cmd_identify)
+
+    e = sub.add_parser("evaluate", help="k-step-ahead prediction errors J (Table V), sign tests, Figs. 5-6")
+    e.add_argument("data", help="interchange folder or .nc cohort file")
+    e.add_argument("--out", required=True)
+    e.add_argument("--identified", default="", help="output folder of `quadshank identify` (default: identify now)")
+    e.set_defaults(func=cmd_evaluate)
+
+    r = sub.add_parser("reproduce", help="simulate, identify, evaluate: the paper end to end")
+    r.add_argument("--out", required=True)
+    sim_options(r, 5.0)
+    r.set_defaults(func=cmd_reproduce)
+
+    d = sub.add_parser("demo", help="the main job on the built-in simulated cohort (writes results/demo)")
+    d.add_argument("--out", default="results/demo")
+    sim_options(d, 5.0)
+    d.set_defaults(func=cmd_reproduce)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    args.argv = argv
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("quadshank: interrupted; files already written are complete, nothing half-written", file=sys.stderr)
+        return 130
+    except EXPECTED_ERRORS as exc:
+        if os.environ.get("QUADSHANK_DEBUG"):
+            raise
+        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        print(f"quadshank: error: {msg}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,353 @@
+"""Effects: one physical mechanism each, declared as data, composed into models.
+
+An effect is a small frozen dataclass whose fields are its parameter values.
+It declares each parameter as a :class:`Param` (name, units, support, prior,
+hierarchy level) and contributes to the dynamics through one pure method that
+depends on its *kind*:
+
+``activation``
+    ``init_state()`` and ``step(state, u_delayed) -> (state, m)``: the activation
+    dynamics, eq. (1), turning the delayed recruitment level into an equivalent
+    acceleration ``m`` [deg/s²].  Exactly one per model.
+``gain``
+    ``factor(ctx) -> scalar``: a multiplicative modulation of ``m`` (torque–angle,
+    torque–velocity, ...), eq. (2).  Stateful gains override ``init_state`` and
+    ``gain(state, ctx) -> (state, factor)`` instead.
+``passive``
+    ``acceleration(angle, velocity) -> deg/s²``: a term of the passive system,
+    eq. (8), added to the angular acceleration.
+``delay``
+    ``select(d, u_hist, angle_hist) -> u``: how the pulse delivered ``d`` samples
+    ago reaches the muscle (default: exactly ``d`` samples; at most one per model).
+
+Writing a new effect is a few lines::
+
+    @register_effect
+    @dataclasses.dataclass(frozen=True)
+    class CubicTorqueAngle(Effect):
+        kind = "gain"
+        name = "cubic_torque_angle"
+        params = (Param("c3", "1/deg^3", prior=("normal", 0.0, 1e-6)),)
+        c3: float = 0.0
+
+        def factor(self, ctx):
+            return 1.0 + self.c3 * ctx.angle**3
+
+``register_effect`` makes the class a JAX pytree whose leaves are the declared
+parameters (so models can be jitted, differentiated and vmapped over parameter
+draws) and lists it in the registry by ``name``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, ClassVar, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+__all__ = [
+    "Param",
+    "Effect",
+    "StepContext",
+    "register_effect",
+    "registered_effects",
+    "get_effect",
+    "ZeroOrderActivation",
+    "Darma",
+    "LinearTorqueAngle",
+    "LinearTorqueVelocity",
+    "Damping",
+    "Gravity",
+    "ExponentialElasticity",
+]
+
+LEVELS = ("population", "subject", "leg")
+SUPPORTS = ("real", "positive", "negative", "unit_interval")
+
+
+@dataclasses.dataclass(frozen=True)
+class Param:
+    """Declaration of one parameter of an effect.
+
+    ``prior`` is a tuple ``(family, *args)`` with family one of ``normal``
+    (loc, scale) or ``lognormal`` (loc and scale of the log); it describes the
+    population-level belief in the parameter's own units.  ``shape`` is ``()``
+    for a scalar, or a tuple for a vector parameter.
+    """
+
+    name: str
+    units: str
+    support: str = "real"
+    prior: tuple = ("normal", 0.0, 1.0)
+    level: str = "leg"
+    doc: str = ""
+    shape: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.level not in LEVELS:
+            raise ValueError(f"parameter {self.name!r}: level {self.level!r} not in {LEVELS}")
+        if self.support not in SUPPORTS:
+            raise ValueError(f"parameter {self.name!r}: support {self.support!r} not in {SUPPORTS}")
+        if self.prior[0] not in ("normal", "lognormal"):
+            raise ValueError(f"parameter {self.name!r}: prior family {self.prior[0]!r} not known")
+
+    @property
+    def typical(self) -> float:
+        """A central value of the prior, in the parameter's units."""
+        family, loc, scale = self.prior[:3]
+        return math.exp(loc) if family == "lognormal" else float(loc)
+
+
+class StepContext(NamedTuple):
+    """What an effect sees at one sample: the state at the start of the sample."""
+
+    angle: Any  # deg
+    velocity: Any  # deg/s
+    u: Any  # delayed recruitment level reaching the muscle at this sample
+    u_now: Any  # recruitment level of the pulse delivered at this sample
+
+
+class Effect:
+    """Base of all effects.  Subclasses are frozen dataclasses; see module docs."""
+
+    kind: ClassVar[str] = ""
+    name: ClassVar[str] = ""
+    params: ClassVar[tuple[Param, ...]] = ()
+
+    # --- introspection ------------------------------------------------------------
+    def declared_params(self) -> tuple[Param, ...]:
+        return self.params
+
+    def values(self) -> dict[str, Any]:
+        return {p.name: getattr(self, p.name) for p in self.declared_params()}
+
+    def with_values(self, **values) -> Effect:
+        unknown = set(values) - {p.name for p in self.declared_params()}
+        if unknown:
+            raise KeyError(f"effect {self.name!r} has no parameter(s) {sorted(unknown)}")
+        return dataclasses.replace(self, **values)
+
+    # --- defaults for the kinds -----------------------------------------------------
+    def init_state(self):
+        return ()
+
+    def gain(self, state, ctx: StepContext):
+        return state, self.factor(ctx)
+
+    def factor(self, ctx: StepContext):  # pragma: no cover - abstract for gains
+        raise NotImplementedError(f"gain effect {self.name!r} must define factor() or gain()")
+
+
+_REGISTRY: dict[str, type[Effect]] = {}
+
+
+def register_effect(cls: type[Effect]) -> type[Effect]:
+    """Register an effect class: a JAX pytree over its declared parameters, listed by name."""
+    if not dataclasses.is_dataclass(cls):
+        raise TypeError(f"{cls.__name__} must be a frozen dataclass (decorate with @dataclasses.dataclass(frozen=True))")
+    if cls.kind not in ("activation", "gain", "passive", "delay"):
+        raise TypeError(f"{cls.__name__}.kind must be activation, gain, passive or delay, not {cls.kind!r}")
+    if not cls.name:
+        raise TypeError(f"{cls.__name__} needs a class attribute 'name'")
+    fields = [f.name for f in dataclasses.fields(cls)]
+    param_names = [p.name for p in cls.params]
+    missing = [n for n in param_names if n not in fields]
+    if missing:
+        raise TypeError(f"{cls.__name__}: declared parameters {missing} are not dataclass fields")
+    meta = [n for n in fields if n not in param_names]
+    jax.tree_util.register_dataclass(cls, data_fields=param_names, meta_fields=meta)
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+def registered_effects() -> dict[str, type[Effect]]:
+    return dict(_REGISTRY)
+
+
+def get_effect(name: str) -> type[Effect]:
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        raise KeyError(f"unknown effect {name!r}; known effects: {', '.join(sorted(_REGISTRY))}") from None
+
+
+# ==================================================================== activation
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class ZeroOrderActivation(Effect):
+    """Zero-order activation, eqs. (3) and (5): M_k/I = gain · u_{k-d}.
+
+    A pulse becomes one sample of equivalent acceleration, so ``gain`` is the
+    integrated twitch response (G'_1 of model 1, G'_2 of model 3).
+    """
+
+    kind = "activation"
+    name = "zero_order"
+    params = (
+        Param(
+            "gain",
+            "deg/s^2",
+            support="positive",
+            prior=("lognormal", math.log(1.0e4), 0.6),
+            doc="integrated equivalent acceleration of one twitch (G'_1, G'_2); Tables I, III: 7e3-1.7e4",
+        ),
+    )
+    gain: Any = 1.0e4
+
+    def step(self, state, u):
+        return state, self.gain * u
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class Darma(Effect):
+    """DARMA activation of order N, eqs. (1) and (4).
+
+    M_k = -Σ_i a_i M_{k-i} + Σ_i b_i u_{k-i-d}; the state holds the last N
+    outputs and the last N delayed inputs.  Table II (N = 2): a ≈ (-1.46, 0.59),
+    b ≈ (480, 510) deg/s².
+    """
+
+    kind = "activation"
+    name = "darma"
+    params = (
+        Param("a", "1", prior=("normal", 0.0, 1.0), doc="autoregressive coefficients a_1..a_N", shape=(2,)),
+        Param(
+            "b",
+            "deg/s^2",
+            prior=("normal", 500.0, 300.0),
+            doc="moving-average coefficients b'_1..b'_N",
+            shape=(2,),
+        ),
+    )
+    a: Any = (-1.46, 0.59)
+    b: Any = (480.0, 510.0)
+
+    def declared_params(self):
+        n = self.order
+        return tuple(dataclasses.replace(p, shape=(n,)) for p in self.params)
+
+    @property
+    def order(self) -> int:
+        return len(self.a) if isinstance(self.a, (tuple, list)) else int(jnp.shape(self.a)[-1])
+
+    def init_state(self):
+        z = jnp.zeros(self.order)
+        return (z, z)
+
+    def step(self, state, u):
+        m_hist, u_hist = state  # m_hist[i] = M_{k-1-i}, u_hist[i] = u_{k-1-i-d}
+        a = jnp.asarray(self.a)
+        b = jnp.asarray(self.b)
+        m = -jnp.dot(a, m_hist) + jnp.dot(b, u_hist)
+        m_hist = jnp.concatenate([jnp.reshape(m, (1,)), m_hist[:-1]])
+        u_hist = jnp.concatenate([jnp.reshape(jnp.asarray(u, m_hist.dtype), (1,)), u_hist[:-1]])
+        return (m_hist, u_hist), m
+
+
+# ==================================================================== gains
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class LinearTorqueAngle(Effect):
+    """Linear torque–angle factor of model 3, eq. (5): 1 + γ_angle·φ."""
+
+    kind = "gain"
+    name = "linear_torque_angle"
+    params = (
+        Param(
+            "gamma_angle",
+            "1/deg",
+            prior=("normal", -1.0e-2, 1.0e-2),
+            doc="Table III: -2.2e-2 to -5.3e-3",
+        ),
+    )
+    gamma_angle: Any = -1.0e-2
+
+    def factor(self, ctx):
+        return 1.0 + self.gamma_angle * ctx.angle
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class LinearTorqueVelocity(Effect):
+    """Linear torque–velocity factor of model 3, eq. (5): 1 + γ_velocity·φ̇."""
+
+    kind = "gain"
+    name = "linear_torque_velocity"
+    params = (
+        Param(
+            "gamma_velocity",
+            "s/deg",
+            prior=("normal", -2.0e-3, 1.0e-3),
+            doc="Table III: -2.5e-3 to -1.6e-3",
+        ),
+    )
+    gamma_velocity: Any = -2.0e-3
+
+    def factor(self, ctx):
+        return 1.0 + self.gamma_velocity * ctx.velocity
+
+
+# ==================================================================== passive
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class Damping(Effect):
+    """Viscous damping in the knee, eq. (8): -D'·φ̇."""
+
+    kind = "passive"
+    name = "damping"
+    params = (
+        Param("damping", "1/s", support="positive", prior=("lognormal", math.log(1.0), 0.5), doc="D' = D/I"),
+    )
+    damping: Any = 1.0
+
+    def acceleration(self, angle, velocity):
+        return -self.damping * velocity
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class Gravity(Effect):
+    """Gravity on the shank as a pendulum, eq. (8): -G'·sin φ (φ in degrees)."""
+
+    kind = "passive"
+    name = "gravity"
+    params = (
+        Param(
+            "gravity",
+            "deg/s^2",
+            support="positive",
+            prior=("lognormal", math.log(1800.0), 0.2),
+            doc="G' = G/I; natural frequency sqrt(G'·π/180)/(2π) ≈ 0.8-1 Hz",
+        ),
+    )
+    gravity: Any = 1800.0
+
+    def acceleration(self, angle, velocity):
+        return -self.gravity * jnp.sin(jnp.deg2rad(angle))
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class ExponentialElasticity(Effect):
+    """Passive elasticity significant in flexion, eq. (8): k1'·(exp(-k2·φ) - 1)."""
+
+    kind = "passive"
+    name = "elasticity"
+    params = (
+        Param("k1", "deg/s^2", support="positive", prior=("lognormal", math.log(25.0), 0.8), doc="k1' = k1/I"),
+        Param("k2", "1/deg", support="positive", prior=("lognormal", math.log(0.05), 0.4)),
+    )
+    k1: Any = 25.0
+    k2: Any = 0.05
+
+    def acceleration(self, angle, velocity):
+        return self.k1 * (jnp.exp(-self.k2 * angle) - 1.0)

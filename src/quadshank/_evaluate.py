@@ -1,0 +1,121 @@
+"""Prediction error J_φ,p (eq. 12), the paper's sign test, and the Table V analogue.
+
+J_φ,p = sqrt( (1/l) Σ_n (φ_{n+p} - φ̂_{n+p|n})² ): from every start n the model
+runs ``max(horizons)`` samples ahead once, initialised with the measured
+passive state at n and the active part carried over from the run that started
+at n-1; the prediction is read at every horizon p.  All horizons use the same
+l starts (n = 0 .. N-1-max(horizons)), so they are comparable.
+
+The sign test follows section III-E-1: for each horizon and each pair of
+models, the J values of the two models are paired within leg and trial (the
+validation trials 2 and 3, 5 legs × 2 trials = 10 pairs in the paper's cohort)
+and the number of pairs in which model A beats model B is tested against a
+fair coin (two-sided exact binomial test, α = 0.05).
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+from scipy.stats import binomtest
+
+from ._cohort import Cohort, Trial
+from ._model import Model, predict_ahead
+from ._paper import HORIZON_MS, HORIZONS
+
+__all__ = ["prediction_errors", "predictions", "evaluate_cohort", "sign_tests", "table_v", "ALPHA"]
+
+ALPHA = 0.05
+
+
+def _starts(trial: Trial, horizon: int) -> np.ndarray:
+    n = trial.n_samples - horizon
+    if n <= 0:
+        raise ValueError(f"{trial.key} trial {trial.trial}: {trial.n_samples} samples, fewer than the horizon {horizon}")
+    return np.arange(n)
+
+
+def predictions(model: Model, trial: Trial, horizon: int = max(HORIZONS)) -> tuple[np.ndarray, np.ndarray]:
+    """(starts, predicted) with predicted[i, j-1] the angle predicted j samples after starts[i]."""
+    starts = _starts(trial, horizon)
+    pred = predict_ahead(model, trial.angle_deg, trial.velocity_deg_s, trial.stimulation, starts, horizon)
+    return starts, np.asarray(pred, dtype=float)
+
+
+def prediction_errors(model: Model, trial: Trial, horizons=HORIZONS) -> dict[int, float]:
+    """J_φ,p [deg] for each horizon p (samples), eq. (12)."""
+    horizon = max(horizons)
+    starts, pred = predictions(model, trial, horizon)
+    out = {}
+    for p in horizons:
+        err = trial.angle_deg[starts + p] - pred[:, p - 1]
+        out[p] = float(np.sqrt(np.mean(err**2)))
+    return out
+
+
+def evaluate_cohort(
+    cohort: Cohort, models: dict[str, dict[str, Model]], horizons=HORIZONS, progress: bool = False
+) -> dict:
+    """J per model, leg, trial and horizon.
+
+    ``models[leg][model_name]`` is the identified model of that leg.  Returns
+    ``J[model_name][leg][trial_str][horizon_ms]`` in degrees.
+    """
+    from ._progress import progress_bar
+
+    J: dict = {}
+    jobs = [(t, name, m) for t in cohort for name, m in models[t.key].items()]
+    for t, name, m in progress_bar(jobs, desc="evaluate", enabled=progress):
+        errs = prediction_errors(m, t, horizons)
+        J.setdefault(name, {}).setdefault(t.key, {})[str(t.trial)] = {HORIZON_MS[p]: v for p, v in errs.items()}
+    return J
+
+
+def sign_tests(J: dict, trials=("2", "3"), alpha: float = ALPHA) -> list[dict]:
+    """The paper's pairwise sign test between models, per horizon, over legs × trials."""
+    names = sorted(J)
+    out = []
+    for a, b in itertools.combinations(names, 2):
+        legs = sorted(set(J[a]) & set(J[b]))
+        horizons = sorted({h for leg in legs for t in trials if t in J[a][leg] for h in J[a][leg][t]})
+        for h in horizons:
+            diffs = [
+                J[a][leg][t][h] - J[b][leg][t][h]
+                for leg in legs
+                for t in trials
+                if t in J[a][leg] and t in J[b][leg]
+            ]
+            a_better = sum(d < 0 for d in diffs)
+            b_better = sum(d > 0 for d in diffs)
+            n = a_better + b_better
+            p = binomtest(a_better, n, 0.5).pvalue if n else 1.0
+            out.append(
+                {
+                    "model_a": a,
+                    "model_b": b,
+                    "horizon_ms": int(h),
+                    "trials": list(trials),
+                    "n_pairs": n,
+                    "a_better": a_better,
+                    "b_better": b_better,
+                    "p_value": float(p),
+                    "significant": bool(p < alpha),
+                    "better": (a if a_better > b_better else b) if p < alpha else None,
+                }
+            )
+    return out
+
+
+def table_v(J: dict) -> dict:
+    """Mean and s.d. of J over legs: ``T[trial][model][horizon_ms] = (mean, sd, n_legs)``."""
+    T: dict = {}
+    for name, by_leg in J.items():
+        trials = sorted({t for leg in by_leg.values() for t in leg})
+        for t in trials:
+            horizons = sorted({h for leg in by_leg.values() if t in leg for h in leg[t]})
+            for h in horizons:
+                vals = np.array([leg[t][h] for leg in by_leg.values() if t in leg])
+                sd = float(np.std(vals, ddof=1)) if vals.size > 1 else float("nan")
+                T.setdefault(t, {}).setdefault(name, {})[h] = (float(vals.mean()), sd, int(vals.size))
+    return T

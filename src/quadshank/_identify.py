@@ -1,0 +1,269 @@
+"""Classical identification as the paper did it (section III-D, eqs. 8–11).
+
+Per leg, from the identification trial (trial 1 by default):
+
+1. **Passive system** (the paper took it from its ref. [16]; here it is
+   identified from the same data).  On *quiet* samples, where no pulse was
+   delivered in the preceding ``MAX_DELAY + TWITCH_SAMPLES`` = 35 samples (so no
+   twitch can be active), the measured acceleration obeys eq. (8) with M = 0:
+   ``φ̈ = -D'·φ̇ - G'·sin φ + k1'·(exp(-k2·φ) - 1)``.  This is linear in
+   (D', G', k1') for fixed k2: k2 is scanned on a log grid (variable
+   projection), then all four are refined by bounded nonlinear least squares.
+2. **Equivalent acceleration** M/I by eq. (8) on every sample.
+3. **Isolated twitches**: pulses with no other pulse in the 25 samples before
+   and the 50 after (a 25-sample epoch followed by 25 quiet samples).
+4. **Model 1** (eq. 9): G'_1 = Σ M/I over all epochs / Σ u.
+5. **Model 2** (eq. 10): DARMA(2, 2) with a second-order whitening filter on
+   the residual, fitted by generalised (extended) least squares over all epochs
+   for every delay d in 0..10; the delay with the smallest residual is the
+   delay of all three models, as in the paper.
+6. **Model 3** (eq. 11): the integrated twitch responses T_i = Σ_{25} M/I are
+   fitted by Levenberg–Marquardt to G'_2·(1 + γ_angle·φ)·(1 + γ_velocity·φ̇)
+   with φ, φ̇ taken d samples after each pulse.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ._cohort import Cohort, Trial
+from ._model import Model, equivalent_acceleration, paper_model, passive_effects
+from ._paper import MAX_DELAY, TWITCH_SAMPLES
+
+__all__ = [
+    "LegIdentification",
+    "identify_passive",
+    "isolated_twitches",
+    "identify_leg",
+    "identify_cohort",
+    "fit_darma",
+    "IdentificationError",
+]
+
+#: Samples after a pulse during which its twitch may still act on the shank.
+QUIET_AFTER_PULSE = MAX_DELAY + TWITCH_SAMPLES
+#: Fewest isolated twitches needed for a meaningful identification.
+MIN_TWITCHES = 8
+
+
+class IdentificationError(ValueError):
+    """The data do not allow the identification (too few twitches or quiet samples)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class LegIdentification:
+    """Everything the classical identification found for one leg."""
+
+    leg: str
+    trial: int
+    passive: dict
+    passive_rms_residual: float
+    n_quiet: int
+    delay: int
+    delay_residuals: np.ndarray  # residual mean square of model 2 per d = 0..MAX_DELAY
+    models: dict  # "model1"/"model2"/"model3" -> Model
+    whitening: dict  # c1, c2 of eq. (10)
+    pulses: np.ndarray  # isolated twitch pulse indices
+    integrated: np.ndarray  # T_i = Σ M/I over each epoch, per unit u
+    angle_at_d: np.ndarray
+    velocity_at_d: np.ndarray
+    g1_std: float  # std of the per-twitch integrated response (Table I)
+    rms_error_pct: dict  # Table IV: model1 / model3 RMS error of T as % of G'_1
+
+    def summary(self) -> dict:
+        return {
+            "delay_samples": int(self.delay),
+            "identification_trial": int(self.trial),
+            "n_isolated_twitches": int(len(self.pulses)),
+            "passive": {k: float(v) for k, v in self.passive.items()},
+            **{name: m.flat_params() for name, m in self.models.items() if name != "passive"},
+            "model2_whitening": {k: float(v) for k, v in self.whitening.items()},
+            "G1_std": float(self.g1_std),
+            "rms_error_pct": {k: float(v) for k, v in self.rms_error_pct.items()},
+        }
+
+
+# ============================================================================ passive
+
+
+def quiet_mask(stimulation: np.ndarray, quiet: int = QUIET_AFTER_PULSE) -> np.ndarray:
+    """True where no pulse was delivered in the ``quiet`` samples up to and including k."""
+    pulses = (np.asarray(stimulation) > 0).astype(int)
+    recent = np.convolve(pulses, np.ones(quiet + 1, dtype=int))[: len(pulses)]
+    mask = recent == 0
+    mask[:quiet] = False
+    return mask
+
+
+def _passive_columns(angle, velocity, k2):
+    # acc = D*(-v) + G*(-sin) + k1*(exp(-k2 phi) - 1)
+    return np.column_stack([-velocity, -np.sin(np.deg2rad(angle)), np.expm1(-k2 * angle)])
+
+
+def identify_passive(trials: list[Trial] | tuple[Trial, ...]) -> tuple[dict, float, int]:
+    """Passive parameters (D', G', k1', k2) from the quiet samples of ``trials``.
+
+    Returns the parameters, the RMS residual acceleration [deg/s²] and the
+    number of quiet samples used.
+    """
+    ang, vel, acc = [], [], []
+    for t in trials:
+        m = quiet_mask(t.stimulation)
+        ang.append(t.angle_deg[m])
+        vel.append(t.velocity_deg_s[m])
+        acc.append(t.acceleration_deg_s2[m])
+    angle, velocity, accel = (np.concatenate(x) for x in (ang, vel, acc))
+    if angle.size < 200:
+        raise IdentificationError(
+            f"only {angle.size} quiet samples (no pulse in the preceding {QUIET_AFTER_PULSE}); "
+            "the passive system needs stretches without stimulation"
+        )
+
+    best = None
+    for k2 in np.geomspace(1e-3, 0.3, 61):
+        X = _passive_columns(angle, velocity, k2)
+        coef, *_ = np.linalg.lstsq(X, accel, rcond=None)
+        rss = float(np.sum((accel - X @ coef) ** 2))
+        if best is None or rss < best[0]:
+            best = (rss, k2, coef)
+    _, k2, (d0, g0, k10) = best
+    x0 = np.array([max(d0, 1e-3), max(g0, 1.0), max(k10, 1e-3), k2])
+
+    def resid(p):
+        return _passive_columns(angle, velocity, p[3]) @ p[:3] - accel
+
+    fit = least_squares(resid, x0, bounds=([0, 0, 0, 1e-4], [np.inf, np.inf, np.inf, 1.0]), x_scale="jac")
+    D, G, k1, k2 = fit.x
+    rms = float(np.sqrt(np.mean(fit.fun**2)))
+    return {"damping": D, "gravity": G, "k1": k1, "k2": k2}, rms, int(angle.size)
+
+
+# ============================================================================ twitches
+
+
+def isolated_twitches(stimulation: np.ndarray, epoch: int = TWITCH_SAMPLES) -> np.ndarray:
+    """Indices of pulses with ``epoch`` quiet samples before and ``2*epoch`` after."""
+    stim = np.asarray(stimulation)
+    pulses = np.flatnonzero(stim > 0)
+    n = len(stim)
+    if pulses.size == 0:
+        return pulses
+    prev_gap = np.diff(pulses, prepend=-(10**9))
+    next_gap = np.diff(pulses, append=10**9)
+    ok = (prev_gap > epoch) & (next_gap > 2 * epoch) & (pulses >= epoch) & (pulses + 2 * epoch <= n)
+    return pulses[ok]
+
+
+def _epoch_rows(y, u, pulses, d, order=2):
+    """Regression data of eq. (10) over all epochs for delay d (no whitening terms)."""
+    idx = (pulses[:, None] + np.arange(TWITCH_SAMPLES)[None, :]).ravel()
+    cols = [-y[idx - i] for i in range(1, order + 1)]
+    cols += [u[idx - i - d] for i in range(1, order + 1)]  # pulses start after MAX_DELAY + 2
+    return np.column_stack(cols), y[idx], idx
+
+
+def fit_darma(y: np.ndarray, u: np.ndarray, pulses: np.ndarray, d: int, order: int = 2, iterations: int = 10):
+    """Generalised least squares of eq. (10) on the epochs for one delay.
+
+    Extended least squares: an equation-error fit, then repeatedly the lagged
+    residuals e_{k-1}, e_{k-2} are added as regressors (the whitening filter
+    c_1, c_2) and the fit repeated.  Returns (a, b, c, residual mean square).
+    """
+    X, target, idx = _epoch_rows(y, u, pulses, d, order)
+    e_full = np.zeros_like(y)
+    coef, *_ = np.linalg.lstsq(X, target, rcond=None)
+    e_full[idx] = target - X @ coef
+    c = np.zeros(order)
+    for _ in range(iterations):
+        E = np.column_stack([e_full[idx - i] for i in range(1, order + 1)])
+        Xe = np.hstack([X, E])
+        coef_full, *_ = np.linalg.lstsq(Xe, target, rcond=None)
+        e_new = np.zeros_like(y)
+        e_new[idx] = target - Xe @ coef_full
+        e_full = e_new
+        coef, c = coef_full[: 2 * order], coef_full[2 * order :]
+    resid = e_full[idx]
+    return coef[:order], coef[order:], c, float(np.mean(resid**2))
+
+
+# ============================================================================ leg
+
+
+def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification:
+    """Identify the passive system and models 1–3 from one trial of one leg."""
+    where = f"{trial.key} trial {trial.trial}"
+    if passive is None:
+        passive, p_rms, n_quiet = identify_passive([trial])
+    else:
+        p_rms, n_quiet = float("nan"), 0
+    peff = passive_effects(**passive)
+    base = paper_model(1, peff)
+    mi = np.asarray(
+        equivalent_acceleration(base, trial.angle_deg, trial.velocity_deg_s, trial.acceleration_deg_s2),
+        dtype=float,
+    )
+    u = trial.stimulation
+    pulses = isolated_twitches(u)
+    if pulses.size < MIN_TWITCHES:
+        raise IdentificationError(
+            f"{where}: only {pulses.size} isolated twitches (a pulse with {TWITCH_SAMPLES} quiet samples "
+            f"before and {2 * TWITCH_SAMPLES} after); at least {MIN_TWITCHES} are needed"
+        )
+    pulses = pulses[pulses > MAX_DELAY + 2]
+
+    # model 2 over all delays -> the delay of all models
+    fits = [fit_darma(mi, u, pulses, d) for d in range(MAX_DELAY + 1)]
+    residuals = np.array([f[3] for f in fits])
+    d = int(np.argmin(residuals))
+    a, b, c, _ = fits[d]
+
+    # integrated twitch responses (per unit recruitment)
+    epochs = pulses[:, None] + np.arange(TWITCH_SAMPLES)[None, :]
+    integrated = mi[epochs].sum(axis=1) / u[pulses]
+    g1 = float(mi[epochs].sum() / u[pulses].sum())
+    phi = trial.angle_deg[pulses + d]
+    dphi = trial.velocity_deg_s[pulses + d]
+
+    def resid3(p):
+        return p[0] * (1 + p[1] * phi) * (1 + p[2] * dphi) - integrated
+
+    fit3 = least_squares(resid3, np.array([g1, 0.0, 0.0]), method="lm", x_scale=np.array([g1, 1e-2, 1e-3]))
+    g2, ga, gv = fit3.x
+
+    models = {
+        "model1": paper_model(1, peff, delay=d).with_params(gain=g1),
+        "model2": paper_model(2, peff, delay=d).with_params(a=np.asarray(a), b=np.asarray(b)),
+        "model3": paper_model(3, peff, delay=d).with_params(gain=g2, gamma_angle=ga, gamma_velocity=gv),
+    }
+    rms1 = float(np.sqrt(np.mean((integrated - g1) ** 2)) / g1 * 100)
+    rms3 = float(np.sqrt(np.mean(fit3.fun**2)) / g1 * 100)
+    return LegIdentification(
+        leg=trial.key,
+        trial=trial.trial,
+        passive={k: float(v) for k, v in passive.items()},
+        passive_rms_residual=p_rms,
+        n_quiet=n_quiet,
+        delay=d,
+        delay_residuals=residuals,
+        models=models,
+        whitening={"c1": float(c[0]), "c2": float(c[1])},
+        pulses=pulses,
+        integrated=integrated,
+        angle_at_d=phi,
+        velocity_at_d=dphi,
+        g1_std=float(np.std(integrated, ddof=1)),
+        rms_error_pct={"model1": rms1, "model3": rms3},
+    )
+
+
+def identify_cohort(cohort: Cohort, trial: int = 1, progress: bool = False) -> dict[str, LegIdentification]:
+    """Identify every leg of the cohort from its trial number ``trial``."""
+    from ._progress import progress_bar
+
+    out = {}
+    for leg in progress_bar(cohort.legs, desc="identify", enabled=progress):
+        out[leg] = identify_leg(cohort.get(leg, trial))
+    return out

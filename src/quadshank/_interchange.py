@@ -1,0 +1,875 @@
+"""Interchange folders: a cohort as plain CSV files, read with full validation.
+
+The interchange format is what a laboratory exports by hand or from any tool;
+the NetCDF file of :class:`~quadshank._cohort.Cohort` is the native form.
+:func:`read_interchange` checks a folder completely and reports *every* problem
+it finds, each with file, column and line, before anything is loaded;
+:func:`write_interchange` writes a folder that reads back bit-identically;
+:func:`load_cohort` and :func:`convert` accept either form.
+
+Interchange folder format
+=========================
+
+A folder holding ``manifest.csv`` and one CSV file per trial (UTF-8, comma
+separated, first line a header; a UTF-8 byte-order mark and blank lines are
+tolerated; the row numbers quoted in error messages are line numbers as an
+editor shows them, the header being line 1).
+
+``manifest.csv`` — one row per trial:
+
+| column              | content                                                     |
+|---------------------|-------------------------------------------------------------|
+| `subject`           | subject identifier, non-empty (e.g. `TN`)                   |
+| `leg`               | `left` or `right`                                           |
+| `trial`             | trial number, a positive integer; per leg numbered 1..n     |
+| `file`              | path of the trial's CSV, relative to the folder (`/`-separated) |
+| `sampling_period_s` | optional column; sampling period in s, > 0 (default 0.01)   |
+
+Trial CSV — one row per sample, columns in any order, names exact:
+
+| column                | content                                                    |
+|-----------------------|------------------------------------------------------------|
+| `time_s`              | time [s], uniformly sampled, strictly increasing           |
+| `angle_deg`           | knee angle [deg]; 0 = shank at rest, positive = extension  |
+| `acceleration_deg_s2` | angular acceleration [deg/s²]                              |
+| `stimulation`         | recruitment level u in [0, 1] of the pulse delivered at that sample, 0 when none |
+| `velocity_deg_s`      | optional: measured angular velocity [deg/s]                |
+
+When `velocity_deg_s` is absent the velocity is derived from the angle
+(:func:`~quadshank._cohort.derive_velocity`) and the trial is marked
+``velocity_measured = False``.
+
+Validation rules
+----------------
+
+All files are checked and all problems are collected; if there is any, an
+:class:`InterchangeError` listing them is raised and nothing is loaded.
+
+1. **Manifest**: `manifest.csv` exists; required columns present, no unknown
+   column; `trial` a positive integer; `leg` is `left` or `right`; `subject`
+   non-empty; `sampling_period_s` a finite number > 0.
+2. **Listing**: no (subject, leg, trial) twice; no file listed twice; every
+   listed file exists (inside the folder); per leg the trials are numbered
+   1..n without gaps; every CSV file in the folder (recursively; hidden files
+   and folders excepted) is listed in the manifest.
+3. **Trial CSV structure**: required columns present, no unknown or duplicated
+   column; at least two data rows; every row has as many fields as the header;
+   every cell a finite number (`nan`, `inf` are rejected).
+4. **Time**: strictly increasing; uniform (each step within 1 % of the median
+   step); the median step equals the manifest's `sampling_period_s` within a
+   relative 1e-3.
+5. **Stimulation** within [0, 1].
+6. **Units**: an angle that never exceeds pi (3.2) in magnitude while the
+   trial is stimulated and the angle does move (peak-to-peak > 0.05) is taken
+   to be in radians and rejected.
+
+Writing uses ``repr`` of every float (shortest exact form), so a cohort read,
+written and read again is bit-identical.  Cohort attributes other than the
+trials' own fields are not stored in an interchange folder.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import difflib
+import math
+import os
+import re
+import tempfile
+from collections.abc import Iterable, Sequence
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+
+from ._cohort import Cohort, Trial, leg_key
+
+__all__ = [
+    "Problem",
+    "InterchangeError",
+    "read_interchange",
+    "write_interchange",
+    "load_cohort",
+    "convert",
+    "MANIFEST_NAME",
+    "DEFAULT_SAMPLING_PERIOD_S",
+]
+
+#: File name of the manifest inside an interchange folder.
+MANIFEST_NAME = "manifest.csv"
+#: Sampling period assumed when the manifest has no ``sampling_period_s`` column.
+DEFAULT_SAMPLING_PERIOD_S = 0.01
+
+_MANIFEST_REQUIRED = ("subject", "leg", "trial", "file")
+_MANIFEST_OPTIONAL = ("sampling_period_s",)
+_TRIAL_REQUIRED = ("time_s", "angle_deg", "acceleration_deg_s2", "stimulation")
+_TRIAL_OPTIONAL = ("velocity_deg_s",)
+#: Column order used when writing a trial file.
+_TRIAL_WRITE_ORDER = ("time_s", "angle_deg", "velocity_deg_s", "acceleration_deg_s2", "stimulation")
+_LEGS = ("left", "right")
+
+#: A step may differ from the median step by this fraction before the grid counts as non-uniform.
+UNIFORM_TOLERANCE = 0.01
+#: Relative tolerance between the median time step and the manifest's sampling period.
+PERIOD_TOLERANCE = 1e-3
+#: An angle whose magnitude never exceeds this (pi, rounded up) is suspected to be in radians.
+RADIAN_LIMIT = 3.2
+#: ... provided it moves by more than this (peak to peak) in a stimulated trial.
+RADIAN_MIN_RANGE = 0.05
+
+#: Individual problems reported per file, column and kind before they are summarised.
+_MAX_PER_KIND = 5
+#: Problems listed by ``str(InterchangeError)``.
+_MAX_LISTED = 50
+
+
+# --------------------------------------------------------------------------- errors
+@dataclasses.dataclass(frozen=True)
+class Problem:
+    """One problem found in an interchange folder.
+
+    ``file`` is the path relative to the folder, ``column`` the column name
+    (``None`` for a whole-row or whole-file problem), ``row`` the 1-based line
+    number as an editor shows it (the header is line 1; ``None`` for a
+    whole-file problem).
+    """
+
+    file: str
+    column: str | None
+    row: int | None
+    message: str
+
+    def __str__(self) -> str:
+        where = [self.file]
+        if self.column is not None:
+            where.append(f"column {self.column!r}")
+        if self.row is not None:
+            where.append(f"row {self.row}")
+        return f"{', '.join(where)}: {self.message}"
+
+
+class InterchangeError(ValueError):
+    """An interchange folder (or a cohort to be written as one) is invalid.
+
+    ``problems`` lists every problem found; ``str()`` gives one per line.
+    """
+
+    def __init__(self, problems: Iterable[Problem], context: str = "invalid interchange folder") -> None:
+        self.problems: list[Problem] = list(problems)
+        self.context = context
+        super().__init__(self.problems, context)
+
+    def __str__(self) -> str:
+        n = len(self.problems)
+        lines = [f"{self.context}: {n} problem{'s' if n != 1 else ''}"]
+        lines += [f"  {p}" for p in self.problems[:_MAX_LISTED]]
+        if n > _MAX_LISTED:
+            lines.append(f"  ... and {n - _MAX_LISTED} more")
+        return "\n".join(lines)
+
+
+def _report_cells(
+    problems: list[Problem], file: str, column: str, hits: Sequence[tuple[int, str]], what: str
+) -> None:
+    """Report offending cells individually, then summarise the rest of the same kind."""
+    for line, text in hits[:_MAX_PER_KIND]:
+        problems.append(Problem(file, column, line, what.format(text)))
+    rest = hits[_MAX_PER_KIND:]
+    if rest:
+        problems.append(
+            Problem(file, column, None, f"{len(rest)} more rows like this (rows {rest[0][0]} to {rest[-1][0]})")
+        )
+
+
+# --------------------------------------------------------------------------- CSV tables
+@dataclasses.dataclass
+class _Table:
+    """A CSV file split into header and data rows, with the line number of each row."""
+
+    columns: dict[str, int]  # known column name -> field index (first occurrence)
+    header_line: int
+    rows: list[list[str]]
+    lines: list[int]
+    well_formed: bool  # every data row has as many fields as the header
+
+
+def _read_table(
+    path: Path, file: str, required: Sequence[str], optional: Sequence[str], problems: list[Problem]
+) -> _Table | None:
+    """Read a CSV file, reporting structural problems; ``None`` when it is unusable."""
+    header: list[str] | None = None
+    header_line = 1
+    rows: list[list[str]] = []
+    lines: list[int] = []
+    reader = None
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            reader = csv.reader(fh)
+            for row in reader:
+                if not row or (len(row) == 1 and not row[0].strip()):
+                    continue  # blank line
+                if header is None:
+                    header = [c.strip() for c in row]
+                    header_line = reader.line_num
+                else:
+                    rows.append(row)
+                    lines.append(reader.line_num)
+    except UnicodeDecodeError as exc:
+        problems.append(Problem(file, None, None, f"not UTF-8 text ({exc.reason} at byte {exc.start})"))
+        return None
+    except csv.Error as exc:
+        line = reader.line_num if reader is not None else None
+        problems.append(Problem(file, None, line, f"malformed CSV: {exc}"))
+        return None
+    except OSError as exc:
+        problems.append(Problem(file, None, None, f"cannot be read: {exc.strerror or exc}"))
+        return None
+
+    if header is None:
+        problems.append(Problem(file, None, None, "empty file (expected a header line and data rows)"))
+        return None
+
+    known = tuple(required) + tuple(optional)
+    columns: dict[str, int] = {}
+    for i, name in enumerate(header):
+        if name in columns:
+            problems.append(Problem(file, name, header_line, "duplicated column"))
+        elif name not in known:
+            hint = difflib.get_close_matches(name, known, n=1)
+            label = "unnamed column" if not name else "unknown column"
+            msg = f"{label} (position {i + 1}); expected {', '.join(known)}"
+            if hint:
+                msg += f"; did you mean {hint[0]!r}?"
+            problems.append(Problem(file, name, header_line, msg))
+        else:
+            columns[name] = i
+    for name in required:
+        if name not in columns:
+            problems.append(Problem(file, name, header_line, f"missing column (header is: {','.join(header)})"))
+
+    if not rows:
+        problems.append(Problem(file, None, None, "no data rows (only the header)"))
+        return None
+
+    n_fields = len(header)
+    well_formed = True
+    bad_rows = [(line, row) for line, row in zip(lines, rows) if len(row) != n_fields]
+    if bad_rows:
+        well_formed = False
+        for line, row in bad_rows[:_MAX_PER_KIND]:
+            problems.append(Problem(file, None, line, f"{len(row)} fields, expected {n_fields} as in the header"))
+        if len(bad_rows) > _MAX_PER_KIND:
+            rest = bad_rows[_MAX_PER_KIND:]
+            problems.append(
+                Problem(file, None, None, f"{len(rest)} more rows with a wrong number of fields "
+                        f"(rows {rest[0][0]} to {rest[-1][0]})")
+            )
+        keep = [i for i, row in enumerate(rows) if len(row) == n_fields]
+        rows = [rows[i] for i in keep]
+        lines = [lines[i] for i in keep]
+    return _Table(columns, header_line, rows, lines, well_formed)
+
+
+def _parse_float_column(table: _Table, name: str, file: str, problems: list[Problem]) -> np.ndarray | None:
+    """The column as floats, or ``None`` (after reporting) when a cell is not a finite number."""
+    idx = table.columns[name]
+    cells = [row[idx] for row in table.rows]
+    try:
+        values = [float(c) for c in cells]
+    except ValueError:
+        values = None
+    if values is not None:
+        arr = np.array(values, dtype=float)
+        if np.isfinite(arr).all():
+            return arr
+    non_numeric: list[tuple[int, str]] = []
+    non_finite: list[tuple[int, str]] = []
+    for text, line in zip(cells, table.lines):
+        try:
+            v = float(text)
+        except ValueError:
+            non_numeric.append((line, text))
+            continue
+        if not math.isfinite(v):
+            non_finite.append((line, text))
+    _report_cells(problems, file, name, non_numeric, "non-numeric value {!r}")
+    _report_cells(problems, file, name, non_finite, "non-finite value {!r} (NaN and infinity are not allowed)")
+    return None
+
+
+# --------------------------------------------------------------------------- signal checks
+def _check_signals(
+    file: str,
+    lines: Sequence[int],
+    signals: dict[str, np.ndarray | None],
+    sampling_period_s: float | None,
+    period_origin: str,
+    problems: list[Problem],
+) -> None:
+    """Rules 4-6 on columns already known to be finite (``None`` = unusable, skipped).
+
+    ``lines`` gives the line number of each sample; ``period_origin`` says
+    where the expected sampling period comes from (for the message).
+    """
+    lines = np.asarray(lines)
+    time = signals.get("time_s")
+    if time is not None:
+        if time.size < 2:
+            problems.append(Problem(file, None, None, "only one data row; at least two are needed"))
+        else:
+            step = np.diff(time)
+            bad = np.flatnonzero(~(step > 0))
+            if bad.size:
+                i = int(bad[0])
+                problems.append(
+                    Problem(file, "time_s", int(lines[i + 1]),
+                            f"time not strictly increasing: {time[i + 1]!r} s follows {time[i]!r} s "
+                            f"(row {int(lines[i])})")
+                )
+            else:
+                median = float(np.median(step))
+                off = np.flatnonzero(np.abs(step - median) > UNIFORM_TOLERANCE * median)
+                if off.size:
+                    i = int(off[0])
+                    problems.append(
+                        Problem(file, "time_s", int(lines[i + 1]),
+                                f"non-uniform sampling: step {step[i]:.6g} s from the previous row differs "
+                                f"from the median step {median:.6g} s by more than {UNIFORM_TOLERANCE:.0%}")
+                    )
+                if sampling_period_s is not None and not math.isclose(
+                    median, sampling_period_s, rel_tol=PERIOD_TOLERANCE, abs_tol=0.0
+                ):
+                    problems.append(
+                        Problem(file, "time_s", int(lines[0]),
+                                f"sampling period {median:.6g} s (median time step) disagrees with "
+                                f"sampling_period_s = {sampling_period_s!r} s {period_origin}")
+                    )
+
+    stim = signals.get("stimulation")
+    if stim is not None:
+        out = np.flatnonzero((stim < 0) | (stim > 1))
+        _report_cells(
+            problems, file, "stimulation", [(int(lines[i]), repr(float(stim[i]))) for i in out],
+            "value {} outside [0, 1] (recruitment level of the pulse, 0 when none)",
+        )
+
+    angle = signals.get("angle_deg")
+    if angle is not None and stim is not None and angle.size:
+        magnitude = np.abs(angle)
+        peak = int(np.argmax(magnitude))
+        if (
+            magnitude[peak] <= RADIAN_LIMIT
+            and np.any(stim > 0)
+            and float(np.ptp(angle)) > RADIAN_MIN_RANGE
+        ):
+            problems.append(
+                Problem(file, "angle_deg", int(lines[peak]),
+                        f"values look like radians (max |angle| = {magnitude[peak]:.4g} <= pi); "
+                        "convert to degrees")
+            )
+
+
+# --------------------------------------------------------------------------- manifest
+@dataclasses.dataclass
+class _Entry:
+    """One manifest row; a field is ``None`` when it is invalid (already reported)."""
+
+    line: int
+    subject: str | None
+    leg: str | None
+    trial: int | None
+    file: str | None  # as written in the manifest (whitespace stripped)
+    key: str | None  # normalised relative path, for comparisons
+    path: Path | None  # the file, when it exists
+    sampling_period_s: float | None
+
+
+def _parse_trial_number(text: str) -> int | str:
+    """The trial number, or the reason it is not one."""
+    try:
+        value = int(text)
+    except ValueError:
+        try:
+            f = float(text)
+        except ValueError:
+            return f"non-numeric value {text!r}; expected a positive integer"
+        if not math.isfinite(f) or f != int(f):
+            return f"{text!r} is not an integer; expected a positive integer"
+        value = int(f)
+    if value < 1:
+        return f"non-positive value {text!r}; trials are numbered from 1"
+    return value
+
+
+def _normalise_relative(text: str) -> str | None:
+    """``text`` as a normalised relative POSIX path, or ``None`` when it leaves the folder."""
+    p = PurePosixPath(text.replace("\\", "/"))
+    if p.is_absolute() or re.match(r"^[A-Za-z]:", str(p)) or ".." in p.parts or not p.parts:
+        return None
+    return str(p)
+
+
+def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry], bool] | None:
+    """Manifest entries and whether the manifest has a ``sampling_period_s`` column."""
+    path = folder / MANIFEST_NAME
+    if not path.is_file():
+        problems.append(
+            Problem(MANIFEST_NAME, None, None,
+                    f"missing: {folder} has no {MANIFEST_NAME} (columns {','.join(_MANIFEST_REQUIRED)}"
+                    f"[,{_MANIFEST_OPTIONAL[0]}])")
+        )
+        return None
+    table = _read_table(path, MANIFEST_NAME, _MANIFEST_REQUIRED, _MANIFEST_OPTIONAL, problems)
+    if table is None or any(name not in table.columns for name in _MANIFEST_REQUIRED):
+        return None
+    has_period = "sampling_period_s" in table.columns
+    col = table.columns
+    entries = []
+    for row, line in zip(table.rows, table.lines):
+        def bad(column: str, message: str) -> None:
+            problems.append(Problem(MANIFEST_NAME, column, line, message))
+
+        subject: str | None = row[col["subject"]].strip()
+        if not subject:
+            bad("subject", "empty subject")
+            subject = None
+
+        leg: str | None = row[col["leg"]].strip()
+        if leg not in _LEGS:
+            bad("leg", f"{leg!r} is not 'left' or 'right'")
+            leg = None
+
+        trial = _parse_trial_number(row[col["trial"]].strip())
+        if isinstance(trial, str):
+            bad("trial", trial)
+            trial = None
+
+        period: float | None = DEFAULT_SAMPLING_PERIOD_S
+        if has_period:
+            text = row[col["sampling_period_s"]].strip()
+            try:
+                period = float(text)
+            except ValueError:
+                bad("sampling_period_s", f"non-numeric value {text!r}; expected the sampling period in s")
+                period = None
+            else:
+                if not (math.isfinite(period) and period > 0):
+                    bad("sampling_period_s", f"{text!r} is not a positive finite number of seconds")
+                    period = None
+
+        file: str | None = row[col["file"]].strip()
+        key = file_path = None
+        if not file:
+            bad("file", "empty file name")
+            file = None
+        else:
+            key = _normalise_relative(file)
+            if key is None:
+                bad("file", f"{file!r} must be a path relative to the folder, inside it")
+            elif key == MANIFEST_NAME:
+                bad("file", "the manifest cannot list itself")
+                key = None
+            else:
+                candidate = folder.joinpath(*PurePosixPath(key).parts)
+                if candidate.is_file():
+                    file_path = candidate
+                elif candidate.exists():
+                    bad("file", f"{file!r} is not a regular file")
+                else:
+                    bad("file", f"{file!r} does not exist")
+        entries.append(_Entry(line, subject, leg, trial, file, key, file_path, period))
+    return entries, has_period
+
+
+def _check_listing(
+    entries: Sequence[_Entry], complete: bool, file: str, problems: list[Problem]
+) -> None:
+    """Rule 2 within the manifest: duplicates and gaps.
+
+    ``complete`` says whether every entry's subject, leg and trial are valid;
+    gaps are only checked then (an invalid trial number would look like a gap).
+    """
+    first_row: dict[tuple[str, str, int], int] = {}
+    for e in entries:
+        if e.subject is None or e.leg is None or e.trial is None:
+            continue
+        ident = (e.subject, e.leg, e.trial)
+        if ident in first_row:
+            problems.append(
+                Problem(file, None, e.line,
+                        f"{leg_key(e.subject, e.leg)} trial {e.trial} listed twice "
+                        f"(rows {first_row[ident]} and {e.line})")
+            )
+        else:
+            first_row[ident] = e.line
+
+    first_file: dict[str, int] = {}
+    for e in entries:
+        if e.key is None:
+            continue
+        if e.key in first_file:
+            problems.append(
+                Problem(file, "file", e.line, f"{e.file!r} listed twice (rows {first_file[e.key]} and {e.line})")
+            )
+        else:
+            first_file[e.key] = e.line
+
+    if not complete:
+        return
+    legs: dict[str, list[_Entry]] = {}
+    for e in entries:
+        legs.setdefault(leg_key(e.subject, e.leg), []).append(e)
+    for key, rows in legs.items():
+        numbers = {e.trial for e in rows}
+        missing = sorted(set(range(1, max(numbers) + 1)) - numbers)
+        if not missing:
+            continue
+        # The row where the numbering jumps: the first trial numbered above the first gap.
+        jump = min((e for e in rows if e.trial > missing[0]), key=lambda e: e.trial)
+        shown = ", ".join(map(str, missing[:20])) + (", ..." if len(missing) > 20 else "")
+        problems.append(
+            Problem(file, "trial", jump.line,
+                    f"{key}: trial{'s' if len(missing) > 1 else ''} {shown} missing (trials of a leg must be "
+                    f"numbered 1..n without gaps; rows of {key}: {', '.join(str(e.line) for e in rows)})")
+        )
+
+
+def _csv_files(folder: Path) -> list[Path]:
+    """CSV files under ``folder`` (recursively), hidden files and folders excepted."""
+    found = []
+    for root, dirs, files in os.walk(folder):
+        dirs[:] = sorted(d for d in dirs if not d.startswith("."))
+        for name in sorted(files):
+            if name.lower().endswith(".csv") and not name.startswith("."):
+                found.append(Path(root, name))
+    return found
+
+
+def _file_id(path: Path) -> tuple[int, int]:
+    st = path.stat()
+    return (st.st_dev, st.st_ino)
+
+
+# --------------------------------------------------------------------------- reading
+def read_interchange(folder: str | os.PathLike) -> Cohort:
+    """Validate an interchange folder completely and load it as a :class:`Cohort`.
+
+    Every problem in every file is collected first; if there is any, an
+    :class:`InterchangeError` listing all of them is raised.  Trials keep the
+    manifest's order; ``Trial.source`` is the manifest's ``file`` value.
+    """
+    folder = Path(folder)
+    if not folder.exists():
+        raise FileNotFoundError(f"{folder}: no such folder")
+    if not folder.is_dir():
+        raise NotADirectoryError(f"{folder}: not a folder (an interchange folder holds {MANIFEST_NAME})")
+
+    problems: list[Problem] = []
+    context = f"{folder}: invalid interchange folder"
+    parsed = _read_manifest(folder, problems)
+    if parsed is None:
+        raise InterchangeError(problems, context)
+    entries, has_period = parsed
+    complete = all(e.subject is not None and e.leg is not None and e.trial is not None for e in entries)
+    _check_listing(entries, complete, MANIFEST_NAME, problems)
+
+    signals_of: dict[int, dict[str, np.ndarray | None]] = {}
+    seen_files: set[str] = set()
+    for i, e in enumerate(entries):
+        if e.path is None or e.key in seen_files:
+            continue
+        seen_files.add(e.key)
+        table = _read_table(e.path, e.file, _TRIAL_REQUIRED, _TRIAL_OPTIONAL, problems)
+        if table is None:
+            continue
+        signals = {
+            name: _parse_float_column(table, name, e.file, problems) if name in table.columns else None
+            for name in _TRIAL_REQUIRED + _TRIAL_OPTIONAL
+        }
+        if table.well_formed:
+            origin = (
+                f"in {MANIFEST_NAME} row {e.line}"
+                if has_period
+                else f"(the default; {MANIFEST_NAME} has no sampling_period_s column)"
+            )
+            _check_signals(e.file, table.lines, signals, e.sampling_period_s, origin, problems)
+        signals_of[i] = signals
+
+    listed = {_file_id(e.path) for e in entries if e.path is not None}
+    for path in _csv_files(folder):
+        rel = path.relative_to(folder).as_posix()
+        if rel == MANIFEST_NAME:
+            continue
+        if _file_id(path) not in listed:
+            problems.append(Problem(rel, None, None, f"CSV file not listed in {MANIFEST_NAME}"))
+
+    if problems:
+        raise InterchangeError(problems, context)
+
+    trials = []
+    for i, e in enumerate(entries):
+        s = signals_of[i]
+        trials.append(
+            Trial.from_signals(
+                e.subject,
+                e.leg,
+                e.trial,
+                e.sampling_period_s,
+                angle_deg=s["angle_deg"],
+                acceleration_deg_s2=s["acceleration_deg_s2"],
+                stimulation=s["stimulation"],
+                velocity_deg_s=s["velocity_deg_s"],
+                time_s=s["time_s"],
+                source=e.file,
+            )
+        )
+    return Cohort(tuple(trials), {"source": str(folder), "source_format": "interchange"})
+
+
+# --------------------------------------------------------------------------- writing
+def _usable_source(source: str) -> str | None:
+    """``source`` when it is a plain relative ``.csv`` path inside the folder, else ``None``."""
+    if not source or "\\" in source:
+        return None
+    p = PurePosixPath(source)
+    if (
+        p.is_absolute()
+        or str(p) != source
+        or any(part in ("..", ".") or part.startswith(".") for part in p.parts)
+        or p.suffix.lower() != ".csv"
+        or source.lower() == MANIFEST_NAME
+    ):
+        return None
+    return source
+
+
+def _default_name(t: Trial) -> str:
+    subject = re.sub(r"[^A-Za-z0-9_.-]", "_", t.subject).lstrip(".") or "subject"
+    return f"{subject}-{t.leg}-trial{t.trial}.csv"
+
+
+def _file_names(cohort: Cohort) -> list[str]:
+    """The file each trial is written to: its source when usable and unique, else a default name."""
+    names: list[str | None] = [None] * len(cohort)
+    taken: set[str] = set()  # compared case-insensitively (case-insensitive file systems)
+    for i, t in enumerate(cohort.trials):
+        src = _usable_source(t.source)
+        if src is not None and src.lower() not in taken:
+            names[i] = src
+            taken.add(src.lower())
+    for i, t in enumerate(cohort.trials):
+        if names[i] is None:
+            base = _default_name(t)
+            name, k = base, 2
+            while name.lower() in taken:
+                name = f"{base[:-4]}-{k}.csv"
+                k += 1
+            names[i] = name
+            taken.add(name.lower())
+    return names  # type: ignore[return-value]
+
+
+def _check_cohort(cohort: Cohort, names: Sequence[str]) -> list[Problem]:
+    """The validation rules applied to an in-memory cohort, as the written folder would be read."""
+    problems: list[Problem] = []
+    if not cohort.trials:
+        problems.append(Problem(MANIFEST_NAME, None, None, "the cohort has no trials"))
+    entries = []
+    for i, (t, name) in enumerate(zip(cohort.trials, names)):
+        line = i + 2
+        subject = t.subject if t.subject.strip() == t.subject and t.subject else None
+        if subject is None:
+            problems.append(Problem(MANIFEST_NAME, "subject", line, f"subject {t.subject!r} is empty or "
+                                    "has leading/trailing white space"))
+        leg = t.leg if t.leg in _LEGS else None
+        if leg is None:
+            problems.append(Problem(MANIFEST_NAME, "leg", line, f"{t.leg!r} is not 'left' or 'right'"))
+        trial = t.trial if t.trial >= 1 else None
+        if trial is None:
+            problems.append(Problem(MANIFEST_NAME, "trial", line, f"non-positive trial number {t.trial}"))
+        period = t.sampling_period_s if math.isfinite(t.sampling_period_s) and t.sampling_period_s > 0 else None
+        if period is None:
+            problems.append(Problem(MANIFEST_NAME, "sampling_period_s", line,
+                                    f"{t.sampling_period_s!r} is not a positive finite number of seconds"))
+        entries.append(_Entry(line, subject, leg, trial, name, name, None, period))
+    complete = all(e.subject is not None and e.leg is not None and e.trial is not None for e in entries)
+    _check_listing(entries, complete, MANIFEST_NAME, problems)
+
+    for t, e in zip(cohort.trials, entries):
+        lines = np.arange(2, t.n_samples + 2)
+        signals: dict[str, np.ndarray | None] = {}
+        for column in _TRIAL_WRITE_ORDER:
+            if column == "velocity_deg_s" and not t.velocity_measured:
+                continue
+            values = getattr(t, column)
+            bad = np.flatnonzero(~np.isfinite(values))
+            _report_cells(
+                problems, e.file, column, [(int(lines[j]), repr(float(values[j]))) for j in bad],
+                "non-finite value {} (NaN and infinity are not allowed)",
+            )
+            signals[column] = None if bad.size else values
+        if t.n_samples == 0:
+            problems.append(Problem(e.file, None, None, "no samples"))
+            continue
+        _check_signals(e.file, lines, signals, e.sampling_period_s, f"of the trial (row {e.line} of "
+                       f"{MANIFEST_NAME})", problems)
+    return problems
+
+
+def _write_trial_csv(trial: Trial, path: Path) -> None:
+    """Write one trial's CSV (velocity only when it was measured); floats as ``repr``."""
+    names = [n for n in _TRIAL_WRITE_ORDER if n != "velocity_deg_s" or trial.velocity_measured]
+    columns = [list(map(repr, getattr(trial, n).tolist())) for n in names]
+    with open(path, "w", encoding="utf-8", newline="") as fh:
+        fh.write(",".join(names) + "\n")
+        fh.writelines(",".join(cells) + "\n" for cells in zip(*columns))
+
+
+def _write_manifest(cohort: Cohort, names: Sequence[str], path: Path) -> None:
+    with open(path, "w", encoding="utf-8", newline="") as fh:
+        writer = csv.writer(fh, lineterminator="\n")
+        writer.writerow(_MANIFEST_REQUIRED + _MANIFEST_OPTIONAL)
+        for t, name in zip(cohort.trials, names):
+            writer.writerow([t.subject, t.leg, str(int(t.trial)), name, repr(float(t.sampling_period_s))])
+
+
+def _listed_in_manifest(folder: Path) -> list[str]:
+    """Files listed by an existing manifest (best effort; empty when there is none or it is unreadable)."""
+    path = folder / MANIFEST_NAME
+    if not path.is_file():
+        return []
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            reader = csv.DictReader(fh)
+            if reader.fieldnames is None or "file" not in [f.strip() for f in reader.fieldnames]:
+                return []
+            field = next(f for f in reader.fieldnames if f.strip() == "file")
+            return [row[field].strip() for row in reader if row.get(field)]
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return []
+
+
+def _make_dirs(path: Path, created: list[Path]) -> None:
+    """``mkdir -p``, recording the folders that did not exist yet."""
+    missing = []
+    p = path
+    while not p.exists():
+        missing.append(p)
+        p = p.parent
+    for d in reversed(missing):
+        d.mkdir()
+        created.append(d)
+
+
+def _temp_sibling(path: Path) -> Path:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    return Path(tmp)
+
+
+def write_interchange(cohort: Cohort, folder: str | os.PathLike) -> Path:
+    """Write ``cohort`` as an interchange folder; returns the folder.
+
+    The cohort is first checked against the same rules as
+    :func:`read_interchange` (an :class:`InterchangeError` is raised and
+    nothing is written when it would not read back).  Each trial goes to its
+    ``source`` name when that is a plain relative ``.csv`` path, otherwise to
+    ``{subject}-{leg}-trial{n}.csv``; velocity is written only when it was
+    measured.
+
+    The write is atomic per file and ordered: every file is first written under
+    a temporary hidden name next to its destination and only when all are
+    complete are they renamed into place, the manifest last.  A failure
+    leaves the folder as it was (a folder created by this call is removed).
+    When the folder held a previous interchange cohort, the trial files its
+    manifest listed and the new one does not are deleted afterwards; other
+    files are left alone.
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise NotADirectoryError(f"{folder}: exists and is not a folder")
+    names = _file_names(cohort)
+    problems = _check_cohort(cohort, names)
+    if problems:
+        raise InterchangeError(problems, f"cannot write {folder} as an interchange folder")
+
+    previous = _listed_in_manifest(folder)
+    created: list[Path] = []
+    staged: list[tuple[Path, Path]] = []  # (temporary, final)
+    try:
+        _make_dirs(folder, created)
+        for t, name in zip(cohort.trials, names):
+            final = folder.joinpath(*PurePosixPath(name).parts)
+            _make_dirs(final.parent, created)
+            tmp = _temp_sibling(final)
+            staged.append((tmp, final))
+            _write_trial_csv(t, tmp)
+        manifest = folder / MANIFEST_NAME
+        tmp = _temp_sibling(manifest)
+        staged.append((tmp, manifest))
+        _write_manifest(cohort, names, tmp)
+        for tmp, final in staged:  # the manifest is last
+            os.replace(tmp, final)
+    except BaseException:
+        for tmp, _ in staged:
+            tmp.unlink(missing_ok=True)
+        for d in reversed(created):
+            try:
+                d.rmdir()
+            except OSError:
+                pass
+        raise
+
+    written = {PurePosixPath(n) for n in names}
+    for old in previous:
+        key = _normalise_relative(old)
+        if key is None or PurePosixPath(key) in written or not key.lower().endswith(".csv"):
+            continue
+        stale = folder.joinpath(*PurePosixPath(key).parts)
+        if stale.is_file() and stale.name != MANIFEST_NAME:
+            stale.unlink()
+    return folder
+
+
+# --------------------------------------------------------------------------- either form
+def _is_netcdf_name(path: Path) -> bool:
+    return path.suffix.lower() == ".nc"
+
+
+def load_cohort(path: str | os.PathLike) -> Cohort:
+    """A cohort from an interchange folder or a NetCDF file (``.nc``)."""
+    path = Path(path)
+    if path.is_dir():
+        return read_interchange(path)
+    if path.is_file() and path.name == MANIFEST_NAME:
+        return read_interchange(path.parent)
+    if path.is_file() and _is_netcdf_name(path):
+        return Cohort.load_netcdf(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file or folder")
+    raise ValueError(
+        f"{path}: not a cohort; expected an interchange folder (with {MANIFEST_NAME}) or a NetCDF file (.nc)"
+    )
+
+
+def convert(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
+    """Convert between the two forms, losslessly; returns ``dst``.
+
+    An interchange folder becomes a NetCDF file (``dst`` must end in ``.nc``);
+    a NetCDF file becomes an interchange folder (``dst`` must not end in
+    ``.nc``).  The NetCDF file records the folder as the cohort's source.
+    """
+    src, dst = Path(src), Path(dst)
+    if src.is_dir():
+        if not _is_netcdf_name(dst):
+            raise ValueError(f"{dst}: an interchange folder converts to a NetCDF file; the name must end in .nc")
+        return read_interchange(src).save_netcdf(dst)
+    if src.is_file() and _is_netcdf_name(src):
+        if _is_netcdf_name(dst):
+            raise ValueError(f"{dst}: a NetCDF file converts to an interchange folder; give a folder name, not .nc")
+        return write_interchange(Cohort.load_netcdf(src), dst)
+    if not src.exists():
+        raise FileNotFoundError(f"{src}: no such file or folder")
+    raise ValueError(
+        f"{src}: cannot convert; expected an interchange folder (with {MANIFEST_NAME}) or a NetCDF file (.nc)"
+    )

@@ -1,0 +1,349 @@
+"""Model: a flat tuple of effects plus the delay, and the pure functions that run it.
+
+One sample of the discrete-time model (T_s, default 10 ms):
+
+1. the pulse delivered at sample k enters the input history;
+2. the delay selects the input reaching the muscle, u_{k-d} (eq. 1);
+3. the activation effect turns it into an equivalent acceleration m_k;
+4. gain effects multiply it, evaluated at the state at the start of the
+   sample: M_k/I = m_k · Π f_i(φ_k, φ̇_k) (eqs. 2, 5);
+5. the passive system (eq. 8) is integrated over T_s by one RK4 step with
+   M_k/I held constant, as in the paper.
+
+Everything is pure and jit-able; a :class:`Model` is a pytree whose leaves are
+the effects' parameter values and the delay, so it can be vmapped over draws.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Mapping
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._effects import (
+    Damping,
+    Darma,
+    Effect,
+    ExponentialElasticity,
+    Gravity,
+    LinearTorqueAngle,
+    LinearTorqueVelocity,
+    StepContext,
+    ZeroOrderActivation,
+    get_effect,
+)
+from ._paper import MAX_DELAY, SAMPLING_PERIOD_S
+
+__all__ = [
+    "Model",
+    "ActiveCarry",
+    "paper_model",
+    "PAPER_MODELS",
+    "passive_effects",
+    "equivalent_acceleration",
+    "simulate_angles",
+    "active_carries",
+    "predict_ahead",
+]
+
+#: Length of the input and angle history kept by the model (d ≤ MAX_DELAY, +2 spare).
+HISTORY = MAX_DELAY + 3
+
+
+@dataclasses.dataclass(frozen=True)
+class Model:
+    """A flat composition of effects with a delay of ``delay`` samples."""
+
+    effects: tuple[Effect, ...]
+    delay: Any = 4
+    name: str = ""
+    sampling_period_s: float = SAMPLING_PERIOD_S
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "effects", tuple(self.effects))
+        kinds = [e.kind for e in self.effects]
+        if kinds.count("activation") != 1:
+            raise ValueError(f"model {self.name!r} needs exactly one activation effect, has {kinds.count('activation')}")
+        if kinds.count("delay") > 1:
+            raise ValueError(f"model {self.name!r} has more than one delay effect")
+        names = [e.name for e in self.effects]
+        dup = {n for n in names if names.count(n) > 1}
+        if dup:
+            raise ValueError(f"model {self.name!r} lists effect(s) {sorted(dup)} twice")
+        pnames = [p.name for e in self.effects for p in e.declared_params()]
+        clash = {n for n in pnames if pnames.count(n) > 1}
+        if clash:
+            raise ValueError(f"model {self.name!r}: parameter name(s) {sorted(clash)} declared by two effects")
+
+    # ------------------------------------------------------------------ structure
+    @property
+    def activation(self) -> Effect:
+        return next(e for e in self.effects if e.kind == "activation")
+
+    @property
+    def gains(self) -> tuple[Effect, ...]:
+        return tuple(e for e in self.effects if e.kind == "gain")
+
+    @property
+    def passives(self) -> tuple[Effect, ...]:
+        return tuple(e for e in self.effects if e.kind == "passive")
+
+    @property
+    def delay_effect(self) -> Effect | None:
+        return next((e for e in self.effects if e.kind == "delay"), None)
+
+    def effect(self, name: str) -> Effect:
+        for e in self.effects:
+            if e.name == name:
+                return e
+        raise KeyError(f"model {self.name!r} has no effect {name!r}; it has {[e.name for e in self.effects]}")
+
+    # ------------------------------------------------------------------ parameters
+    def params(self) -> dict[str, Any]:
+        """All parameter values by (model-unique) name."""
+        out: dict[str, Any] = {}
+        for e in self.effects:
+            out.update(e.values())
+        return out
+
+    def with_params(self, values: Mapping[str, Any] | None = None, *, delay=None, **kw) -> Model:
+        """A copy with some parameters (by name) and/or the delay replaced."""
+        values = dict(values or {}, **kw)
+        remaining = dict(values)
+        effects = []
+        for e in self.effects:
+            mine = {p.name: remaining.pop(p.name) for p in e.declared_params() if p.name in remaining}
+            effects.append(e.with_values(**mine) if mine else e)
+        if remaining:
+            raise KeyError(f"model {self.name!r} has no parameter(s) {sorted(remaining)}; it has {sorted(self.params())}")
+        return dataclasses.replace(self, effects=tuple(effects), delay=self.delay if delay is None else delay)
+
+    def add(self, *effects: Effect | str, name: str | None = None) -> Model:
+        """A copy with further effects (instances, or registered names with default values)."""
+        new = tuple(get_effect(e)() if isinstance(e, str) else e for e in effects)
+        return dataclasses.replace(self, effects=self.effects + new, name=name or self.name)
+
+    def describe(self) -> dict:
+        """A JSON-able description of the structure (effects, parameters, units, priors, levels)."""
+        return {
+            "name": self.name,
+            "delay_samples": _to_py(self.delay),
+            "sampling_period_s": self.sampling_period_s,
+            "effects": [
+                {
+                    "name": e.name,
+                    "kind": e.kind,
+                    "class": type(e).__name__,
+                    "params": [
+                        {
+                            "name": p.name,
+                            "units": p.units,
+                            "support": p.support,
+                            "prior": list(p.prior),
+                            "level": p.level,
+                            "shape": list(p.shape),
+                            "value": _to_py(getattr(e, p.name)),
+                        }
+                        for p in e.declared_params()
+                    ],
+                }
+                for e in self.effects
+            ],
+        }
+
+    def flat_params(self) -> dict[str, float]:
+        """Parameters as plain floats, vectors spread as a1, a2, ... (for tables and JSON)."""
+        out = {}
+        for name, v in self.params().items():
+            arr = np.asarray(v, dtype=float)
+            if arr.ndim == 0:
+                out[name] = float(arr)
+            else:
+                for i, x in enumerate(arr.ravel(), start=1):
+                    out[f"{name}{i}"] = float(x)
+        return out
+
+
+def _to_py(v):
+    arr = np.asarray(v)
+    return arr.item() if arr.ndim == 0 else arr.tolist()
+
+
+jax.tree_util.register_dataclass(Model, data_fields=["effects", "delay"], meta_fields=["name", "sampling_period_s"])
+
+
+# ====================================================================== the paper's models
+
+
+def passive_effects(damping=1.0, gravity=1800.0, k1=25.0, k2=0.05) -> tuple[Effect, ...]:
+    """The passive system of eqs. (6)–(8) as three effects."""
+    return (Damping(damping), Gravity(gravity), ExponentialElasticity(k1, k2))
+
+
+def paper_model(number: int | str, passive: tuple[Effect, ...] | None = None, delay=4) -> Model:
+    """Model 1, 2 or 3 of the paper (eqs. 3–5) as a composition of effects."""
+    key = str(number).removeprefix("model")
+    passive = passive_effects() if passive is None else tuple(passive)
+    if key == "1":
+        active = (ZeroOrderActivation(),)
+    elif key == "2":
+        active = (Darma(a=jnp.array([-1.46, 0.59]), b=jnp.array([480.0, 510.0])),)
+    elif key == "3":
+        active = (ZeroOrderActivation(), LinearTorqueAngle(), LinearTorqueVelocity())
+    else:
+        raise ValueError(f"unknown model {number!r}; the paper's models are model1, model2, model3")
+    return Model(active + passive, delay=delay, name=f"model{key}")
+
+
+PAPER_MODELS = ("model1", "model2", "model3")
+
+
+# ====================================================================== one sample
+
+
+class ActiveCarry(NamedTuple):
+    """Everything but the passive state: input/angle history and effect states."""
+
+    u_hist: Any  # (HISTORY,) u_hist[i] = u_{k-1-i} before sample k is processed
+    angle_hist: Any  # (HISTORY,) angles at the same samples
+    activation: Any
+    gains: tuple
+
+
+def init_active(model: Model, dtype=jnp.float32) -> ActiveCarry:
+    z = jnp.zeros(HISTORY, dtype)
+    return ActiveCarry(
+        z, z, model.activation.init_state(), tuple(g.init_state() for g in model.gains)
+    )
+
+
+def _passive_acc(model: Model, angle, velocity):
+    acc = 0.0
+    for e in model.passives:
+        acc = acc + e.acceleration(angle, velocity)
+    return acc
+
+
+def _active_step(model: Model, carry: ActiveCarry, u_now, angle, velocity):
+    """Advance the active part by one sample; returns (carry, M_k/I)."""
+    u_hist = jnp.concatenate([jnp.reshape(u_now, (1,)).astype(carry.u_hist.dtype), carry.u_hist[:-1]])
+    angle_hist = jnp.concatenate([jnp.reshape(angle, (1,)).astype(carry.angle_hist.dtype), carry.angle_hist[:-1]])
+    d = jnp.asarray(model.delay)
+    delay_effect = model.delay_effect
+    if delay_effect is None:
+        u_del = u_hist[d]
+    else:
+        u_del = delay_effect.select(d, u_hist, angle_hist)
+    act_state, m = model.activation.step(carry.activation, u_del)
+    ctx = StepContext(angle=angle, velocity=velocity, u=u_del, u_now=u_now)
+    gain_states = []
+    for g, s in zip(model.gains, carry.gains):
+        s, f = g.gain(s, ctx)
+        gain_states.append(s)
+        m = m * f
+    return ActiveCarry(u_hist, angle_hist, act_state, tuple(gain_states)), m
+
+
+def _rk4(model: Model, angle, velocity, m, dt):
+    def f(a, v):
+        return v, m + _passive_acc(model, a, v)
+
+    k1a, k1v = f(angle, velocity)
+    k2a, k2v = f(angle + 0.5 * dt * k1a, velocity + 0.5 * dt * k1v)
+    k3a, k3v = f(angle + 0.5 * dt * k2a, velocity + 0.5 * dt * k2v)
+    k4a, k4v = f(angle + dt * k3a, velocity + dt * k3v)
+    angle = angle + dt / 6.0 * (k1a + 2 * k2a + 2 * k3a + k4a)
+    velocity = velocity + dt / 6.0 * (k1v + 2 * k2v + 2 * k3v + k4v)
+    return angle, velocity
+
+
+# ====================================================================== whole-trial functions
+
+
+def equivalent_acceleration(model: Model, angle, velocity, acceleration):
+    """M/I by eq. (8): measured acceleration minus the passive system's contribution."""
+    return acceleration - _passive_acc(model, angle, velocity)
+
+
+@jax.jit
+def simulate_angles(model: Model, stimulation, angle0=0.0, velocity0=0.0):
+    """Free-run simulation of the model driven by ``stimulation``; returns (angle, velocity, M/I).
+
+    Outputs are at samples 0..N-1 (state at the start of each sample; M/I applied over it).
+    """
+    stimulation = jnp.asarray(stimulation)
+    dt = model.sampling_period_s
+    carry0 = init_active(model, stimulation.dtype)
+
+    def body(c, u):
+        active, a, v = c
+        active, m = _active_step(model, active, u, a, v)
+        a2, v2 = _rk4(model, a, v, m, dt)
+        return (active, a2, v2), (a, v, m)
+
+    a0 = jnp.asarray(angle0, stimulation.dtype)
+    v0 = jnp.asarray(velocity0, stimulation.dtype)
+    _, (angle, velocity, m) = jax.lax.scan(body, (carry0, a0, v0), stimulation)
+    return angle, velocity, m
+
+
+@jax.jit
+def active_carries(model: Model, angle, velocity, stimulation) -> ActiveCarry:
+    """The active part's carry before each sample, driven by the *measured* state.
+
+    This is the paper's initialisation of the active part "on the basis of the
+    previous simulation run": the run started one sample earlier from the
+    measured state passes its active state on.  Returns an ActiveCarry whose
+    leaves have a leading axis of length N (one carry per start sample).
+    """
+    stimulation = jnp.asarray(stimulation)
+    carry0 = init_active(model, stimulation.dtype)
+
+    def body(c, x):
+        u, a, v = x
+        new, _ = _active_step(model, c, u, a, v)
+        return new, c
+
+    _, carries = jax.lax.scan(body, carry0, (stimulation, jnp.asarray(angle), jnp.asarray(velocity)))
+    return carries
+
+
+def predict_ahead(model: Model, angle, velocity, stimulation, starts, horizon: int = 100):
+    """k-step-ahead angle predictions from each start, one rollout of ``horizon`` samples each.
+
+    The passive part starts from the measured (angle, velocity) at the start
+    sample; the active part from :func:`active_carries`; the actual stimulation
+    drives the rollout.  Returns an array (len(starts), horizon) whose column
+    j-1 is the predicted angle j samples after the start.  Vectorised over starts.
+    """
+    return _predict_ahead(model, angle, velocity, stimulation, jnp.asarray(starts), horizon)
+
+
+@functools.partial(jax.jit, static_argnames=("horizon",))
+def _predict_ahead(model, angle, velocity, stimulation, starts, horizon):
+    angle = jnp.asarray(angle)
+    velocity = jnp.asarray(velocity)
+    stimulation = jnp.asarray(stimulation)
+    carries = active_carries(model, angle, velocity, stimulation)
+    dt = model.sampling_period_s
+    n = stimulation.shape[0]
+    padded = jnp.concatenate([stimulation, jnp.zeros(horizon, stimulation.dtype)])
+    windows = padded[starts[:, None] + jnp.arange(horizon)[None, :]]  # (S, horizon)
+    carry0 = jax.tree_util.tree_map(lambda x: x[jnp.clip(starts, 0, n - 1)], carries)
+
+    def one(active, a, v, us):
+        def body(c, u):
+            active, a, v = c
+            active, m = _active_step(model, active, u, a, v)
+            a, v = _rk4(model, a, v, m, dt)
+            return (active, a, v), a
+
+        _, pred = jax.lax.scan(body, (active, a, v), us)
+        return pred
+
+    return jax.vmap(one)(carry0, angle[starts], velocity[starts], windows)

@@ -1,0 +1,147 @@
+"""Figures like the paper's.  Each function takes data, returns a Figure, never shows it."""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from ._paper import HORIZON_MS, TABLE_V  # noqa: E402
+
+__all__ = ["plot_signals", "plot_twitch_dependence", "plot_predictions", "plot_j_vs_horizon", "plot_delay_scan"]
+
+_MODEL_COLOURS = {"model1": "tab:blue", "model2": "tab:orange", "model3": "tab:green"}
+
+
+def _window(trial, start_s: float, length_s: float):
+    dt = trial.sampling_period_s
+    i0 = int(round(start_s / dt))
+    i1 = min(trial.n_samples, i0 + int(round(length_s / dt)))
+    return slice(i0, i1)
+
+
+def _pulses(ax, t, u, y):
+    k = u > 0
+    ax.vlines(t[k], 0, y * u[k], color="k", lw=0.8, label="stimulation (scaled by u)")
+
+
+def plot_signals(trial, equivalent_acc, *, start_s: float = 20.0, length_s: float = 8.0):
+    """Fig. 2: angle, velocity, acceleration and equivalent acceleration M/I with pulses."""
+    sl = _window(trial, start_s, length_s)
+    t = trial.time_s[sl]
+    u = trial.stimulation[sl]
+    fig, axes = plt.subplots(4, 1, figsize=(9, 8), sharex=True)
+    axes[0].plot(t, trial.angle_deg[sl])
+    axes[0].set_ylabel("angle [deg]")
+    axes[1].plot(t, trial.velocity_deg_s[sl])
+    axes[1].set_ylabel("velocity [deg/s]")
+    acc = trial.acceleration_deg_s2[sl]
+    axes[2].plot(t, acc)
+    _pulses(axes[2], t, u, 0.8 * np.max(np.abs(acc)))
+    axes[2].set_ylabel("acceleration [deg/s²]")
+    mi = np.asarray(equivalent_acc)[sl]
+    axes[3].plot(t, mi)
+    _pulses(axes[3], t, u, 0.8 * np.max(np.abs(mi)))
+    axes[3].set_ylabel("M/I [deg/s²]")
+    axes[3].set_xlabel("time [s]")
+    velocity_note = "measured" if trial.velocity_measured else "derived from the angle"
+    axes[0].set_title(f"{trial.key}, trial {trial.trial}: measured signals (velocity {velocity_note})")
+    fig.tight_layout()
+    return fig
+
+
+def plot_twitch_dependence(ident):
+    """Figs. 3 and 4: integrated twitch responses against angle and velocity, raw and compensated."""
+    p = ident.models["model3"].flat_params()
+    ga, gv = p["gamma_angle"], p["gamma_velocity"]
+    phi, dphi, T = ident.angle_at_d, ident.velocity_at_d, ident.integrated
+    fig, axes = plt.subplots(2, 2, figsize=(9, 7))
+    panels = [
+        (axes[0, 0], phi, T, "φ at d [deg]", "ΣM/I [deg/s²]", "raw (model 1)"),
+        (axes[0, 1], dphi, T, "φ̇ at d [deg/s]", "ΣM/I [deg/s²]", "raw (model 1)"),
+        (axes[1, 0], phi, T / (1 + gv * dphi), "φ at d [deg]", "ΣM/I / (1 + γ_v φ̇)", "velocity compensated"),
+        (axes[1, 1], dphi, T / (1 + ga * phi), "φ̇ at d [deg/s]", "ΣM/I / (1 + γ_a φ)", "angle compensated"),
+    ]
+    for ax, x, y, xl, yl, title in panels:
+        ax.plot(x, y, ".", ms=3, alpha=0.6)
+        if len(x) > 1:
+            c = np.polyfit(x, y, 1)
+            xs = np.linspace(np.min(x), np.max(x), 10)
+            ax.plot(xs, np.polyval(c, xs), "r-", lw=1.5, label=f"slope {c[0]:.3g}")
+            ax.legend(fontsize=8)
+        ax.set_xlabel(xl)
+        ax.set_ylabel(yl)
+        ax.set_title(title, fontsize=9)
+    fig.suptitle(f"{ident.leg}, trial {ident.trial}: integrated twitch responses ({len(T)} isolated twitches)")
+    fig.tight_layout()
+    return fig
+
+
+def plot_predictions(trial, predicted: dict, p: int, *, start_s: float = 30.0, length_s: float = 20.0):
+    """Figs. 5 and 6: measured angle and the angle predicted ``p`` samples ahead, per model.
+
+    ``predicted[model] = (starts, pred)`` as returned by :func:`quadshank.predictions`.
+    """
+    sl = _window(trial, start_s, length_s)
+    names = sorted(predicted)
+    fig, axes = plt.subplots(len(names), 1, figsize=(9, 2.6 * len(names)), sharex=True, squeeze=False)
+    for ax, name in zip(axes[:, 0], names):
+        starts, pred = predicted[name]
+        target = starts + p
+        keep = (target >= sl.start) & (target < sl.stop)
+        ax.plot(trial.time_s[sl], trial.angle_deg[sl], "k-", lw=1.2, label="measured")
+        ax.plot(trial.time_s[target[keep]], pred[keep, p - 1], "--", color=_MODEL_COLOURS.get(name), lw=1.2,
+                label=f"{name}, {p * trial.sampling_period_s * 1000:.0f} ms ahead")
+        err = trial.angle_deg[target] - pred[:, p - 1]
+        ax.set_title(f"{name}: J = {np.sqrt(np.mean(err ** 2)):.2f}° over the trial", fontsize=9)
+        ax.set_ylabel("angle [deg]")
+        ax.legend(fontsize=8, loc="upper right")
+    axes[-1, 0].set_xlabel("time [s]")
+    fig.suptitle(f"{trial.key}, trial {trial.trial}: prediction {p * trial.sampling_period_s * 1000:.0f} ms ahead")
+    fig.tight_layout()
+    return fig
+
+
+def plot_j_vs_horizon(table: dict):
+    """Table V as a figure: mean J ± s.d. over legs against horizon, with the paper's values."""
+    trials = sorted(table)
+    fig, axes = plt.subplots(1, len(trials), figsize=(4.2 * len(trials), 3.8), sharey=True, squeeze=False)
+    for ax, trial in zip(axes[0], trials):
+        for model in sorted(table[trial]):
+            hs = sorted(table[trial][model])
+            mean = np.array([table[trial][model][h][0] for h in hs])
+            sd = np.nan_to_num(np.array([table[trial][model][h][1] for h in hs]))
+            colour = _MODEL_COLOURS.get(model)
+            ax.errorbar(hs, mean, yerr=sd, marker="o", capsize=3, color=colour, label=f"{model} (here)")
+            paper = TABLE_V.get(trial, {}).get(model)
+            if paper:
+                ax.plot(list(paper), [v[0] for v in paper.values()], ":", marker="x", color=colour,
+                        label=f"{model} (paper)")
+        ax.set_xscale("log")
+        ax.set_xticks(list(HORIZON_MS.values()))
+        ax.set_xticklabels([str(h) for h in HORIZON_MS.values()])
+        ax.set_xlabel("prediction horizon [ms]")
+        ax.set_title(f"trial {trial}")
+    axes[0, 0].set_ylabel("J_φ,p [deg]")
+    axes[0, -1].legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def plot_delay_scan(ident: dict):
+    """Model-2 residual against the delay d, per leg; the chosen d is marked."""
+    fig, ax = plt.subplots(figsize=(6, 3.8))
+    for leg, r in ident.items():
+        res = np.asarray(r.delay_residuals)
+        line, = ax.plot(np.arange(res.size), res, marker=".", label=leg)
+        ax.plot([r.delay], [res[r.delay]], "o", mfc="none", ms=10, color=line.get_color())
+    ax.set_yscale("log")
+    ax.set_xlabel("delay d [samples of 10 ms]")
+    ax.set_ylabel("model-2 residual mean square [(deg/s²)²]")
+    ax.set_title("Delay scan (circle: chosen d, the smallest residual)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,190 @@
+"""Tables I–V analogues as rows, written as CSV and Markdown.
+
+A table is a list of rows (dicts with the same keys, in column order).  Values
+are numbers or strings; numbers are formatted to 3 significant figures in
+Markdown and written in full in CSV.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from pathlib import Path
+
+from ._io import atomic_write_text
+from ._paper import TABLE_I, TABLE_II, TABLE_III, TABLE_IV, TABLE_V
+
+__all__ = [
+    "write_table",
+    "markdown_table",
+    "table_passive",
+    "table_i",
+    "table_ii",
+    "table_iii",
+    "table_iv",
+    "table_v_rows",
+    "sign_test_rows",
+]
+
+
+def _fmt(v) -> str:
+    if isinstance(v, str):
+        return v
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "–"
+    if isinstance(v, int):
+        return str(v)
+    return f"{v:.3g}"
+
+
+def markdown_table(rows: list[dict], title: str = "") -> str:
+    if not rows:
+        return f"### {title}\n\n(no rows)\n" if title else "(no rows)\n"
+    cols = list(rows[0])
+    lines = [f"### {title}", ""] if title else []
+    lines.append("| " + " | ".join(cols) + " |")
+    lines.append("|" + "|".join("---" for _ in cols) + "|")
+    for r in rows:
+        lines.append("| " + " | ".join(_fmt(r.get(c)) for c in cols) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_table(rows: list[dict], folder: str | Path, stem: str, title: str) -> str:
+    """Write ``stem.csv`` and ``stem.md`` in ``folder``; returns the Markdown."""
+    folder = Path(folder)
+    buf = io.StringIO()
+    if rows:
+        w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+        w.writeheader()
+        w.writerows(rows)
+    atomic_write_text(folder / f"{stem}.csv", buf.getvalue())
+    md = markdown_table(rows, title)
+    atomic_write_text(folder / f"{stem}.md", md)
+    return md
+
+
+def _leg_truth(truth: dict | None, leg: str) -> dict | None:
+    if not truth:
+        return None
+    return truth.get("legs", {}).get(leg)
+
+
+def table_passive(ident: dict, truth: dict | None = None) -> list[dict]:
+    rows = []
+    for leg, r in ident.items():
+        t = _leg_truth(truth, leg)
+        row = {"leg": leg}
+        for k, unit in (("damping", "1/s"), ("gravity", "deg/s²"), ("k1", "deg/s²"), ("k2", "1/deg")):
+            row[f"{k} [{unit}]"] = r.passive[k]
+            if t:
+                row[f"{k} true"] = t["passive"][k]
+        row["quiet samples"] = r.n_quiet
+        row["rms residual [deg/s²]"] = r.passive_rms_residual
+        rows.append(row)
+    return rows
+
+
+def table_i(ident: dict, truth: dict | None = None) -> list[dict]:
+    rows = []
+    for leg, r in ident.items():
+        t = _leg_truth(truth, leg)
+        row = {
+            "leg": leg,
+            "G'1 [deg/s²]": r.models["model1"].flat_params()["gain"],
+            "(std)": r.g1_std,
+            "d [ms]": r.delay * 10,
+            "twitches": len(r.pulses),
+        }
+        if t:
+            row["true G'2 (twitch integral at rest)"] = t["active"]["G2"]
+            row["true delay [ms]"] = t["active"]["delay_s"] * 1000
+        if leg in TABLE_I:
+            row["paper G'1"] = TABLE_I[leg]["G1"]
+            row["paper d [ms]"] = TABLE_I[leg]["delay"] * 10
+        rows.append(row)
+    return rows
+
+
+def table_ii(ident: dict, truth: dict | None = None) -> list[dict]:
+    rows = []
+    for leg, r in ident.items():
+        p = r.models["model2"].flat_params()
+        t = _leg_truth(truth, leg)
+        row = {"leg": leg, "a1": p["a1"], "a2": p["a2"], "b'1 [deg/s²]": p["b1"], "b'2 [deg/s²]": p["b2"]}
+        row.update({"c1": r.whitening["c1"], "c2": r.whitening["c2"]})
+        if t:
+            eq = t["model2_equivalent"]
+            row.update({f"true {k}": eq[k] for k in ("a1", "a2", "b1", "b2") if k in eq})
+        if leg in TABLE_II:
+            row.update({f"paper {k}": v for k, v in TABLE_II[leg].items()})
+        rows.append(row)
+    return rows
+
+
+def table_iii(ident: dict, truth: dict | None = None) -> list[dict]:
+    rows = []
+    for leg, r in ident.items():
+        p = r.models["model3"].flat_params()
+        t = _leg_truth(truth, leg)
+        row = {
+            "leg": leg,
+            "G'2 [deg/s²]": p["gain"],
+            "γ_angle [1/deg]": p["gamma_angle"],
+            "γ_velocity [s/deg]": p["gamma_velocity"],
+        }
+        if t:
+            row.update(
+                {
+                    "true G'2": t["active"]["G2"],
+                    "true γ_angle": t["active"]["gamma_angle"],
+                    "true γ_velocity": t["active"]["gamma_velocity"],
+                }
+            )
+        if leg in TABLE_III:
+            row.update({"paper G'2": TABLE_III[leg]["G2"], "paper γ_angle": TABLE_III[leg]["gamma_angle"]})
+            row["paper γ_velocity"] = TABLE_III[leg]["gamma_velocity"]
+        rows.append(row)
+    return rows
+
+
+def table_iv(ident: dict) -> list[dict]:
+    rows = []
+    for leg, r in ident.items():
+        row = {"leg": leg, "model 1 [%]": r.rms_error_pct["model1"], "model 3 [%]": r.rms_error_pct["model3"]}
+        if leg in TABLE_IV:
+            row["paper model 1 [%]"], row["paper model 3 [%]"] = TABLE_IV[leg]
+        rows.append(row)
+    return rows
+
+
+def table_v_rows(table: dict) -> list[dict]:
+    """Rows of the Table V analogue with the paper's values beside."""
+    rows = []
+    for trial in sorted(table):
+        for h in sorted({h for m in table[trial].values() for h in m}):
+            row = {"trial": trial, "horizon [ms]": int(h)}
+            for model in sorted(table[trial]):
+                mean, sd, _ = table[trial][model][h]
+                row[f"{model} mean"] = mean
+                row[f"{model} sd"] = sd
+            for model in sorted(table[trial]):
+                paper = TABLE_V.get(trial, {}).get(model, {}).get(int(h))
+                row[f"paper {model}"] = f"{paper[0]} ({paper[1]})" if paper else "–"
+            rows.append(row)
+    return rows
+
+
+def sign_test_rows(tests: list[dict]) -> list[dict]:
+    return [
+        {
+            "horizon [ms]": t["horizon_ms"],
+            "pair": f"{t['model_a']} vs {t['model_b']}",
+            "pairs": t["n_pairs"],
+            f"{'A'} better": t["a_better"],
+            f"{'B'} better": t["b_better"],
+            "p": t["p_value"],
+            "significant (α=0.05)": "yes: " + t["better"] if t["significant"] else "no",
+        }
+        for t in sorted(tests, key=lambda t: (t["horizon_ms"], t["model_a"], t["model_b"]))
+    ]

@@ -1,0 +1,93 @@
+"""J_φ,p (eq. 12), the sign test and the Table V analogue."""
+
+import sys
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from quadshank import Trial
+from quadshank._evaluate import prediction_errors, sign_tests, table_v
+from quadshank._model import paper_model, passive_effects, simulate_angles
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from reference_jphi import j_phi_loop  # noqa: E402
+
+PASSIVE = dict(damping=1.0, gravity=1750.0, k1=30.0, k2=0.05)
+PARAMS = {
+    "model1": {"gain": 1.1e4},
+    "model2": {"a1": -1.45, "a2": 0.6, "b1": 500.0, "b2": 600.0},
+    "model3": {"gain": 1.3e4, "gamma_angle": -8e-3, "gamma_velocity": -1.8e-3},
+}
+
+
+def _noisy_trial(n=700, seed=1):
+    """Angle data from a *different* model than the ones evaluated, plus noise."""
+    rng = np.random.default_rng(seed)
+    u = np.zeros(n)
+    t = 15
+    while t < n:
+        u[t] = 1.0
+        t += int(rng.integers(3, 9) if rng.random() < 0.3 else rng.integers(40, 120))
+    truth = paper_model(3, passive_effects(1.2, 1800.0, 25.0, 0.05)).with_params(
+        gain=1.5e4, gamma_angle=-1e-2, gamma_velocity=-2e-3, delay=5
+    )
+    a, v, _ = simulate_angles(truth, jnp.asarray(u))
+    a = np.asarray(a, float) + rng.normal(0, 0.2, n)
+    return Trial.from_signals("TN", "left", 2, 0.01, a, np.zeros(n), u)
+
+
+@pytest.mark.parametrize("name", ["model1", "model2", "model3"])
+def test_j_matches_a_plain_per_window_loop(name):
+    trial = _noisy_trial()
+    p = PARAMS[name]
+    if name == "model2":
+        model = paper_model(2, passive_effects(**PASSIVE), delay=4).with_params(
+            a=np.array([p["a1"], p["a2"]]), b=np.array([p["b1"], p["b2"]])
+        )
+    else:
+        model = paper_model(name, passive_effects(**PASSIVE), delay=4).with_params(**p)
+    ours = prediction_errors(model, trial)
+    ref = j_phi_loop(name, {**p, **PASSIVE}, 4, trial.angle_deg, trial.velocity_deg_s, trial.stimulation)
+    assert set(ours) == {10, 25, 50, 100}
+    for h in ours:
+        assert ours[h] == pytest.approx(ref[h], rel=2e-3), h
+    # errors grow with horizon on data from another model
+    vals = [ours[h] for h in (10, 25, 50, 100)]
+    assert vals[0] < vals[-1]
+
+
+def test_sign_test_counts_and_p_values():
+    legs = [f"L{i}" for i in range(5)]
+    J = {"model1": {}, "model3": {}, "model2": {}}
+    for i, leg in enumerate(legs):
+        for t in ("2", "3"):
+            J["model1"][leg] = J["model1"].get(leg, {})
+            J["model3"][leg] = J["model3"].get(leg, {})
+            J["model2"][leg] = J["model2"].get(leg, {})
+            J["model1"][leg][t] = {100: 2.0, 1000: 10.0}
+            J["model3"][leg][t] = {100: 2.0 + (0.1 if i % 2 else -0.1), 1000: 7.0}
+            # model2 beats model1 at 1 s in 9 of 10 pairs
+            J["model2"][leg][t] = {100: 2.0, 1000: 9.0 if (i, t) != (0, "2") else 11.0}
+    tests = {(r["model_a"], r["model_b"], r["horizon_ms"]): r for r in sign_tests(J)}
+    r = tests[("model1", "model3", 1000)]
+    assert (r["n_pairs"], r["a_better"], r["b_better"]) == (10, 0, 10)
+    assert r["p_value"] == pytest.approx(2 * 0.5**10)
+    assert r["significant"] and r["better"] == "model3"
+    r = tests[("model1", "model2", 1000)]
+    assert (r["a_better"], r["b_better"]) == (1, 9)
+    assert r["p_value"] == pytest.approx(2 * 11 * 0.5**10)  # P(X<=1) two-sided, n = 10
+    assert r["significant"]
+    r = tests[("model1", "model3", 100)]
+    assert not r["significant"] and r["better"] is None
+    r = tests[("model1", "model2", 100)]  # ties are dropped, as in a sign test
+    assert r["n_pairs"] == 0 and r["p_value"] == 1.0
+
+
+def test_table_v_is_mean_and_sd_over_legs():
+    J = {"model1": {"A": {"1": {100: 2.0}}, "B": {"1": {100: 4.0}}, "C": {"1": {100: 6.0}}}}
+    T = table_v(J)
+    mean, sd, n = T["1"]["model1"][100]
+    assert (mean, n) == (4.0, 3)
+    assert sd == pytest.approx(2.0)

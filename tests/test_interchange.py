@@ -1,0 +1,568 @@
+"""Interchange folders: round trips, conversion, every validation rule, atomic writes."""
+
+from __future__ import annotations
+
+import csv
+import pickle
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from quadshank import _interchange as ix
+from quadshank._cohort import Cohort, Trial, derive_velocity
+from quadshank._interchange import (
+    InterchangeError,
+    Problem,
+    convert,
+    load_cohort,
+    read_interchange,
+    write_interchange,
+)
+
+N = 300
+DT = 0.01
+PULSES = {20: 1.0, 90: 0.5, 160: 1.0, 230: 0.5}
+SIGNALS = ("time_s", "angle_deg", "velocity_deg_s", "acceleration_deg_s2", "stimulation")
+
+
+def make_trial(subject: str, leg: str, trial: int, phase: float, measured: bool = False) -> Trial:
+    k = np.arange(N)
+    t = k * DT
+    w = 2 * np.pi * 0.8
+    angle = 30.0 * np.sin(w * t + phase)
+    acceleration = -30.0 * w**2 * np.sin(w * t + phase)
+    stimulation = np.zeros(N)
+    for i, u in PULSES.items():
+        stimulation[i] = u
+    velocity = 30.0 * w * np.cos(w * t + phase) if measured else None
+    return Trial.from_signals(
+        subject, leg, trial, DT, angle, acceleration, stimulation, velocity_deg_s=velocity, time_s=t
+    )
+
+
+def make_cohort(measured: bool = False) -> Cohort:
+    return Cohort(
+        (
+            make_trial("TN", "left", 1, 0.0, measured),
+            make_trial("TN", "left", 2, 0.7, measured),
+            make_trial("JM", "right", 1, 1.3, measured),
+        )
+    )
+
+
+@pytest.fixture
+def cohort() -> Cohort:
+    return make_cohort()
+
+
+@pytest.fixture
+def folder(tmp_path, cohort) -> Path:
+    """A valid interchange folder: TN-left trials 1-2, JM-right trial 1, velocity derived."""
+    return write_interchange(cohort, tmp_path / "cohort")
+
+
+@pytest.fixture
+def measured_folder(tmp_path) -> Path:
+    """The same cohort with a measured velocity column."""
+    return write_interchange(make_cohort(measured=True), tmp_path / "measured")
+
+
+# --------------------------------------------------------------------------- helpers
+def read_rows(path: Path) -> list[list[str]]:
+    with open(path, newline="") as fh:
+        return list(csv.reader(fh))
+
+
+def write_rows(path: Path, rows: list[list[str]]) -> None:
+    with open(path, "w", newline="") as fh:
+        csv.writer(fh, lineterminator="\n").writerows(rows)
+
+
+def set_cell(path: Path, line: int, column: str, value: str) -> None:
+    """Set the cell at editor line ``line`` (header = 1) of ``column``."""
+    rows = read_rows(path)
+    rows[line - 1][rows[0].index(column)] = value
+    write_rows(path, rows)
+
+
+def drop_column(path: Path, column: str) -> None:
+    rows = read_rows(path)
+    j = rows[0].index(column)
+    write_rows(path, [r[:j] + r[j + 1 :] for r in rows])
+
+
+def add_column(path: Path, column: str, value: str) -> None:
+    rows = read_rows(path)
+    write_rows(path, [rows[0] + [column]] + [r + [value] for r in rows[1:]])
+
+
+def column(path: Path, name: str) -> np.ndarray:
+    rows = read_rows(path)
+    j = rows[0].index(name)
+    return np.array([float(r[j]) for r in rows[1:]])
+
+
+def set_column(path: Path, name: str, values) -> None:
+    rows = read_rows(path)
+    j = rows[0].index(name)
+    for r, v in zip(rows[1:], values):
+        r[j] = repr(float(v))
+    write_rows(path, rows)
+
+
+def problems_of(folder: Path) -> InterchangeError:
+    with pytest.raises(InterchangeError) as info:
+        read_interchange(folder)
+    return info.value
+
+
+def assert_problem(err: InterchangeError, file: str, column: str | None, row: int | None, text: str = "") -> Problem:
+    """``err`` has a problem at exactly (file, column, row) whose message contains ``text``."""
+    hits = [p for p in err.problems if (p.file, p.column, p.row) == (file, column, row) and text in p.message]
+    assert hits, f"no problem at {(file, column, row)} containing {text!r}; got:\n{err}"
+    message = str(err)
+    assert file in message
+    if column is not None:
+        assert f"column {column!r}" in message
+    if row is not None:
+        assert f"row {row}" in message
+    return hits[0]
+
+
+def same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+def assert_same_trials(a: Cohort, b: Cohort) -> None:
+    assert len(a) == len(b)
+    for x, y in zip(a, b):
+        assert (x.subject, x.leg, x.trial, x.velocity_measured) == (y.subject, y.leg, y.trial, y.velocity_measured)
+        assert x.sampling_period_s == y.sampling_period_s
+        for name in SIGNALS:
+            assert same_bits(getattr(x, name), getattr(y, name)), name
+
+
+TN1 = "TN-left-trial1.csv"
+TN2 = "TN-left-trial2.csv"
+JM1 = "JM-right-trial1.csv"
+MAN = "manifest.csv"
+
+
+# --------------------------------------------------------------------------- round trips
+def test_folder_layout(folder):
+    assert sorted(p.name for p in folder.iterdir()) == sorted([MAN, TN1, TN2, JM1])
+    assert read_rows(folder / MAN) == [
+        ["subject", "leg", "trial", "file", "sampling_period_s"],
+        ["TN", "left", "1", TN1, "0.01"],
+        ["TN", "left", "2", TN2, "0.01"],
+        ["JM", "right", "1", JM1, "0.01"],
+    ]
+
+
+def test_read_gives_bit_identical_arrays(folder, cohort):
+    loaded = read_interchange(folder)
+    assert_same_trials(loaded, cohort)
+    assert [t.source for t in loaded] == [TN1, TN2, JM1]
+    assert loaded.attrs == {"source": str(folder), "source_format": "interchange"}
+
+
+def test_write_read_write_is_identical(folder, tmp_path):
+    first = read_interchange(folder)
+    again = write_interchange(first, tmp_path / "again")
+    assert_same_trials(read_interchange(again), first)
+    for name in (MAN, TN1, TN2, JM1):
+        assert (again / name).read_bytes() == (folder / name).read_bytes()
+
+
+def test_velocity_written_only_when_measured(folder, measured_folder):
+    assert "velocity_deg_s" not in read_rows(folder / TN1)[0]
+    assert "velocity_deg_s" in read_rows(measured_folder / TN1)[0]
+    derived = read_interchange(folder)
+    measured = read_interchange(measured_folder)
+    assert not any(t.velocity_measured for t in derived)
+    assert all(t.velocity_measured for t in measured)
+    for t, original in zip(measured, make_cohort(measured=True)):
+        assert same_bits(t.velocity_deg_s, original.velocity_deg_s)
+
+
+def test_derived_velocity_is_derive_velocity(folder):
+    for t in read_interchange(folder):
+        np.testing.assert_array_equal(t.velocity_deg_s, derive_velocity(t.angle_deg, DT))
+
+
+def test_interchange_to_netcdf_to_interchange(measured_folder, tmp_path):
+    nc = convert(measured_folder, tmp_path / "cohort.nc")
+    assert nc == tmp_path / "cohort.nc" and nc.is_file()
+    back = convert(nc, tmp_path / "back")
+    assert read_rows(back / MAN) == read_rows(measured_folder / MAN)
+    assert_same_trials(read_interchange(back), read_interchange(measured_folder))
+    assert_same_trials(load_cohort(nc), read_interchange(measured_folder))
+    assert load_cohort(nc).attrs["source_format"] == "interchange"
+
+
+def test_netcdf_to_interchange_to_netcdf(tmp_path):
+    original = Cohort(make_cohort().trials[:2] + make_cohort(measured=True).trials[2:])
+    nc = original.save_netcdf(tmp_path / "a.nc")
+    folder = convert(nc, tmp_path / "folder")
+    nc2 = convert(folder, tmp_path / "b.nc")
+    assert_same_trials(Cohort.load_netcdf(nc2), original)
+    assert [t.velocity_measured for t in load_cohort(nc2)] == [False, False, True]
+
+
+def test_source_with_subfolder_is_kept(folder, tmp_path):
+    (folder / "trials").mkdir()
+    rows = read_rows(folder / MAN)
+    for r in rows[1:]:
+        shutil.move(folder / r[3], folder / "trials" / r[3])
+        r[3] = f"trials/{r[3]}"
+    write_rows(folder / MAN, rows)
+    loaded = read_interchange(folder)
+    assert loaded.trials[0].source == f"trials/{TN1}"
+    out = write_interchange(loaded, tmp_path / "out")
+    assert (out / "trials" / TN1).is_file()
+    assert read_rows(out / MAN) == rows
+
+
+def test_manifest_without_sampling_period_defaults(folder):
+    drop_column(folder / MAN, "sampling_period_s")
+    assert [t.sampling_period_s for t in read_interchange(folder)] == [0.01] * 3
+
+
+def test_column_order_is_free_and_hidden_csv_ignored(folder):
+    rows = read_rows(folder / TN1)
+    write_rows(folder / TN1, [r[::-1] for r in rows])
+    (folder / ".ipynb_checkpoints").mkdir()
+    shutil.copy(folder / TN2, folder / ".ipynb_checkpoints" / "copy.csv")
+    assert_same_trials(read_interchange(folder), make_cohort())
+
+
+def test_load_cohort_dispatch(folder, tmp_path):
+    assert len(load_cohort(folder)) == 3
+    assert len(load_cohort(folder / MAN)) == 3
+    nc = read_interchange(folder).save_netcdf(tmp_path / "c.nc")
+    assert len(load_cohort(nc)) == 3
+    other = tmp_path / "data.txt"
+    other.write_text("x")
+    with pytest.raises(ValueError, match="data.txt"):
+        load_cohort(other)
+    with pytest.raises(FileNotFoundError, match="nowhere"):
+        load_cohort(tmp_path / "nowhere")
+
+
+def test_convert_rejects_wrong_targets(folder, tmp_path):
+    with pytest.raises(ValueError, match=r"\.nc"):
+        convert(folder, tmp_path / "out.h5")
+    nc = convert(folder, tmp_path / "c.nc")
+    with pytest.raises(ValueError, match=r"\.nc"):
+        convert(nc, tmp_path / "d.nc")
+    other = tmp_path / "x.csv"
+    other.write_text("a")
+    with pytest.raises(ValueError, match="x.csv"):
+        convert(other, tmp_path / "y.nc")
+
+
+# --------------------------------------------------------------------------- error objects
+def test_problem_and_error_text():
+    p = Problem("trials/TN-left-1.csv", "angle_deg", 17, "non-numeric value 'abc'")
+    assert str(p) == "trials/TN-left-1.csv, column 'angle_deg', row 17: non-numeric value 'abc'"
+    assert str(Problem(MAN, None, None, "missing")) == "manifest.csv: missing"
+    err = InterchangeError([Problem("f.csv", "time_s", i + 2, "bad") for i in range(60)], "ctx")
+    lines = str(err).splitlines()
+    assert lines[0] == "ctx: 60 problems"
+    assert len(lines) == 1 + 50 + 1 and lines[-1].strip() == "... and 10 more"
+    assert isinstance(err, ValueError)
+    copy = pickle.loads(pickle.dumps(err))
+    assert copy.problems == err.problems and str(copy) == str(err)
+
+
+# --------------------------------------------------------------------------- rule 1: manifest
+def test_missing_manifest(folder):
+    (folder / MAN).unlink()
+    err = problems_of(folder)
+    assert_problem(err, MAN, None, None, "missing")
+
+
+def test_manifest_missing_column(folder):
+    drop_column(folder / MAN, "leg")
+    assert_problem(problems_of(folder), MAN, "leg", 1, "missing column")
+
+
+def test_manifest_unknown_column(folder):
+    add_column(folder / MAN, "notes", "ok")
+    assert_problem(problems_of(folder), MAN, "notes", 1, "unknown column")
+
+
+@pytest.mark.parametrize(
+    "line, col, value, text",
+    [
+        (3, "trial", "two", "non-numeric value 'two'"),
+        (3, "trial", "0", "non-positive"),
+        (4, "trial", "-1", "non-positive"),
+        (3, "trial", "1.5", "not an integer"),
+        (2, "leg", "up", "not 'left' or 'right'"),
+        (4, "leg", "Right", "not 'left' or 'right'"),
+        (2, "subject", "", "empty subject"),
+        (3, "sampling_period_s", "abc", "non-numeric"),
+        (3, "sampling_period_s", "0", "positive"),
+        (4, "sampling_period_s", "-0.01", "positive"),
+        (2, "sampling_period_s", "nan", "positive finite"),
+    ],
+)
+def test_manifest_bad_values(folder, line, col, value, text):
+    set_cell(folder / MAN, line, col, value)
+    assert_problem(problems_of(folder), MAN, col, line, text)
+
+
+# --------------------------------------------------------------------------- rule 2: listing
+def test_duplicated_trial(folder):
+    set_cell(folder / MAN, 3, "trial", "1")  # TN-left trial 2 -> 1, as row 2
+    p = assert_problem(problems_of(folder), MAN, None, 3, "listed twice")
+    assert "rows 2 and 3" in p.message and "TN-left trial 1" in p.message
+
+
+def test_file_listed_twice(folder):
+    set_cell(folder / MAN, 3, "file", TN1)
+    err = problems_of(folder)
+    p = assert_problem(err, MAN, "file", 3, "listed twice")
+    assert "rows 2 and 3" in p.message
+    assert_problem(err, TN2, None, None, "not listed")  # now an orphan
+
+
+def test_listed_file_missing(folder):
+    (folder / TN2).unlink()
+    assert_problem(problems_of(folder), MAN, "file", 3, "does not exist")
+
+
+@pytest.mark.parametrize("path", ["/etc/passwd", "../elsewhere.csv"])
+def test_listed_file_outside_folder(folder, path):
+    set_cell(folder / MAN, 4, "file", path)
+    assert_problem(problems_of(folder), MAN, "file", 4, "relative to the folder")
+
+
+def test_missing_trial_numbers(folder):
+    set_cell(folder / MAN, 3, "trial", "3")  # TN-left now has trials 1 and 3
+    p = assert_problem(problems_of(folder), MAN, "trial", 3, "trial 2 missing")
+    assert "TN-left" in p.message and "rows of TN-left: 2, 3" in p.message
+
+
+def test_unlisted_csv(folder):
+    (folder / "extra").mkdir()
+    shutil.copy(folder / TN1, folder / "extra" / "TN-left-trial3.csv")
+    assert_problem(problems_of(folder), "extra/TN-left-trial3.csv", None, None, "not listed in manifest.csv")
+
+
+# --------------------------------------------------------------------------- rule 3: trial CSV structure
+def test_trial_missing_column(folder):
+    drop_column(folder / TN2, "acceleration_deg_s2")
+    assert_problem(problems_of(folder), TN2, "acceleration_deg_s2", 1, "missing column")
+
+
+def test_trial_unknown_column(folder):
+    add_column(folder / JM1, "force_N", "1.0")
+    assert_problem(problems_of(folder), JM1, "force_N", 1, "unknown column")
+
+
+def test_trial_misspelt_column_gets_a_hint(folder):
+    rows = read_rows(folder / TN1)
+    rows[0][rows[0].index("angle_deg")] = "angle_degs"
+    write_rows(folder / TN1, rows)
+    err = problems_of(folder)
+    assert_problem(err, TN1, "angle_degs", 1, "did you mean 'angle_deg'")
+    assert_problem(err, TN1, "angle_deg", 1, "missing column")
+
+
+def test_trial_empty_file(folder):
+    (folder / TN1).write_text("")
+    assert_problem(problems_of(folder), TN1, None, None, "empty file")
+
+
+def test_trial_header_only(folder):
+    (folder / TN1).write_text(",".join(read_rows(folder / TN1)[0]) + "\n")
+    assert_problem(problems_of(folder), TN1, None, None, "no data rows")
+
+
+def test_trial_wrong_number_of_fields(folder):
+    rows = read_rows(folder / TN1)
+    rows[9] = rows[9][:-1]  # line 10
+    write_rows(folder / TN1, rows)
+    assert_problem(problems_of(folder), TN1, None, 10, "3 fields, expected 4")
+
+
+@pytest.mark.parametrize("value", ["abc", "", "1,5"])
+def test_trial_non_numeric(folder, value):
+    set_cell(folder / TN1, 17, "angle_deg", value)
+    assert_problem(problems_of(folder), TN1, "angle_deg", 17, f"non-numeric value {value!r}")
+
+
+@pytest.mark.parametrize("value", ["nan", "NaN", "inf", "-inf", "Infinity"])
+@pytest.mark.parametrize("col", ["acceleration_deg_s2", "time_s"])
+def test_trial_non_finite(folder, value, col):
+    set_cell(folder / JM1, 42, col, value)
+    assert_problem(problems_of(folder), JM1, col, 42, f"non-finite value {value!r}")
+
+
+def test_non_finite_measured_velocity(measured_folder):
+    set_cell(measured_folder / TN2, 5, "velocity_deg_s", "nan")
+    assert_problem(problems_of(measured_folder), TN2, "velocity_deg_s", 5, "non-finite")
+
+
+def test_many_bad_cells_are_summarised(folder):
+    rows = read_rows(folder / TN1)
+    j = rows[0].index("angle_deg")
+    for r in rows[1:]:
+        r[j] = "x"
+    write_rows(folder / TN1, rows)
+    err = problems_of(folder)
+    assert len([p for p in err.problems if p.file == TN1]) == 6
+    assert_problem(err, TN1, "angle_deg", 2, "non-numeric value 'x'")
+    assert_problem(err, TN1, "angle_deg", None, f"{N - 5} more rows")
+
+
+# --------------------------------------------------------------------------- rule 4: time
+def test_time_not_increasing(folder):
+    t = column(folder / TN1, "time_s")
+    set_cell(folder / TN1, 50, "time_s", repr(float(t[47])))  # line 50 holds sample 48; equal to line 49
+    assert_problem(problems_of(folder), TN1, "time_s", 50, "not strictly increasing")
+
+
+def test_time_non_uniform(folder):
+    t = column(folder / TN1, "time_s")
+    set_cell(folder / TN1, 50, "time_s", repr(float(t[48]) + 0.002))
+    p = assert_problem(problems_of(folder), TN1, "time_s", 50, "non-uniform sampling")
+    assert "0.012" in p.message and "0.01" in p.message
+
+
+def test_sampling_period_disagrees_with_csv(folder):
+    set_column(folder / JM1, "time_s", np.arange(N) * 0.02)
+    p = assert_problem(problems_of(folder), JM1, "time_s", 2, "disagrees")
+    assert "0.02" in p.message and "0.01" in p.message and "manifest.csv row 4" in p.message
+
+
+def test_sampling_period_disagrees_with_manifest(folder):
+    set_cell(folder / MAN, 2, "sampling_period_s", "0.001")
+    p = assert_problem(problems_of(folder), TN1, "time_s", 2, "disagrees")
+    assert "0.001" in p.message
+
+
+def test_sampling_period_within_tolerance(folder):
+    set_cell(folder / MAN, 2, "sampling_period_s", "0.010005")  # 5e-4 relative
+    assert read_interchange(folder).trials[0].sampling_period_s == 0.010005
+
+
+# --------------------------------------------------------------------------- rules 5 and 6
+@pytest.mark.parametrize("value", ["1.5", "-0.1", "100"])
+def test_stimulation_out_of_range(folder, value):
+    set_cell(folder / TN2, 30, "stimulation", value)
+    assert_problem(problems_of(folder), TN2, "stimulation", 30, "outside [0, 1]")
+
+
+def test_angle_in_radians(folder):
+    angle = np.deg2rad(column(folder / JM1, "angle_deg"))
+    set_column(folder / JM1, "angle_deg", angle)
+    row = int(np.argmax(np.abs(angle))) + 2
+    assert_problem(problems_of(folder), JM1, "angle_deg", row, "look like radians")
+
+
+def test_small_angles_without_stimulation_are_fine(folder):
+    set_column(folder / JM1, "angle_deg", np.deg2rad(column(folder / JM1, "angle_deg")))
+    set_column(folder / JM1, "stimulation", np.zeros(N))
+    assert read_interchange(folder).trials[2].angle_deg.max() < 1
+
+
+# --------------------------------------------------------------------------- all problems at once
+def test_two_errors_in_two_files(folder):
+    set_cell(folder / TN1, 17, "angle_deg", "abc")
+    set_cell(folder / JM1, 30, "stimulation", "2")
+    result = None
+    with pytest.raises(InterchangeError) as info:
+        result = read_interchange(folder)
+    assert result is None
+    err = info.value
+    assert_problem(err, TN1, "angle_deg", 17, "non-numeric")
+    assert_problem(err, JM1, "stimulation", 30, "outside")
+    assert len(err.problems) == 2
+    assert str(err).splitlines()[0].endswith("2 problems")
+
+
+# --------------------------------------------------------------------------- writing
+def test_write_refuses_a_cohort_that_would_not_read_back(tmp_path, cohort):
+    gap = cohort.select(trials=[2])  # TN-left trial 2 without trial 1
+    with pytest.raises(InterchangeError) as info:
+        write_interchange(gap, tmp_path / "out")
+    assert_problem(info.value, MAN, "trial", 2, "trial 1 missing")
+    bad = make_trial("TN", "left", 1, 0.0)
+    stim = bad.stimulation.copy()
+    stim[10] = 2.0
+    with pytest.raises(InterchangeError) as info:
+        write_interchange(Cohort((bad.replace(stimulation=stim),)), tmp_path / "out")
+    assert_problem(info.value, TN1, "stimulation", 12, "outside")
+    assert not (tmp_path / "out").exists()
+
+
+def test_write_uses_default_names_for_unusable_sources(tmp_path):
+    trials = [
+        make_trial("TN", "left", 1, 0.0).replace(source="/raw/TN_L1.mat"),
+        make_trial("TN", "left", 2, 0.0).replace(source="../x.csv"),
+        make_trial("JM", "right", 1, 0.0).replace(source="JM/r1.csv"),
+    ]
+    out = write_interchange(Cohort(trials), tmp_path / "out")
+    assert [r[3] for r in read_rows(out / MAN)[1:]] == [TN1, TN2, "JM/r1.csv"]
+
+
+def test_rewrite_replaces_previous_cohort(folder, cohort):
+    (folder / "notes.txt").write_text("keep me")
+    write_interchange(cohort.select(legs=["TN-left"]), folder)
+    assert not (folder / JM1).exists()
+    assert (folder / "notes.txt").read_text() == "keep me"
+    assert len(read_interchange(folder)) == 2
+
+
+def _fail_after_first(monkeypatch):
+    original = ix._write_trial_csv
+    calls = []
+
+    def flaky(trial, path):
+        calls.append(path)
+        if len(calls) > 1:
+            Path(path).write_text("time_s,angle")  # half written
+            raise OSError("disk full")
+        original(trial, path)
+
+    monkeypatch.setattr(ix, "_write_trial_csv", flaky)
+    return calls
+
+
+def test_failed_write_leaves_no_folder(tmp_path, cohort, monkeypatch):
+    calls = _fail_after_first(monkeypatch)
+    target = tmp_path / "new" / "cohort"
+    with pytest.raises(OSError, match="disk full"):
+        write_interchange(cohort, target)
+    assert len(calls) == 2
+    assert not (target / MAN).exists()
+    assert not (tmp_path / "new").exists()
+
+
+def test_failed_write_keeps_previous_folder(folder, monkeypatch):
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    changed = make_cohort(measured=True)
+    _fail_after_first(monkeypatch)
+    with pytest.raises(OSError, match="disk full"):
+        write_interchange(changed, folder)
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+    assert_same_trials(read_interchange(folder), make_cohort())
+
+
+def test_spreadsheet_export_bom_and_crlf(folder):
+    for name in (MAN, TN1):
+        text = (folder / name).read_text()
+        (folder / name).write_bytes(b"\xef\xbb\xbf" + text.replace("\n", "\r\n").encode())
+    assert_same_trials(read_interchange(folder), make_cohort())
+    set_cell(folder / TN1, 17, "angle_deg", "abc")
+    assert_problem(problems_of(folder), TN1, "angle_deg", 17, "non-numeric")
+
+
+def test_write_refuses_an_empty_cohort(tmp_path):
+    with pytest.raises(InterchangeError, match="no trials"):
+        write_interchange(Cohort(()), tmp_path / "empty")
