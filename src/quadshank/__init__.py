@@ -1,7 +1,43 @@
-"""quadshank: identification of electrically stimulated quadriceps–shank dynamics."""
+"""quadshank: identification of electrically stimulated quadriceps–shank dynamics.
+
+After Franken et al., IEEE Trans. Rehab. Eng. 1995.  Models are compositions of
+effects (:class:`Effect`) run in JAX; classical identification follows the
+paper's eqs. (8)–(11); predictions are scored by J_φ,p (eq. 12).
+"""
 
 from ._cohort import Cohort, Trial, derive_velocity, leg_key
+from ._effects import (
+    Damping,
+    Darma,
+    Effect,
+    ExponentialElasticity,
+    Gravity,
+    LinearTorqueAngle,
+    LinearTorqueVelocity,
+    Param,
+    StepContext,
+    ZeroOrderActivation,
+    get_effect,
+    register_effect,
+    registered_effects,
+)
+from ._evaluate import evaluate_cohort, prediction_errors, predictions, sign_tests, table_v
+from ._identify import IdentificationError, identify_cohort, identify_leg, identify_passive
+from ._interchange import InterchangeError, convert, load_cohort, read_interchange, write_interchange
+from ._model import Model, equivalent_acceleration, paper_model, passive_effects, predict_ahead, simulate_angles
+from ._simulate import EFFECTS, default_truth, simulate_cohort
 
 __version__ = "0.1.0"
 
-__all__ = ["Cohort", "Trial", "derive_velocity", "leg_key", "__version__"]
+__all__ = [
+    "Cohort", "Trial", "derive_velocity", "leg_key",
+    "Effect", "Param", "StepContext", "register_effect", "registered_effects", "get_effect",
+    "ZeroOrderActivation", "Darma", "LinearTorqueAngle", "LinearTorqueVelocity",
+    "Damping", "Gravity", "ExponentialElasticity",
+    "Model", "paper_model", "passive_effects", "equivalent_acceleration", "simulate_angles", "predict_ahead",
+    "IdentificationError", "identify_leg", "identify_cohort", "identify_passive",
+    "evaluate_cohort", "prediction_errors", "predictions", "sign_tests", "table_v",
+    "InterchangeError", "read_interchange", "write_interchange", "load_cohort", "convert",
+    "EFFECTS", "default_truth", "simulate_cohort",
+    "__version__",
+]  # fmt: skip

@@ -1,0 +1,81 @@
+"""The command line end to end on a small simulated cohort, and its error handling."""
+
+import json
+
+import numpy as np
+import pytest
+
+from quadshank._cli import main
+from quadshank._interchange import load_cohort
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim")
+    assert main(["--quiet", "simulate", "--out", str(out), "--minutes", "2", "--legs", "TN-left,JM-right"]) == 0
+    return out
+
+
+def test_simulate_identify_evaluate(data, tmp_path):
+    truth = json.loads((data / "truth.json").read_text())
+    assert set(truth["legs"]) == {"TN-left", "JM-right"}
+    assert main(["--quiet", "identify", str(data), "--out", str(tmp_path / "id")]) == 0
+    s = json.loads((tmp_path / "id" / "summary.json").read_text())
+    assert set(s) == {"TN-left", "JM-right"}
+    for leg in s:
+        assert abs(s[leg]["delay_samples"] - truth["legs"][leg]["active"]["delay_samples"]) <= 1
+        assert set(s[leg]["model3"]) >= {"gain", "gamma_angle", "gamma_velocity"}
+    for name in ("table1", "table2", "table3", "table4", "passive"):
+        assert (tmp_path / "id" / "tables" / f"{name}.csv").exists()
+        assert (tmp_path / "id" / "tables" / f"{name}.md").exists()
+    assert (tmp_path / "id" / "figures" / "fig2_signals.png").stat().st_size > 10_000
+
+    assert main(["--quiet", "evaluate", str(data), "--out", str(tmp_path / "ev"), "--identified", str(tmp_path / "id")]) == 0
+    ev = json.loads((tmp_path / "ev" / "summary.json").read_text())
+    assert set(ev["J"]) == {"model1", "model2", "model3"}
+    for model in ev["J"]:
+        assert set(ev["J"][model]) == {"1", "2", "3"}
+        hs = ev["J"][model]["2"]
+        assert set(hs) == {"100", "250", "500", "1000"}
+        assert hs["100"] < hs["1000"]  # errors grow with horizon
+    assert (tmp_path / "ev" / "figures" / "fig6_predictions_1s.png").exists()
+
+
+def test_convert_round_trip(data, tmp_path):
+    nc = tmp_path / "cohort.nc"
+    assert main(["--quiet", "convert", str(data), str(nc)]) == 0
+    assert main(["--quiet", "convert", str(nc), str(tmp_path / "back")]) == 0
+    a, b = load_cohort(data), load_cohort(tmp_path / "back")
+    for ta, tb in zip(a, b):
+        assert np.array_equal(ta.angle_deg, tb.angle_deg) and np.array_equal(ta.stimulation, tb.stimulation)
+
+
+def test_expected_errors_are_one_line_with_exit_code_2(data, tmp_path, capsys):
+    bad = tmp_path / "bad"
+    main(["--quiet", "convert", str(data), str(tmp_path / "c.nc")])
+    main(["--quiet", "convert", str(tmp_path / "c.nc"), str(bad)])
+    f = next(bad.glob("*TN-left*trial1.csv"))
+    lines = f.read_text().splitlines()
+    cells = lines[5].split(",")
+    cells[1] = "oops"
+    lines[5] = ",".join(cells)
+    f.write_text("\n".join(lines) + "\n")
+    capsys.readouterr()
+    assert main(["--quiet", "identify", str(bad), "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("quadshank: error:") and "Traceback" not in err
+    assert f.name in err and "row 6" in err
+    assert not (tmp_path / "x" / "summary.json").exists()  # nothing half-written
+    assert main(["--quiet", "evaluate", str(data), "--out", str(tmp_path / "y"), "--identified", str(tmp_path / "nope")]) == 2
+    assert "no identification here" in capsys.readouterr().err
+    assert main(["--quiet", "simulate", "--out", str(tmp_path / "z"), "--effects", "telepathy"]) == 2
+    assert "telepathy" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_reproduce_small(tmp_path):
+    assert main(["--quiet", "reproduce", "--out", str(tmp_path / "r"), "--minutes", "2", "--legs", "TN-left,OT-left"]) == 0
+    s = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert s["recovery_ok"] is True
+    report = (tmp_path / "r" / "report.md").read_text()
+    assert "Table V" in report and "Recovery" in report
