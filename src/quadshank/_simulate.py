@@ -99,16 +99,16 @@ The density was calibrated per leg and recruitment level (as an
 experimenter would, to bring each leg through the operating range; section
 III-C) so that the cohort's mean RMS knee angle about 0 is near the paper's
 23.6°/24.1° (trials 1–2) and 19.3° (trial 3), while trial 1 keeps ≥ 150
-isolated twitches in 5 min (``p_burst`` ≤ 0.45 at u = 1):
+isolated twitches in 5 min (``p_burst`` ≤ 0.38 at u = 1):
 
 =========  ====================  ====================
 leg        u = 1: p_burst, max   u = 0.5: p_burst, max
 =========  ====================  ====================
-TN-left    0.45, 4               0.70, 8
-TN-right   0.45, 5               0.70, 8
-JM-left    0.45, 8               0.70, 8
-JM-right   0.45, 8               0.70, 8
-OT-left    0.42, 12              0.70, 8
+TN-left    0.22, 3               0.40, 4
+TN-right   0.25, 4               0.55, 6
+JM-left    0.35, 6               0.70, 8
+JM-right   0.32, 6               0.70, 8
+OT-left    0.38, 10              0.80, 10
 =========  ====================  ====================
 
 The swing saturates: longer or more frequent bursts mostly raise the mean
