@@ -102,6 +102,42 @@ def run_evaluate_and_report(args, cohort, models, out):
     return summary
 
 
+def cmd_fit(args) -> int:
+    from ._fit import FitSettings
+    from ._interchange import load_cohort
+    from ._pipeline import run_fit
+
+    cohort = load_cohort(Path(args.data))
+    settings = FitSettings(
+        chains=args.chains,
+        warmup=args.warmup,
+        draws=args.draws,
+        seed=args.seed,
+        trials=tuple(int(t) for t in _csv_list(args.trials)),
+    )
+    legs = _csv_list(args.legs) if args.legs else None
+    summary = run_fit(
+        cohort, args.out, args.model, args.add_effect or (), settings, legs=legs, progress=not args.quiet
+    )
+    for leg, s in summary["legs"].items():
+        p = s["delay_posterior"]
+        _say(args, f"{leg}: P(d) mode {s['delay_mode_samples']} samples ({max(p):.2f})")
+    diag = summary["diagnostics"]
+    _say(
+        args,
+        f"R-hat max {diag['rhat_max']:.3f}, bulk ESS min {diag['ess_bulk_min']:.0f}, "
+        f"divergences {diag['divergences']}, E-BFMI min {diag['bfmi_min']:.2f}",
+    )
+    if not diag["ok"]:
+        print(f"quadshank: {summary['banner']}", file=sys.stderr)
+        for a in diag["advice"]:
+            print(f"quadshank: advice: {a}", file=sys.stderr)
+        print(f"quadshank: the fit is saved in {args.out} but should not be trusted", file=sys.stderr)
+        return 3
+    _say(args, f"fit.nc and summary.json in {args.out}")
+    return 0
+
+
 def cmd_reproduce(args, default_out: str | None = None) -> int:
     from ._pipeline import run_reproduce
 
@@ -165,6 +201,19 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--out", required=True)
     e.add_argument("--identified", default="", help="output folder of `quadshank identify` (default: identify now)")
     e.set_defaults(func=cmd_evaluate)
+
+    f = sub.add_parser("fit", help="hierarchical Bayesian fit (NUTS) of one model across legs")
+    f.add_argument("data", help="interchange folder or .nc cohort file")
+    f.add_argument("--model", choices=["model1", "model2", "model3"], default="model3")
+    f.add_argument("--add-effect", action="append", metavar="NAME", help="extend the model by a registered effect")
+    f.add_argument("--trials", default="1", help="identification trials, comma-separated (default 1, as the paper)")
+    f.add_argument("--legs", default="", help="legs, comma-separated (default: all in the data)")
+    f.add_argument("--chains", type=int, default=4)
+    f.add_argument("--warmup", type=int, default=1000)
+    f.add_argument("--draws", type=int, default=1000)
+    f.add_argument("--seed", type=int, default=0)
+    f.add_argument("--out", required=True)
+    f.set_defaults(func=cmd_fit)
 
     r = sub.add_parser("reproduce", help="simulate, identify, evaluate: the paper end to end")
     r.add_argument("--out", required=True)

@@ -73,8 +73,11 @@ class Param:
 
     ``prior`` is a tuple ``(family, *args)`` with family one of ``normal``
     (loc, scale) or ``lognormal`` (loc and scale of the log); it describes the
-    population-level belief in the parameter's own units.  ``shape`` is ``()``
-    for a scalar, or a tuple for a vector parameter.
+    population-level belief in the parameter's own units; for a vector
+    parameter loc and scale may be tuples, one entry per component.  ``shape``
+    is ``()`` for a scalar, or a tuple for a vector parameter.  The hierarchical
+    fit (:mod:`quadshank._fit`) turns each declaration into population, subject
+    and leg levels down to ``level``.
     """
 
     name: str
@@ -94,9 +97,11 @@ class Param:
             raise ValueError(f"parameter {self.name!r}: prior family {self.prior[0]!r} not known")
 
     @property
-    def typical(self) -> float:
-        """A central value of the prior, in the parameter's units."""
+    def typical(self):
+        """A central value of the prior, in the parameter's units (a tuple for vectors)."""
         family, loc, scale = self.prior[:3]
+        if isinstance(loc, (tuple, list)):
+            return tuple(math.exp(x) if family == "lognormal" else float(x) for x in loc)
         return math.exp(loc) if family == "lognormal" else float(loc)
 
 
@@ -115,6 +120,11 @@ class Effect:
     kind: ClassVar[str] = ""
     name: ClassVar[str] = ""
     params: ClassVar[tuple[Param, ...]] = ()
+    #: Activation effects only: "sample" when the effect describes the twitch's
+    #: shape, "twitch" when only its integral (see :mod:`quadshank._likelihood`).
+    resolution: ClassVar[str] = "sample"
+    #: Activation effects only: samples of the impulse response the likelihood keeps.
+    response_length: ClassVar[int] = 40
 
     # --- introspection ------------------------------------------------------------
     def declared_params(self) -> tuple[Param, ...]:
@@ -187,6 +197,10 @@ class ZeroOrderActivation(Effect):
 
     kind = "activation"
     name = "zero_order"
+    #: The likelihood compares it with data summed over each twitch window (see _likelihood).
+    resolution = "twitch"
+    #: Samples of the response to one pulse (its impulse response is one sample).
+    response_length = 1
     params = (
         Param(
             "gain",
@@ -214,13 +228,23 @@ class Darma(Effect):
 
     kind = "activation"
     name = "darma"
+    #: Its twitch has a shape, so the likelihood compares it with every sample.
+    resolution = "sample"
+    #: Samples of the impulse response kept (poles near 0.77: 0.77**40 < 1e-4).
+    response_length = 40
     params = (
-        Param("a", "1", prior=("normal", 0.0, 1.0), doc="autoregressive coefficients a_1..a_N", shape=(2,)),
+        Param(
+            "a",
+            "1",
+            prior=("normal", (-1.46, 0.59), (0.2, 0.1)),
+            doc="autoregressive coefficients a_1..a_N; Table II: a_1 -1.50..-1.41, a_2 0.55..0.61",
+            shape=(2,),
+        ),
         Param(
             "b",
             "deg/s^2",
-            prior=("normal", 500.0, 300.0),
-            doc="moving-average coefficients b'_1..b'_N",
+            prior=("normal", (500.0, 500.0), (300.0, 300.0)),
+            doc="moving-average coefficients b'_1..b'_N; Table II: 3.2e2..6.5e2",
             shape=(2,),
         ),
     )
@@ -229,7 +253,13 @@ class Darma(Effect):
 
     def declared_params(self):
         n = self.order
-        return tuple(dataclasses.replace(p, shape=(n,)) for p in self.params)
+        if n == 2:
+            return self.params
+        # other orders: a weakly informative prior per coefficient
+        generic = {"a": ((0.0,) * n, (0.5,) * n), "b": ((300.0,) * n, (300.0,) * n)}
+        return tuple(
+            dataclasses.replace(p, shape=(n,), prior=(p.prior[0], *generic[p.name])) for p in self.params
+        )
 
     @property
     def order(self) -> int:

@@ -307,3 +307,32 @@ def run_reproduce(
     atomic_write_text(out / "report.md", "\n".join(report))
     write_json(out / "summary.json", summary)
     return summary
+
+
+# ============================================================================ hierarchical fit
+
+
+def run_fit(
+    cohort: Cohort,
+    out: str | Path,
+    model: str = "model3",
+    add_effects=(),
+    settings=None,
+    legs=None,
+    *,
+    progress: bool = False,
+) -> dict:
+    """Hierarchical NUTS fit of one model; writes DIR/fit.nc and DIR/summary.json, returns the summary."""
+    from ._fit import FitSettings, build_model, fit
+    from ._fitio import begin_fit, save_fit, to_inference_data
+
+    settings = settings or FitSettings()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    m = build_model(model, add_effects)
+    begin_fit(out)
+    t0 = time.perf_counter()
+    mcmc, data = fit(cohort, m, settings, legs=legs, progress=progress)
+    sampling = time.perf_counter() - t0
+    idata = to_inference_data(mcmc, m, data, settings)
+    return save_fit(idata, out, extra={"sampling_seconds": sampling})

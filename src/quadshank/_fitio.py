@@ -1,0 +1,274 @@
+"""A fit as a file: arviz InferenceData with everything needed to use it later.
+
+``DIR/fit.nc`` holds the posterior (hierarchical parameters, leg and subject
+values, per-leg noise, ``delay_logp`` = log P(d | θ, data) per draw and the
+drawn ``delay``), ``log_likelihood`` per leg and 1-s segment (the PSIS-LOO
+unit, see :mod:`quadshank._likelihood`), ``observed_data`` (acceleration),
+``constant_data`` (angle, velocity, stimulation, sample mask), ``sample_stats``
+and, as the attribute ``quadshank_model``, the model's description (JSON).
+``DIR/summary.json`` condenses it.  Both are written atomically, fit.nc
+first and summary.json last; summary.json is removed before a new fit starts,
+so a folder whose fit was interrupted never looks complete.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ._fit import (
+    FitSettings,
+    describe_fit,
+    from_json,
+    model_from_description,
+    model_params,
+    pointwise_loglik,
+    sample_delays,
+    to_json,
+)
+from ._io import write_json
+from ._likelihood import N_DELAYS, LikelihoodData
+from ._model import Model
+
+__all__ = [
+    "to_inference_data",
+    "diagnose_sampling",
+    "fit_summary",
+    "save_fit",
+    "load_fit",
+    "FitFolderError",
+    "THRESHOLDS",
+]
+
+#: Acceptance of a fit: R-hat below, ESS (bulk and tail) at least per chain, no divergence, E-BFMI above.
+THRESHOLDS = {"rhat_max": 1.01, "ess_per_chain": 100, "divergences": 0, "bfmi_min": 0.3}
+#: Posterior quantiles of the reported interval (90 %).
+INTERVAL = (0.05, 0.95)
+
+
+class FitFolderError(FileNotFoundError):
+    """A folder without a complete fit."""
+
+
+def to_inference_data(mcmc, model: Model, data: LikelihoodData, settings: FitSettings):
+    """InferenceData of a finished run, pointwise log-likelihood included."""
+    import arviz as az
+
+    samples = {k: np.asarray(v) for k, v in mcmc.get_samples(group_by_chain=True).items()}
+    chains, draws = samples["delay_logp"].shape[:2]
+    delays = sample_delays(samples["delay_logp"].reshape(chains * draws, data.n_legs, N_DELAYS), settings.seed)
+    flat = {k: v.reshape(chains * draws, *v.shape[2:]) for k, v in samples.items()}
+    ll = pointwise_loglik(model, data, flat, delays)
+    samples["delay"] = delays.reshape(chains, draws, data.n_legs)
+
+    legs = list(data.legs)
+    subjects = list(data.subjects)
+    coords = {"leg": legs, "subject": subjects, "delay_samples": np.arange(N_DELAYS)}
+    dims = {"delay_logp": ["leg", "delay_samples"], "delay": ["leg"], "sigma": ["leg"], "nu": ["leg"]}
+    for p in model_params(model):
+        comp = [f"{p.name}_dim"] if p.shape else []
+        if p.shape:
+            coords[f"{p.name}_dim"] = np.arange(p.shape[0])
+        dims[p.name] = ["leg", *comp]
+        dims[f"{p.name}_subject"] = ["subject", *comp]
+        if p.level in ("subject", "leg"):
+            dims[f"{p.name}_x_subject"] = ["subject", *comp]
+            dims[f"{p.name}_z_subject"] = ["subject", *comp]
+        if p.level == "leg":
+            dims[f"{p.name}_x_leg"] = ["leg", *comp]
+            dims[f"{p.name}_z_leg"] = ["leg", *comp]
+    extra = mcmc.get_extra_fields(group_by_chain=True)
+    stats = {"diverging": np.asarray(extra["diverging"]), "energy": np.asarray(extra["energy"])}
+    if "num_steps" in extra:
+        stats["n_steps"] = np.asarray(extra["num_steps"])
+    n = data.angle.shape[1]
+    coords["sample"] = np.arange(n)
+    coords["segment"] = np.arange(data.n_segments)
+    idata = az.from_dict(
+        posterior=samples,
+        sample_stats=stats,
+        log_likelihood={"segment": ll.reshape(chains, draws, data.n_legs, data.n_segments)},
+        observed_data={"acceleration": data.acceleration},
+        constant_data={
+            "angle": data.angle,
+            "velocity": data.velocity,
+            "stimulation": data.stimulation,
+            "sample_mask": data.sample_mask.astype(np.int8),
+            "segment_mask": data.segment_mask.astype(np.int8),
+        },
+        coords=coords,
+        dims={
+            **dims,
+            "segment": ["leg", "segment"],
+            "acceleration": ["leg", "sample"],
+            "angle": ["leg", "sample"],
+            "velocity": ["leg", "sample"],
+            "stimulation": ["leg", "sample"],
+            "sample_mask": ["leg", "sample"],
+            "segment_mask": ["leg", "segment"],
+        },
+    )
+    idata.posterior.attrs["quadshank_model"] = to_json(describe_fit(model, data, settings))
+    return idata
+
+
+def _sampled_vars(idata) -> list[str]:
+    """Variables checked for convergence: everything sampled or derived, but the discrete delay."""
+    return [v for v in idata.posterior.data_vars if v not in ("delay", "delay_logp")]
+
+
+def diagnose_sampling(idata) -> dict:
+    """R-hat, bulk and tail ESS, divergences, E-BFMI against :data:`THRESHOLDS`, with advice."""
+    import arviz as az
+
+    names = _sampled_vars(idata)
+    post = idata.posterior[names]
+    chains = idata.posterior.sizes["chain"]
+    rhat = az.rhat(post)
+    ess_bulk = az.ess(post, method="bulk")
+    ess_tail = az.ess(post, method="tail")
+
+    def extreme(ds, fn):
+        vals = [float(fn(np.asarray(ds[v]))) for v in ds.data_vars if np.isfinite(np.asarray(ds[v])).any()]
+        return fn(np.array(vals)) if vals else float("nan")
+
+    def nanmax(a):
+        return np.nanmax(a)
+
+    def nanmin(a):
+        return np.nanmin(a)
+
+    rhat_max = float(extreme(rhat, nanmax)) if chains > 1 else float("nan")
+    ess_bulk_min = float(extreme(ess_bulk, nanmin))
+    ess_tail_min = float(extreme(ess_tail, nanmin))
+    divergences = int(np.asarray(idata.sample_stats["diverging"]).sum())
+    bfmi = np.atleast_1d(az.bfmi(idata))
+    bfmi_min = float(np.min(bfmi))
+    ess_needed = THRESHOLDS["ess_per_chain"] * chains
+    problems, advice = [], []
+    if chains < 2:
+        problems.append("one chain: R-hat cannot be computed")
+        advice.append("run at least 2 chains (--chains 4)")
+    elif not rhat_max < THRESHOLDS["rhat_max"]:
+        problems.append(f"R-hat {rhat_max:.3f} ≥ {THRESHOLDS['rhat_max']}: chains disagree")
+        advice.append("run longer (--warmup, --draws) or check for several posterior modes")
+    if not ess_bulk_min >= ess_needed:
+        problems.append(f"bulk ESS {ess_bulk_min:.0f} < {ess_needed} ({THRESHOLDS['ess_per_chain']} per chain)")
+        advice.append("draw more (--draws)")
+    if not ess_tail_min >= ess_needed:
+        problems.append(f"tail ESS {ess_tail_min:.0f} < {ess_needed}: the 90 % intervals are unreliable")
+        advice.append("draw more (--draws)")
+    if divergences > THRESHOLDS["divergences"]:
+        problems.append(f"{divergences} divergent transitions: the sampler missed part of the posterior")
+        advice.append("raise the target acceptance, or use the non-centred form for sparse data")
+    if not bfmi_min > THRESHOLDS["bfmi_min"]:
+        problems.append(f"E-BFMI {bfmi_min:.2f} ≤ {THRESHOLDS['bfmi_min']}: poor exploration of the energy")
+        advice.append("reparameterise (centred vs non-centred levels) or tighten the priors")
+    return {
+        "ok": not problems,
+        "rhat_max": rhat_max,
+        "ess_bulk_min": ess_bulk_min,
+        "ess_tail_min": ess_tail_min,
+        "divergences": divergences,
+        "bfmi_min": bfmi_min,
+        "chains": int(chains),
+        "draws": int(idata.posterior.sizes["draw"]),
+        "thresholds": {**THRESHOLDS, "ess_min": ess_needed},
+        "problems": problems,
+        "advice": list(dict.fromkeys(advice)),
+    }
+
+
+def _interval(values: np.ndarray) -> dict:
+    lo, hi = np.quantile(values, INTERVAL, axis=0)
+    return {"median": np.median(values, axis=0).tolist(), "lo": lo.tolist(), "hi": hi.tolist()}
+
+
+def fit_summary(idata) -> dict:
+    """Per leg: delay posterior and each parameter's median and 90 % interval; diagnostics."""
+    desc = from_json(idata.posterior.attrs["quadshank_model"])
+    post = idata.posterior
+    flat = {v: np.asarray(post[v]).reshape(-1, *post[v].shape[2:]) for v in post.data_vars}
+    delay_post = np.exp(flat["delay_logp"]).mean(axis=0)  # (legs, D)
+    legs = {}
+    for i, leg in enumerate(desc["legs"]):
+        params = {}
+        for name, info in desc["params"].items():
+            params[name] = {**_interval(flat[name][:, i]), "units": info["units"]}
+        for name, (units, _doc) in {k: (v["units"], v["doc"]) for k, v in desc["noise"].items()}.items():
+            params[name] = {**_interval(flat[name][:, i]), "units": units}
+        probs = delay_post[i]
+        legs[leg] = {
+            "subject": desc["subjects"][desc["leg_subject"][i]],
+            "delay_posterior": [float(p) for p in probs],
+            "delay_mode_samples": int(np.argmax(probs)),
+            "params": params,
+        }
+    diag = diagnose_sampling(idata)
+    return {
+        "model": desc["model"],
+        "effects": desc["effects"],
+        "trials": desc["trials"],
+        "legs": legs,
+        "diagnostics": diag,
+        "banner": None if diag["ok"] else "FIT FAILED ITS CHECKS: " + "; ".join(diag["problems"]),
+        "settings": desc["settings"],
+        "interval": list(INTERVAL),
+    }
+
+
+def save_fit(idata, folder: str | os.PathLike, extra: dict | None = None) -> dict:
+    """Write fit.nc then summary.json (with ``extra`` entries) atomically; returns the summary."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    summary = {**fit_summary(idata), **(extra or {})}
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".fit.nc.", suffix=".tmp")
+    os.close(fd)
+    try:
+        idata.to_netcdf(tmp)
+        os.replace(tmp, folder / "fit.nc")
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    write_json(folder / "summary.json", summary)
+    return summary
+
+
+def begin_fit(folder: str | os.PathLike) -> None:
+    """Mark a folder as holding no complete fit (before sampling starts)."""
+    (Path(folder) / "summary.json").unlink(missing_ok=True)
+
+
+def load_fit(folder: str | os.PathLike):
+    """(InferenceData, Model without values, description) of a saved fit."""
+    import arviz as az
+
+    folder = Path(folder)
+    if not (folder / "summary.json").exists() or not (folder / "fit.nc").exists():
+        raise FitFolderError(f"{folder}: no complete fit here (fit.nc and summary.json are written by `quadshank fit`)")
+    idata = az.from_netcdf(folder / "fit.nc")
+    desc = from_json(idata.posterior.attrs["quadshank_model"])
+    return idata, model_from_description(desc), desc
+
+
+def posterior_models(idata, model: Model, leg: str, n_draws: int | None = None, seed: int = 0):
+    """The model of one leg with leaves of shape (draws,), and those draws' delays."""
+    import jax.numpy as jnp
+
+    post = idata.posterior
+    i = list(post["leg"].values).index(leg)
+    total = post.sizes["chain"] * post.sizes["draw"]
+    idx = np.arange(total)
+    if n_draws is not None and n_draws < total:
+        idx = np.sort(np.random.default_rng(seed).choice(total, n_draws, replace=False))
+    values = {}
+    for p in model_params(model):
+        arr = np.asarray(post[p.name]).reshape(total, *post[p.name].shape[2:])[idx, i]
+        values[p.name] = jnp.asarray(arr)
+    delay = np.asarray(post["delay"]).reshape(total, -1)[idx, i]
+    return model.with_params(values, delay=jnp.asarray(delay, jnp.int32)), delay
+
+

@@ -1,0 +1,159 @@
+"""The likelihood of the hierarchical fit: sparse delay marginalisation against a plain reference."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats
+
+from quadshank import _likelihood as L
+from quadshank._effects import Darma
+from quadshank._model import paper_model
+from quadshank._paper import MAX_DELAY, TWITCH_SAMPLES
+from quadshank._simulate import simulate_cohort
+
+PASSIVE = ("damping", "gravity", "k1", "k2")
+
+
+@pytest.fixture(scope="module")
+def cohort_truth():
+    return simulate_cohort(legs=["TN-left", "JM-right"], minutes=1, seed=3, trials=(1, 2))
+
+
+def _true_model(number, truth, leg):
+    tr = truth["legs"][leg]
+    m = paper_model(number).with_params({k: tr["passive"][k] for k in PASSIVE})
+    act = tr["active"]
+    if number == 2:
+        eq = tr["model2_equivalent"]
+        return m.with_params(a=jnp.array([eq["a1"], eq["a2"]]), b=jnp.array([eq["b1"], eq["b2"]]))
+    if number == 1:
+        return m.with_params(gain=act["G2"])
+    return m.with_params(gain=act["G2"], gamma_angle=act["gamma_angle"], gamma_velocity=act["gamma_velocity"])
+
+
+def _reference_loglik(model, trials, d, sigma, nu, resolution, response_length):
+    """Per-sample model output built pulse by pulse in NumPy, summed over windows, Student-t."""
+    total = 0.0
+    h = np.asarray(L.impulse_response(model.activation, response_length))
+    for t in trials:
+        angle, vel, acc, stim = t.angle_deg, t.velocity_deg_s, t.acceleration_deg_s2, t.stimulation
+        passive = sum(np.asarray(e.acceleration(angle, vel)) for e in model.passives)
+        e0 = acc - passive
+        F = np.ones_like(angle)
+        for g in model.gains:
+            F = F * np.asarray(g.factor(L.StepContext(angle, vel, stim, stim)))
+        M = np.zeros_like(angle)
+        for p in np.flatnonzero(stim > 0):
+            for j in range(response_length):
+                k = p + d + j
+                if k < angle.size:
+                    M[k] += stim[p] * h[j] * F[k]
+        starts = np.flatnonzero(L._windows(stim, resolution))
+        E = np.add.reduceat(e0, starts)
+        Mw = np.add.reduceat(M, starts)
+        n = np.diff(np.append(starts, angle.size))
+        total += stats.t.logpdf(E - Mw, df=nu, scale=sigma * np.sqrt(n)).sum()
+    return total
+
+
+@pytest.mark.parametrize("number", [1, 2, 3])
+def test_sparse_delay_loglik_matches_reference(cohort_truth, number):
+    cohort, truth = cohort_truth
+    leg = "JM-right"
+    model = _true_model(number, truth, leg)
+    data = L.prepare(cohort, model, trials=(1, 2), legs=[leg])
+    x = {k: v[0] for k, v in data.leg_arrays().items()}
+    ll = np.asarray(L.leg_loglik_by_delay(model, {"sigma": 35.0, "nu": 6.0}, x, data.response_length))
+    trials = cohort.trials_of(leg)
+    for d in (0, 4, MAX_DELAY):
+        ref = _reference_loglik(model, trials, d, 35.0, 6.0, data.resolution, data.response_length)
+        assert ll[d] == pytest.approx(ref, rel=2e-5, abs=0.5), d
+
+
+def test_pointwise_segments_sum_to_the_delay_loglik(cohort_truth):
+    cohort, truth = cohort_truth
+    model = _true_model(3, truth, "TN-left")
+    data = L.prepare(cohort, model, trials=(1,), legs=["TN-left"])
+    x = {k: v[0] for k, v in data.leg_arrays().items()}
+    noise = {"sigma": 40.0, "nu": 8.0}
+    by_d = L.leg_loglik_by_delay(model, noise, x, data.response_length)
+    seg = L.leg_pointwise(model, noise, x, 5, data.response_length, data.n_segments)
+    assert seg.shape == (data.n_segments,)
+    assert data.n_segments == 60  # one minute in 1-s segments
+    assert float(jnp.sum(seg)) == pytest.approx(float(by_d[5]), rel=1e-5)
+
+
+def test_twitch_windows_hold_whole_bursts():
+    stim = np.zeros(400)
+    stim[[10, 14, 20, 200]] = 1.0  # a burst of three, then an isolated pulse
+    starts = L._windows(stim, "twitch")
+    span = MAX_DELAY + TWITCH_SAMPLES
+    assert starts[10] and not starts[11:20 + span].any()  # the burst is one window
+    assert starts[20 + span]  # then single samples again
+    assert starts[200] and not starts[201:200 + span].any()
+    assert starts[:10].all()
+    assert L._windows(stim, "sample").all()
+    with pytest.raises(ValueError, match="resolution"):
+        L._windows(stim, "minute")
+
+
+def test_model2_likelihood_peaks_at_the_onset_delay(cohort_truth):
+    cohort, truth = cohort_truth
+    for leg in ("TN-left", "JM-right"):
+        model = _true_model(2, truth, leg)
+        data = L.prepare(cohort, model, trials=(1,), legs=[leg])
+        x = {k: v[0] for k, v in data.leg_arrays().items()}
+        ll = L.leg_loglik_by_delay(model, {"sigma": 40.0, "nu": 10.0}, x, data.response_length)
+        # DARMA's first output comes one sample after u_{k-d}: d = floor of the true onset
+        assert int(jnp.argmax(ll)) == int(np.floor(truth["legs"][leg]["active"]["delay_samples"]))
+
+
+def test_gradient_is_finite_for_every_parameter(cohort_truth):
+    cohort, truth = cohort_truth
+    model = _true_model(3, truth, "TN-left")
+    data = L.prepare(cohort, model, trials=(1,), legs=["TN-left"])
+    x = {k: v[0] for k, v in data.leg_arrays().items()}
+
+    def f(m):
+        return jax.scipy.special.logsumexp(L.leg_loglik_by_delay(m, {"sigma": 40.0, "nu": 8.0}, x, 1))
+
+    grads = jax.grad(f, allow_int=True)(model)  # the delay leaf is an integer
+    leaves = [g for g in jax.tree_util.tree_leaves(grads) if np.issubdtype(np.asarray(g).dtype, np.floating)]
+    assert len(leaves) == 7  # gain, two gammas, four passive parameters
+    assert all(np.all(np.isfinite(np.asarray(g))) for g in leaves)
+    assert abs(float(grads.effect("zero_order").gain)) > 0
+
+
+def test_impulse_response_of_darma_follows_its_recursion():
+    a, b = jnp.array([-1.5, 0.6]), jnp.array([400.0, 300.0])
+    h = np.asarray(L.impulse_response(Darma(a=a, b=b), 6))
+    ref = np.zeros(6)
+    u = np.zeros(6)
+    u[0] = 1
+    for k in range(6):
+        ref[k] = sum(-a[i] * ref[k - 1 - i] + b[i] * u[k - 1 - i] for i in range(2) if k - 1 - i >= 0)
+    np.testing.assert_allclose(h, ref, rtol=1e-5)
+
+
+def test_stateful_gains_are_refused():
+    import dataclasses
+
+    from quadshank._effects import Effect, register_effect
+
+    @register_effect
+    @dataclasses.dataclass(frozen=True)
+    class CountingGain(Effect):
+        kind = "gain"
+        name = "test_counting_gain"
+        params = ()
+
+        def init_state(self):
+            return 0.0
+
+        def gain(self, state, ctx):
+            return state + ctx.u, 1.0
+
+    model = paper_model(1).add(CountingGain())
+    with pytest.raises(ValueError, match="test_counting_gain"):
+        L.gain_factors(model, jnp.zeros(3), jnp.zeros(3), jnp.zeros(3))
