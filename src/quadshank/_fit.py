@@ -13,12 +13,17 @@ its declared level:
 
 so the declared prior is the population-level belief and the spread between
 subjects and between the legs of a subject is learnt (weakly informative: at
-most about one prior scale).  By default the levels are centred
-(x_leg ~ Normal(x_subject, τ_leg)): each leg's thousands of samples pin its
-values down, and with such informative data the centred form samples better
-(the non-centred one turns the data's precision into a narrow ridge between
-μ, τ and z).  ``FitSettings(centred=False)`` gives the non-centred form for
-sparse data.  A dense mass matrix absorbs the remaining linear correlations
+most about one prior scale).  By default the legs are sampled directly
+(centred) with the subject level integrated out analytically,
+
+    x_leg ~ MultivariateNormal(μ, τ_subject² S + τ_leg² I),  S_ij = [legs i, j share a subject],
+
+because each leg's thousands of samples pin its values down: with such
+informative data the non-centred form turns the data's precision into a
+narrow ridge between μ, τ and z, and a sampled subject level between μ and a
+lone leg is a funnel.  Subject values (for shrinkage plots) are their
+conditional means given the legs.  ``FitSettings(centred=False)`` gives the
+fully non-centred form for sparse data.  A dense mass matrix absorbs the remaining linear correlations
 (k1 with k2, gain with the gain factors).  Noise (Student-t, see
 :mod:`quadshank._likelihood`) is per leg: σ ~ LogNormal(log 40 deg/s², 1),
 ν ~ Gamma(2, 0.1).  The delay d of each leg has a uniform prior on 0 … 10
@@ -110,21 +115,47 @@ def _hierarchical(p: Param, n_legs: int, n_subjects: int, leg_subject, centred: 
     ev = len(shape)
     mu = numpyro.sample(f"{p.name}_mu", dist.Normal(loc, scale).to_event(ev))
     x_subject = jnp.broadcast_to(mu, (n_subjects, *shape))
-    if p.level in ("subject", "leg"):
+    if p.level == "leg" and centred:
+        # legs sampled directly, the subject level integrated out analytically:
+        # x_leg ~ MVN(μ, τ_s² S + τ_l² I), S[i, j] = 1 when legs i and j share a subject
         tau_s = numpyro.sample(f"{p.name}_sd_subject", dist.HalfNormal(scale).to_event(ev))
-        with numpyro.plate("subjects", n_subjects):
-            if centred:
-                x_subject = numpyro.sample(f"{p.name}_x_subject", dist.Normal(mu, tau_s).to_event(ev))
-            else:
-                z = numpyro.sample(f"{p.name}_z_subject", dist.Normal(jnp.zeros(shape), 1.0).to_event(ev))
-                x_subject = mu + tau_s * z
-    x_leg = x_subject[leg_subject]
-    if p.level == "leg":
         tau_l = numpyro.sample(f"{p.name}_sd_leg", dist.HalfNormal(scale).to_event(ev))
-        with numpyro.plate("legs", n_legs):
-            if centred:
-                x_leg = numpyro.sample(f"{p.name}_x_leg", dist.Normal(x_leg, tau_l).to_event(ev))
-            else:
+        same = (leg_subject[:, None] == leg_subject[None, :]).astype(jnp.float32)
+        onehot = (leg_subject[None, :] == jnp.arange(n_subjects)[:, None]).astype(jnp.float32)  # (S, L)
+        n_per = onehot.sum(axis=1)
+        comps = []
+        for c in range(int(np.prod(shape)) if shape else 1):
+            m, ts, tl = (v.reshape(-1)[c] if shape else v for v in (mu, tau_s, tau_l))
+            cov = ts**2 * same + tl**2 * jnp.eye(n_legs)
+            comps.append((m, ts, tl, cov))
+        if shape:
+            x_leg = numpyro.sample(
+                f"{p.name}_x_leg",
+                dist.MultivariateNormal(
+                    jnp.stack([jnp.full(n_legs, m) for m, *_ in comps], -1).T,
+                    jnp.stack([cov for *_, cov in comps]),
+                ).to_event(1),
+            ).T
+        else:
+            m, _, _, cov = comps[0]
+            x_leg = numpyro.sample(f"{p.name}_x_leg", dist.MultivariateNormal(jnp.full(n_legs, m), cov))
+        # subject values for reports: their conditional mean given the legs (Sherman–Morrison)
+        dev = onehot @ (x_leg - mu)  # (S, *shape)
+        n_b = n_per.reshape((-1,) + (1,) * ev)
+        x_subject = mu + tau_s**2 * dev / (tau_l**2 + n_b * tau_s**2)
+    else:
+        if p.level in ("subject", "leg"):
+            tau_s = numpyro.sample(f"{p.name}_sd_subject", dist.HalfNormal(scale).to_event(ev))
+            with numpyro.plate("subjects", n_subjects):
+                if centred:
+                    x_subject = numpyro.sample(f"{p.name}_x_subject", dist.Normal(mu, tau_s).to_event(ev))
+                else:
+                    z = numpyro.sample(f"{p.name}_z_subject", dist.Normal(jnp.zeros(shape), 1.0).to_event(ev))
+                    x_subject = mu + tau_s * z
+        x_leg = x_subject[leg_subject]
+        if p.level == "leg":
+            tau_l = numpyro.sample(f"{p.name}_sd_leg", dist.HalfNormal(scale).to_event(ev))
+            with numpyro.plate("legs", n_legs):
                 z = numpyro.sample(f"{p.name}_z_leg", dist.Normal(jnp.zeros(shape), 1.0).to_event(ev))
                 x_leg = x_leg + tau_l * z
     leg_values = numpyro.deterministic(p.name, transform(x_leg))

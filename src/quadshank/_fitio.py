@@ -2,7 +2,7 @@
 
 ``DIR/fit.nc`` holds the posterior (hierarchical parameters, leg and subject
 values, per-leg noise, ``delay_logp`` = log P(d | θ, data) per draw and the
-drawn ``delay``), ``log_likelihood`` per leg and 1-s segment (the PSIS-LOO
+drawn ``delay``), ``log_likelihood`` (``acceleration_segment``) per leg and 1-s segment (the PSIS-LOO
 unit, see :mod:`quadshank._likelihood`), ``observed_data`` (acceleration),
 ``constant_data`` (angle, velocity, stimulation, sample mask), ``sample_stats``
 and, as the attribute ``quadshank_model``, the model's description (JSON).
@@ -90,7 +90,8 @@ def to_inference_data(mcmc, model: Model, data: LikelihoodData, settings: FitSet
     idata = az.from_dict(
         posterior=samples,
         sample_stats=stats,
-        log_likelihood={"segment": ll.reshape(chains, draws, data.n_legs, data.n_segments)},
+        # one value per leg and 1-s segment of the observed acceleration
+        log_likelihood={"acceleration_segment": ll.reshape(chains, draws, data.n_legs, data.n_segments)},
         observed_data={"acceleration": data.acceleration},
         constant_data={
             "angle": data.angle,
@@ -102,7 +103,7 @@ def to_inference_data(mcmc, model: Model, data: LikelihoodData, settings: FitSet
         coords=coords,
         dims={
             **dims,
-            "segment": ["leg", "segment"],
+            "acceleration_segment": ["leg", "segment"],
             "acceleration": ["leg", "sample"],
             "angle": ["leg", "sample"],
             "velocity": ["leg", "sample"],

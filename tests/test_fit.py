@@ -1,0 +1,107 @@
+"""The hierarchical fit end to end, at a size that keeps the suite fast.
+
+These runs are far too short to pass the convergence checks; what they test
+is the machinery: the fit folder, its reload, the summary, the loud failure
+and reproducibility.  Recovery and coverage at full size are benchmarks.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from quadshank._cli import main
+from quadshank._fit import FitSettings, build_model, fit
+from quadshank._fitio import FitFolderError, load_fit, posterior_models
+from quadshank._interchange import load_cohort
+from quadshank._likelihood import N_DELAYS
+from quadshank._simulate import simulate_cohort
+
+TINY = ["--chains", "2", "--warmup", "40", "--draws", "30"]
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+    root = tmp_path_factory.mktemp("fit")
+    assert main(["-q", "simulate", "--out", str(root / "data"), "--minutes", "0.5",
+                 "--legs", "TN-left,TN-right,JM-left", "--trials", "1,2"]) == 0
+    return root
+
+
+@pytest.fixture(scope="module")
+def fitted(data_dir):
+    out = data_dir / "fit3"
+    code = main(["-q", "fit", str(data_dir / "data"), "--model", "model3", *TINY, "--out", str(out)])
+    return out, code
+
+
+def test_fit_folder_holds_a_complete_reloadable_fit(fitted):
+    out, _ = fitted
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["legs"]) == {"TN-left", "TN-right", "JM-left"}
+    for leg, s in summary["legs"].items():
+        assert len(s["delay_posterior"]) == N_DELAYS
+        assert sum(s["delay_posterior"]) == pytest.approx(1.0, abs=1e-4)
+        for name in ("gain", "gamma_angle", "gamma_velocity", "damping", "gravity", "k1", "k2", "sigma", "nu"):
+            q = s["params"][name]
+            assert q["lo"] <= q["median"] <= q["hi"], (leg, name)
+            assert q["units"]
+    for key in ("rhat_max", "ess_bulk_min", "divergences", "ess_tail_min", "bfmi_min"):
+        assert key in summary["diagnostics"]
+    idata, model, desc = load_fit(out)
+    assert desc["model"] == "model3" and desc["trials"] == [1]
+    for group in ("posterior", "log_likelihood", "observed_data", "constant_data", "sample_stats"):
+        assert hasattr(idata, group), group
+    ll = idata.log_likelihood["acceleration_segment"]
+    assert ll.sizes["leg"] == 3 and ll.sizes["segment"] == 30  # 30 s in 1-s segments
+    assert np.isfinite(ll.values).all()
+    m, delays = posterior_models(idata, model, "JM-left", n_draws=10)
+    assert np.shape(m.params()["gain"]) == (10,)
+    assert delays.shape == (10,) and ((0 <= delays) & (delays < N_DELAYS)).all()
+
+
+def test_a_fit_that_fails_its_checks_says_so(fitted, capsys):
+    out, code = fitted
+    assert code == 3  # 30 draws cannot reach the ESS threshold
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["diagnostics"]["ok"] is False
+    assert summary["banner"].startswith("FIT FAILED ITS CHECKS")
+    assert summary["diagnostics"]["advice"]
+
+
+def test_interrupted_fit_leaves_no_complete_looking_folder(data_dir, monkeypatch):
+    import quadshank._fitio as fitio
+    import quadshank._pipeline as pipeline
+
+    out = data_dir / "interrupted"
+    out.mkdir()
+    (out / "summary.json").write_text("{}")  # a previous fit's summary
+
+    def boom(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fitio, "to_inference_data", boom)
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.run_fit(
+            load_cohort(data_dir / "data"),
+            out, "model1", settings=FitSettings(chains=1, warmup=5, draws=5),
+        )
+    assert not (out / "summary.json").exists()
+    with pytest.raises(FitFolderError, match="no complete fit"):
+        load_fit(out)
+
+
+def test_same_seed_same_posterior():
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.3, seed=2, trials=(1,))
+    settings = FitSettings(chains=1, warmup=20, draws=10, seed=5)
+    a, _ = fit(cohort, build_model("model1"), settings, progress=False)
+    b, _ = fit(cohort, build_model("model1"), settings, progress=False)
+    np.testing.assert_array_equal(np.asarray(a.get_samples()["gain"]), np.asarray(b.get_samples()["gain"]))
+
+
+def test_unknown_effect_and_missing_trial_are_plain_errors(data_dir, capsys):
+    args = ["fit", str(data_dir / "data"), *TINY, "--out", str(data_dir / "bad")]
+    assert main([*args, "--add-effect", "no_such_effect"]) == 2
+    assert "unknown effect 'no_such_effect'" in capsys.readouterr().err
+    assert main([*args, "--trials", "7"]) == 2
+    assert "has no trial 7" in capsys.readouterr().err
