@@ -22,6 +22,8 @@ from ._effects import (
     registered_effects,
 )
 from ._evaluate import evaluate_cohort, prediction_errors, predictions, sign_tests, table_v
+from ._fit import FitSettings, build_model, fit
+from ._fitio import load_fit, save_fit, to_inference_data
 from ._identify import IdentificationError, identify_cohort, identify_leg, identify_passive
 from ._interchange import InterchangeError, convert, load_cohort, read_interchange, write_interchange
 from ._model import Model, equivalent_acceleration, paper_model, passive_effects, predict_ahead, simulate_angles
@@ -39,5 +41,6 @@ __all__ = [
     "evaluate_cohort", "prediction_errors", "predictions", "sign_tests", "table_v",
     "InterchangeError", "read_interchange", "write_interchange", "load_cohort", "convert",
     "EFFECTS", "default_truth", "simulate_cohort",
+    "FitSettings", "build_model", "fit", "to_inference_data", "save_fit", "load_fit",
     "__version__",
 ]  # fmt: skip

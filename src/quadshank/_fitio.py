@@ -80,6 +80,7 @@ def to_inference_data(mcmc, model: Model, data: LikelihoodData, settings: FitSet
         if p.level == "leg":
             dims[f"{p.name}_x_leg"] = ["leg", *comp]
             dims[f"{p.name}_z_leg"] = ["leg", *comp]
+            dims[f"{p.name}_z_leg"] = ["leg", *comp]
     extra = mcmc.get_extra_fields(group_by_chain=True)
     stats = {"diverging": np.asarray(extra["diverging"]), "energy": np.asarray(extra["energy"])}
     if "num_steps" in extra:
