@@ -137,15 +137,9 @@ def diagnose_sampling(idata) -> dict:
         vals = [float(fn(np.asarray(ds[v]))) for v in ds.data_vars if np.isfinite(np.asarray(ds[v])).any()]
         return fn(np.array(vals)) if vals else float("nan")
 
-    def nanmax(a):
-        return np.nanmax(a)
-
-    def nanmin(a):
-        return np.nanmin(a)
-
-    rhat_max = float(extreme(rhat, nanmax)) if chains > 1 else float("nan")
-    ess_bulk_min = float(extreme(ess_bulk, nanmin))
-    ess_tail_min = float(extreme(ess_tail, nanmin))
+    rhat_max = float(extreme(rhat, np.nanmax)) if chains > 1 else float("nan")
+    ess_bulk_min = float(extreme(ess_bulk, np.nanmin))
+    ess_tail_min = float(extreme(ess_tail, np.nanmin))
     divergences = int(np.asarray(idata.sample_stats["diverging"]).sum())
     bfmi = np.atleast_1d(az.bfmi(idata))
     bfmi_min = float(np.min(bfmi))

@@ -63,7 +63,7 @@ import numpy as np
 
 from ._cohort import Cohort
 from ._effects import Effect, StepContext
-from ._model import Model
+from ._model import Model, equivalent_acceleration
 from ._paper import MAX_DELAY, TWITCH_SAMPLES
 
 __all__ = [
@@ -327,44 +327,37 @@ def gain_factors(model: Model, angle, velocity, stimulation):
     return F
 
 
-def _passive(model: Model, angle, velocity):
-    acc = jnp.zeros_like(angle)
-    for e in model.passives:
-        acc = acc + e.acceleration(angle, velocity)
-    return acc
-
-
 def _window_terms(model: Model, noise: dict, x: dict):
     """Window sums of the equivalent acceleration, their scales and base log densities."""
     W = x["window_len"].shape[-1]
-    e = jnp.where(x["sample_mask"], x["acceleration"] - _passive(model, x["angle"], x["velocity"]), 0.0)
+    e = jnp.where(x["sample_mask"], equivalent_acceleration(model, x["angle"], x["velocity"], x["acceleration"]), 0.0)
     E = jax.ops.segment_sum(e, x["window"], num_segments=W)
     scale = noise["sigma"] * jnp.sqrt(x["window_len"])
     lp0 = jnp.where(x["window_mask"], student_t_logpdf(E, noise["nu"], scale), 0.0)
     return E, scale, lp0
 
 
-def _contributions(model: Model, x: dict, d_index, R: int):
-    """M̂ at each (pulse, lag) position for delay index ``d_index`` (masked)."""
+def _amplitudes(model: Model, x: dict, R: int):
+    """u_i · h_j for every (pulse, lag), flattened, and the gain factor F at every sample."""
     h = impulse_response(model.activation, R)
     F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
-    amp = (x["pulse_u"][:, None] * h[None, :]).reshape(-1)
-    s = x["touch_sample"][d_index]
-    return jnp.where(x["touch_valid"][d_index], amp * F[s], 0.0)
+    return (x["pulse_u"][:, None] * h[None, :]).reshape(-1), F
+
+
+def _contributions(amp, F, sample, valid):
+    """M̂ of each (pulse, lag) at the sample it reaches (0 where it reaches none)."""
+    return jnp.where(valid, amp * F[sample], 0.0)
 
 
 def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int):
     """log p(y_leg | θ, d) for d = 0 … MAX_DELAY, one leg (vmap over legs outside)."""
     E, scale, lp0 = _window_terms(model, noise, x)
     base = jnp.sum(lp0)
-    h = impulse_response(model.activation, R)
-    F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
-    amp = (x["pulse_u"][:, None] * h[None, :]).reshape(-1)
+    amp, F = _amplitudes(model, x, R)
     U = x["touch_window"].shape[-1]
 
     def one(ts, valid, pos, tw, tm):
-        c = jnp.where(valid, amp * F[ts], 0.0)
-        M = jax.ops.segment_sum(c, pos, num_segments=U)
+        M = jax.ops.segment_sum(_contributions(amp, F, ts, valid), pos, num_segments=U)
         lp = student_t_logpdf(E[tw] - M, noise["nu"], scale[tw]) - lp0[tw]
         return jnp.sum(jnp.where(tm, lp, 0.0))
 
@@ -377,7 +370,8 @@ def leg_pointwise(model: Model, noise: dict, x: dict, d_index, R: int, n_segment
     E, scale, _ = _window_terms(model, noise, x)
     W = E.shape[-1]
     N = x["angle"].shape[-1]
-    c = _contributions(model, x, d_index, R)
+    amp, F = _amplitudes(model, x, R)
+    c = _contributions(amp, F, x["touch_sample"][d_index], x["touch_valid"][d_index])
     M_sample = jax.ops.segment_sum(c, x["touch_sample"][d_index], num_segments=N)
     M = jax.ops.segment_sum(M_sample, x["window"], num_segments=W)
     lp = jnp.where(x["window_mask"], student_t_logpdf(E - M, noise["nu"], scale), 0.0)
