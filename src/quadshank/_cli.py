@@ -117,7 +117,14 @@ def cmd_fit(args) -> int:
     )
     legs = _csv_list(args.legs) if args.legs else None
     summary = run_fit(
-        cohort, args.out, args.model, args.add_effect or (), settings, legs=legs, progress=not args.quiet
+        cohort,
+        args.out,
+        args.model,
+        args.add_effect or (),
+        settings,
+        legs=legs,
+        delay_from=args.delay_from or None,
+        progress=not args.quiet,
     )
     for leg, s in summary["legs"].items():
         p = s["delay_posterior"]
@@ -212,6 +219,12 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--warmup", type=int, default=1000)
     f.add_argument("--draws", type=int, default=1000)
     f.add_argument("--seed", type=int, default=0)
+    f.add_argument(
+        "--delay-from",
+        default="",
+        metavar="FITDIR",
+        help="take the delay prior from another fit's delay posterior (the paper took d from model 2)",
+    )
     f.add_argument("--out", required=True)
     f.set_defaults(func=cmd_fit)
 

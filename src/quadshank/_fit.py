@@ -70,6 +70,8 @@ NOISE_PARAMS = {
     "nu": ("1", "Student-t degrees of freedom"),
 }
 SIGMA_PRIOR = (math.log(40.0), 1.0)
+#: Probability spread evenly over all delays when a delay prior comes from another fit.
+DELAY_PRIOR_FLOOR = 1e-3
 NU_PRIOR = (2.0, 0.1)
 
 
@@ -113,58 +115,61 @@ def _hierarchical(p: Param, n_legs: int, n_subjects: int, leg_subject, centred: 
     scale = _arr(scale, shape)
     transform = jnp.exp if family == "lognormal" else (lambda x: x)
     ev = len(shape)
+    if p.level == "leg" and centred:
+        # Legs sampled directly, standardised by the prior (x = loc + scale·s), with the
+        # population mean and the subject level integrated out analytically:
+        #   s_leg ~ MVN(0, 11ᵀ + r_s² S + r_l² I),  S[i, j] = 1 when legs i and j share a subject,
+        # r = τ/scale the spreads in prior scales.  Standardising puts every parameter on a
+        # unit prior scale whatever its units (γ_velocity ~ 1e-3 s/deg, G' ~ 1e4 deg/s²), so the
+        # mass matrix adapts from a sensible start; integrating μ out leaves no funnel.
+        # μ and the subject values are drawn from their conditional afterwards (hyper_draws).
+        r_s = numpyro.sample(f"{p.name}_sd_subject_rel", dist.HalfNormal(jnp.ones(shape)).to_event(ev))
+        r_l = numpyro.sample(f"{p.name}_sd_leg_rel", dist.HalfNormal(jnp.ones(shape)).to_event(ev))
+        numpyro.deterministic(f"{p.name}_sd_subject", r_s * scale)
+        numpyro.deterministic(f"{p.name}_sd_leg", r_l * scale)
+        same = (leg_subject[:, None] == leg_subject[None, :]).astype(jnp.float32)
+        ones = jnp.ones((n_legs, n_legs), jnp.float32)
+        eye = jnp.eye(n_legs, dtype=jnp.float32)
+        per_comp = lambda v: jnp.reshape(v, (-1, 1, 1))  # one covariance per component
+        cov = ones + per_comp(r_s) ** 2 * same + per_comp(r_l) ** 2 * eye  # (C, L, L)
+        if not shape:
+            cov = cov[0]
+        # (L,) for a scalar parameter, (C, L) for a vector one
+        s_leg = numpyro.sample(f"{p.name}_s_leg", dist.MultivariateNormal(jnp.zeros(cov.shape[:-1]), cov).to_event(ev))
+        x_leg = loc + scale * jnp.reshape(s_leg.T, (n_legs, *shape))
+        return numpyro.deterministic(p.name, transform(x_leg))
     mu = numpyro.sample(f"{p.name}_mu", dist.Normal(loc, scale).to_event(ev))
     x_subject = jnp.broadcast_to(mu, (n_subjects, *shape))
-    if p.level == "leg" and centred:
-        # legs sampled directly, the subject level integrated out analytically:
-        # x_leg ~ MVN(μ, τ_s² S + τ_l² I), S[i, j] = 1 when legs i and j share a subject
+    if p.level in ("subject", "leg"):
         tau_s = numpyro.sample(f"{p.name}_sd_subject", dist.HalfNormal(scale).to_event(ev))
+        with numpyro.plate("subjects", n_subjects):
+            if centred:
+                x_subject = numpyro.sample(f"{p.name}_x_subject", dist.Normal(mu, tau_s).to_event(ev))
+            else:
+                z = numpyro.sample(f"{p.name}_z_subject", dist.Normal(jnp.zeros(shape), 1.0).to_event(ev))
+                x_subject = mu + tau_s * z
+    x_leg = x_subject[leg_subject]
+    if p.level == "leg":
         tau_l = numpyro.sample(f"{p.name}_sd_leg", dist.HalfNormal(scale).to_event(ev))
-        same = (leg_subject[:, None] == leg_subject[None, :]).astype(jnp.float32)
-        onehot = (leg_subject[None, :] == jnp.arange(n_subjects)[:, None]).astype(jnp.float32)  # (S, L)
-        n_per = onehot.sum(axis=1)
-        comps = []
-        for c in range(int(np.prod(shape)) if shape else 1):
-            m, ts, tl = (v.reshape(-1)[c] if shape else v for v in (mu, tau_s, tau_l))
-            cov = ts**2 * same + tl**2 * jnp.eye(n_legs)
-            comps.append((m, ts, tl, cov))
-        if shape:
-            x_leg = numpyro.sample(
-                f"{p.name}_x_leg",
-                dist.MultivariateNormal(
-                    jnp.stack([jnp.full(n_legs, m) for m, *_ in comps], -1).T,
-                    jnp.stack([cov for *_, cov in comps]),
-                ).to_event(1),
-            ).T
-        else:
-            m, _, _, cov = comps[0]
-            x_leg = numpyro.sample(f"{p.name}_x_leg", dist.MultivariateNormal(jnp.full(n_legs, m), cov))
-        # subject values for reports: their conditional mean given the legs (Sherman–Morrison)
-        dev = onehot @ (x_leg - mu)  # (S, *shape)
-        n_b = n_per.reshape((-1,) + (1,) * ev)
-        x_subject = mu + tau_s**2 * dev / (tau_l**2 + n_b * tau_s**2)
-    else:
-        if p.level in ("subject", "leg"):
-            tau_s = numpyro.sample(f"{p.name}_sd_subject", dist.HalfNormal(scale).to_event(ev))
-            with numpyro.plate("subjects", n_subjects):
-                if centred:
-                    x_subject = numpyro.sample(f"{p.name}_x_subject", dist.Normal(mu, tau_s).to_event(ev))
-                else:
-                    z = numpyro.sample(f"{p.name}_z_subject", dist.Normal(jnp.zeros(shape), 1.0).to_event(ev))
-                    x_subject = mu + tau_s * z
-        x_leg = x_subject[leg_subject]
-        if p.level == "leg":
-            tau_l = numpyro.sample(f"{p.name}_sd_leg", dist.HalfNormal(scale).to_event(ev))
-            with numpyro.plate("legs", n_legs):
-                z = numpyro.sample(f"{p.name}_z_leg", dist.Normal(jnp.zeros(shape), 1.0).to_event(ev))
-                x_leg = x_leg + tau_l * z
+        with numpyro.plate("legs", n_legs):
+            z = numpyro.sample(f"{p.name}_z_leg", dist.Normal(jnp.zeros(shape), 1.0).to_event(ev))
+            x_leg = x_leg + tau_l * z
     leg_values = numpyro.deterministic(p.name, transform(x_leg))
     numpyro.deterministic(f"{p.name}_subject", transform(x_subject))
     return leg_values
 
 
-def numpyro_model(model: Model, data: LikelihoodData, arrays: dict | None = None, centred: bool = True):
-    """The hierarchical numpyro model of ``model`` on ``data`` (delay summed out)."""
+def numpyro_model(
+    model: Model,
+    data: LikelihoodData,
+    arrays: dict | None = None,
+    centred: bool = True,
+    log_delay_prior=None,
+):
+    """The hierarchical numpyro model of ``model`` on ``data`` (delay summed out).
+
+    ``log_delay_prior`` (legs, 11): log π(d) per leg; uniform when None.
+    """
     x = arrays if arrays is not None else data.leg_arrays()
     n_legs, n_subjects = data.n_legs, len(data.subjects)
     leg_subject = jnp.asarray(data.leg_subject)
@@ -176,10 +181,33 @@ def numpyro_model(model: Model, data: LikelihoodData, arrays: dict | None = None
     stacked = model.with_params(values, delay=jnp.zeros(n_legs, jnp.int32))
     R = data.response_length
     ll = jax.vmap(lambda m, s, n, xi: leg_loglik_by_delay(m, {"sigma": s, "nu": n}, xi, R))(stacked, sigma, nu, x)
-    logp = ll - math.log(N_DELAYS)
+    prior = jnp.full(ll.shape, -math.log(N_DELAYS)) if log_delay_prior is None else jnp.asarray(log_delay_prior)
+    logp = ll + prior
     total = jax.scipy.special.logsumexp(logp, axis=-1)
     numpyro.deterministic("delay_logp", logp - total[:, None])
     numpyro.factor("likelihood", jnp.sum(total))
+
+
+def delay_prior_from(summary: dict, legs, floor: float = DELAY_PRIOR_FLOOR) -> np.ndarray:
+    """log π(d) per leg (legs, 11) from another fit's ``summary.json`` (its ``delay_posterior``).
+
+    This is the paper's procedure made Bayesian: the delay is identified where the
+    data show it, by the shaped twitch of model 2 (Table I: "the delay d was taken
+    such that it yielded the smallest residual error in the least squares
+    identification of model 2"), and carried to the zero-order models, whose
+    twitch-window likelihood cannot see a twitch's onset.  A ``floor`` mixed in
+    keeps every d possible.
+    """
+    rows = []
+    for leg in legs:
+        if leg not in summary.get("legs", {}):
+            raise KeyError(f"leg {leg!r} is not in the fit the delay prior is taken from (it has {sorted(summary.get('legs', {}))})")
+        p = np.asarray(summary["legs"][leg]["delay_posterior"], np.float64)
+        if p.shape != (N_DELAYS,) or not np.all(np.isfinite(p)) or p.sum() <= 0:
+            raise ValueError(f"leg {leg!r}: delay_posterior must be {N_DELAYS} probabilities")
+        p = (1.0 - floor) * p / p.sum() + floor / N_DELAYS
+        rows.append(np.log(p))
+    return np.stack(rows)
 
 
 def fit(
@@ -188,12 +216,23 @@ def fit(
     settings: FitSettings = FitSettings(),
     legs=None,
     progress: bool = True,
+    log_delay_prior=None,
 ):
-    """Run NUTS; returns (mcmc, data)."""
+    """Run NUTS; returns (mcmc, data).  ``log_delay_prior``: see :func:`delay_prior_from`."""
     data = prepare(cohort, model, trials=settings.trials, legs=legs)
     arrays = data.leg_arrays()
+    if log_delay_prior is not None:
+        log_delay_prior = np.asarray(log_delay_prior, np.float32)
+        if log_delay_prior.shape != (data.n_legs, N_DELAYS):
+            raise ValueError(f"log_delay_prior must have shape ({data.n_legs}, {N_DELAYS})")
+
+    # the model and data are closed over, not passed as arguments: numpyro maps its
+    # arguments as pytrees, and a Model must not be rebuilt from placeholder leaves
+    def conditioned(arrays):
+        return numpyro_model(model, data, arrays, settings.centred, log_delay_prior)
+
     kernel = NUTS(
-        numpyro_model,
+        conditioned,
         target_accept_prob=settings.target_accept,
         max_tree_depth=settings.max_tree_depth,
         init_strategy=init_to_median(num_samples=15),
@@ -207,7 +246,7 @@ def fit(
         chain_method="sequential",
         progress_bar=progress,
     )
-    mcmc.run(jax.random.PRNGKey(settings.seed), model, data, arrays, settings.centred, extra_fields=("diverging", "energy", "num_steps"))
+    mcmc.run(jax.random.PRNGKey(settings.seed), arrays, extra_fields=("diverging", "energy", "num_steps"))
     return mcmc, data
 
 
@@ -219,6 +258,52 @@ def leg_models(model: Model, posterior: dict[str, np.ndarray]) -> Model:
     values = {p.name: jnp.asarray(posterior[p.name]) for p in model_params(model)}
     lead = next(iter(values.values())).shape[:2]
     return model.with_params(values, delay=jnp.zeros(lead, jnp.int32))
+
+
+def hyper_draws(model: Model, samples: dict, leg_subject, n_subjects: int, seed: int) -> dict:
+    """Population means and subject values, drawn from their conditional given each draw.
+
+    For the centred form, where μ and the subject level are integrated out: in prior-scale
+    units, μ ~ N(0, 1), b_s ~ N(0, r_s²), s_leg = μ + b_s(leg) + N(0, r_l²), so (μ, b | s_leg, r)
+    is Gaussian.  ``samples`` arrays have leading axes (chains, draws); returns
+    ``{name}_mu`` (chains, draws, *shape) and ``{name}_subject`` (chains, draws, subjects, *shape)
+    in the parameter's units.
+    """
+    leg_subject = np.asarray(leg_subject)
+    n_legs = leg_subject.size
+    A = np.zeros((n_legs, n_subjects + 1))
+    A[:, 0] = 1.0
+    A[np.arange(n_legs), 1 + leg_subject] = 1.0
+    rng = np.random.default_rng(seed + 2)
+    out = {}
+    for p in model_params(model):
+        if f"{p.name}_s_leg" not in samples:
+            continue
+        family, loc, scale = p.prior[:3]
+        shape = tuple(p.shape)
+        lead = np.shape(samples[f"{p.name}_s_leg"])[:2]
+        C = int(np.prod(shape)) if shape else 1
+        s_leg = np.asarray(samples[f"{p.name}_s_leg"], np.float64).reshape(*lead, C, n_legs)
+        r_s = np.asarray(samples[f"{p.name}_sd_subject_rel"], np.float64).reshape(*lead, C)
+        r_l = np.asarray(samples[f"{p.name}_sd_leg_rel"], np.float64).reshape(*lead, C)
+        prior_prec = np.concatenate(
+            [np.ones((*lead, C, 1)), np.repeat((1.0 / r_s**2)[..., None], n_subjects, axis=-1)], axis=-1
+        )
+        prec = np.einsum("...i,ij->...ij", prior_prec, np.eye(n_subjects + 1)) + (A.T @ A) / (r_l**2)[..., None, None]
+        cov = np.linalg.inv(prec)
+        mean = np.einsum("...ij,...j->...i", cov, np.einsum("li,...l->...i", A, s_leg) / (r_l**2)[..., None])
+        z = rng.standard_normal(mean.shape)
+        chol = np.linalg.cholesky(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+        draw = mean + np.einsum("...ij,...j->...i", chol, z)  # (ch, dr, C, 1 + S)
+        mu_std = draw[..., 0]
+        subj_std = draw[..., :1] + draw[..., 1:]  # (ch, dr, C, S)
+        loc_a = np.broadcast_to(np.asarray(loc, np.float64), shape).reshape(-1)
+        scale_a = np.broadcast_to(np.asarray(scale, np.float64), shape).reshape(-1)
+        tf = np.exp if family == "lognormal" else (lambda v: v)
+        out[f"{p.name}_mu"] = tf(loc_a + scale_a * mu_std).reshape(*lead, *shape)
+        subj = tf(loc_a[:, None] + scale_a[:, None] * subj_std)  # (ch, dr, C, S)
+        out[f"{p.name}_subject"] = np.moveaxis(subj, -1, 2).reshape(*lead, n_subjects, *shape)
+    return out
 
 
 def sample_delays(delay_logp: np.ndarray, seed: int) -> np.ndarray:

@@ -22,6 +22,7 @@ import numpy as np
 from ._fit import (
     FitSettings,
     describe_fit,
+    hyper_draws,
     from_json,
     model_from_description,
     model_params,
@@ -39,6 +40,7 @@ __all__ = [
     "fit_summary",
     "save_fit",
     "load_fit",
+    "read_summary",
     "FitFolderError",
     "THRESHOLDS",
 ]
@@ -53,11 +55,18 @@ class FitFolderError(FileNotFoundError):
     """A folder without a complete fit."""
 
 
-def to_inference_data(mcmc, model: Model, data: LikelihoodData, settings: FitSettings):
-    """InferenceData of a finished run, pointwise log-likelihood included."""
+def to_inference_data(
+    mcmc, model: Model, data: LikelihoodData, settings: FitSettings, delay_source=None, log_delay_prior=None
+):
+    """InferenceData of a finished run, pointwise log-likelihood included.
+
+    ``delay_source`` and ``log_delay_prior`` record where the delay prior came from
+    (None: uniform on 0 … 10 samples).
+    """
     import arviz as az
 
     samples = {k: np.asarray(v) for k, v in mcmc.get_samples(group_by_chain=True).items()}
+    samples.update(hyper_draws(model, samples, data.leg_subject, len(data.subjects), settings.seed))
     chains, draws = samples["delay_logp"].shape[:2]
     delays = sample_delays(samples["delay_logp"].reshape(chains * draws, data.n_legs, N_DELAYS), settings.seed)
     flat = {k: v.reshape(chains * draws, *v.shape[2:]) for k, v in samples.items()}
@@ -78,9 +87,8 @@ def to_inference_data(mcmc, model: Model, data: LikelihoodData, settings: FitSet
             dims[f"{p.name}_x_subject"] = ["subject", *comp]
             dims[f"{p.name}_z_subject"] = ["subject", *comp]
         if p.level == "leg":
-            dims[f"{p.name}_x_leg"] = ["leg", *comp]
             dims[f"{p.name}_z_leg"] = ["leg", *comp]
-            dims[f"{p.name}_z_leg"] = ["leg", *comp]
+            dims[f"{p.name}_s_leg"] = [*comp, "leg"]
     extra = mcmc.get_extra_fields(group_by_chain=True)
     stats = {"diverging": np.asarray(extra["diverging"]), "energy": np.asarray(extra["energy"])}
     if "num_steps" in extra:
@@ -113,7 +121,12 @@ def to_inference_data(mcmc, model: Model, data: LikelihoodData, settings: FitSet
             "segment_mask": ["leg", "segment"],
         },
     )
-    idata.posterior.attrs["quadshank_model"] = to_json(describe_fit(model, data, settings))
+    desc = describe_fit(model, data, settings)
+    desc["delay_prior"] = {
+        "source": delay_source or "uniform",
+        "probabilities": None if log_delay_prior is None else np.exp(np.asarray(log_delay_prior, np.float64)).round(6).tolist(),
+    }
+    idata.posterior.attrs["quadshank_model"] = to_json(desc)
     return idata
 
 
@@ -236,6 +249,16 @@ def save_fit(idata, folder: str | os.PathLike, extra: dict | None = None) -> dic
 def begin_fit(folder: str | os.PathLike) -> None:
     """Mark a folder as holding no complete fit (before sampling starts)."""
     (Path(folder) / "summary.json").unlink(missing_ok=True)
+
+
+def read_summary(folder: str | os.PathLike) -> dict:
+    """``summary.json`` of a complete fit folder."""
+    from ._io import read_json
+
+    folder = Path(folder)
+    if not (folder / "summary.json").exists() or not (folder / "fit.nc").exists():
+        raise FitFolderError(f"{folder}: no complete fit here (fit.nc and summary.json are written by `quadshank fit`)")
+    return read_json(folder / "summary.json")
 
 
 def load_fit(folder: str | os.PathLike):

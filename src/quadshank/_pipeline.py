@@ -320,19 +320,31 @@ def run_fit(
     settings=None,
     legs=None,
     *,
+    delay_from: str | Path | None = None,
     progress: bool = False,
 ) -> dict:
-    """Hierarchical NUTS fit of one model; writes DIR/fit.nc and DIR/summary.json, returns the summary."""
-    from ._fit import FitSettings, build_model, fit
-    from ._fitio import begin_fit, save_fit, to_inference_data
+    """Hierarchical NUTS fit of one model; writes DIR/fit.nc and DIR/summary.json, returns the summary.
+
+    ``delay_from``: a fit folder whose delay posterior becomes this fit's delay prior
+    (see :func:`quadshank._fit.delay_prior_from`).
+    """
+    from ._fit import FitSettings, build_model, delay_prior_from, fit
+    from ._fitio import begin_fit, read_summary, save_fit, to_inference_data
+    from ._likelihood import prepare
 
     settings = settings or FitSettings()
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     m = build_model(model, add_effects)
+    log_prior = None
+    if delay_from is not None:
+        chosen = prepare(cohort, m, trials=settings.trials, legs=legs).legs
+        log_prior = delay_prior_from(read_summary(delay_from), chosen)
+    out.mkdir(parents=True, exist_ok=True)
     begin_fit(out)
     t0 = time.perf_counter()
-    mcmc, data = fit(cohort, m, settings, legs=legs, progress=progress)
+    mcmc, data = fit(cohort, m, settings, legs=legs, progress=progress, log_delay_prior=log_prior)
     sampling = time.perf_counter() - t0
-    idata = to_inference_data(mcmc, m, data, settings)
+    idata = to_inference_data(
+        mcmc, m, data, settings, delay_source=None if delay_from is None else str(delay_from), log_delay_prior=log_prior
+    )
     return save_fit(idata, out, extra={"sampling_seconds": sampling})
