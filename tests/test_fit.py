@@ -105,3 +105,54 @@ def test_unknown_effect_and_missing_trial_are_plain_errors(data_dir, capsys):
     assert "unknown effect 'no_such_effect'" in capsys.readouterr().err
     assert main([*args, "--trials", "7"]) == 2
     assert "has no trial 7" in capsys.readouterr().err
+
+
+def test_population_and_subject_draws_follow_their_gaussian_conditional():
+    """hyper_draws against Gaussian conditioning of the joint (μ, x_legs), computed another way."""
+    from quadshank._fit import hyper_draws, model_params
+
+    model = build_model("model1")
+    gain = next(p for p in model_params(model) if p.name == "gain")
+    leg_subject = np.array([0, 0, 1])  # two legs of subject 0, one of subject 1
+    s_leg = np.array([0.3, 0.5, -0.4])
+    r_s, r_l = 0.7, 0.2
+    n = 40000
+    samples = {
+        "gain_s_leg": np.broadcast_to(s_leg, (1, n, 3)),
+        "gain_sd_subject_rel": np.full((1, n), r_s),
+        "gain_sd_leg_rel": np.full((1, n), r_l),
+    }
+    out = hyper_draws(model, samples, leg_subject, 2, seed=0)
+    _, loc, scale = gain.prior
+    mu_std = (np.log(out["gain_mu"][0]) - loc) / scale
+    same = (leg_subject[:, None] == leg_subject[None, :]).astype(float)
+    cov_x = 1.0 + r_s**2 * same + r_l**2 * np.eye(3)
+    w = np.linalg.solve(cov_x, np.ones(3))
+    assert mu_std.mean() == pytest.approx(w @ s_leg, abs=0.01)
+    assert mu_std.var() == pytest.approx(1.0 - w.sum(), rel=0.03)
+    # subject 1 (one leg): joint of (μ + b_1, x) conditioned on x
+    subj = (np.log(out["gain_subject"][0, :, 1]) - loc) / scale
+    c = 1.0 + r_s**2 * (leg_subject == 1)  # Cov(μ + b_1, x_l)
+    assert subj.mean() == pytest.approx(np.linalg.solve(cov_x, c) @ s_leg, abs=0.01)
+    assert subj.var() == pytest.approx(1.0 + r_s**2 - c @ np.linalg.solve(cov_x, c), rel=0.03)
+
+
+def test_delay_prior_from_another_fit(fitted, data_dir):
+    """A model-1 fit cannot see the delay, so its P(d | data) is exactly the prior it was given."""
+    from quadshank._fit import DELAY_PRIOR_FLOOR, delay_prior_from
+
+    source, _ = fitted
+    src = json.loads((source / "summary.json").read_text())
+    out = data_dir / "fit1_delay"
+    assert main(["-q", "fit", str(data_dir / "data"), "--model", "model1", *TINY,
+                 "--delay-from", str(source), "--out", str(out)]) in (0, 3)
+    got = json.loads((out / "summary.json").read_text())
+    for leg in src["legs"]:
+        prior = (1 - DELAY_PRIOR_FLOOR) * np.asarray(src["legs"][leg]["delay_posterior"]) + DELAY_PRIOR_FLOOR / N_DELAYS
+        np.testing.assert_allclose(got["legs"][leg]["delay_posterior"], prior / prior.sum(), rtol=2e-3, atol=1e-5)  # float32
+    _, _, desc = load_fit(out)
+    assert desc["delay_prior"]["source"] == str(source)
+    with pytest.raises(KeyError, match="OT-left"):
+        delay_prior_from(src, ["OT-left"])
+    assert main(["-q", "fit", str(data_dir / "data"), *TINY, "--delay-from", str(data_dir / "nowhere"),
+                 "--out", str(data_dir / "bad2")]) == 2
