@@ -7,7 +7,7 @@ import pytest
 from scipy import stats
 
 from quadshank import _likelihood as L
-from quadshank._effects import Darma
+from quadshank._effects import AngleDelay, Darma
 from quadshank._model import paper_model
 from quadshank._paper import MAX_DELAY, TWITCH_SAMPLES
 from quadshank._simulate import simulate_cohort
@@ -64,7 +64,7 @@ def test_sparse_delay_loglik_matches_reference(cohort_truth, number):
     model = _true_model(number, truth, leg)
     data = L.prepare(cohort, model, trials=(1, 2), legs=[leg])
     x = {k: v[0] for k, v in data.leg_arrays().items()}
-    ll = np.asarray(L.leg_loglik_by_delay(model, {"sigma": 35.0, "nu": 6.0}, x, data.response_length))
+    ll = np.asarray(L.leg_loglik_by_delay(model, {"sigma": 35.0, "nu": 6.0}, x, data.response_length))[:, 0]
     trials = cohort.trials_of(leg)
     for d in (0, 4, MAX_DELAY):
         ref = _reference_loglik(model, trials, d, 35.0, 6.0, data.resolution, data.response_length)
@@ -77,7 +77,7 @@ def test_pointwise_segments_sum_to_the_delay_loglik(cohort_truth):
     data = L.prepare(cohort, model, trials=(1,), legs=["TN-left"])
     x = {k: v[0] for k, v in data.leg_arrays().items()}
     noise = {"sigma": 40.0, "nu": 8.0}
-    by_d = L.leg_loglik_by_delay(model, noise, x, data.response_length)
+    by_d = L.leg_loglik_by_delay(model, noise, x, data.response_length)[:, 0]
     seg = L.leg_pointwise(model, noise, x, 5, data.response_length, data.n_segments)
     assert seg.shape == (data.n_segments,)
     assert data.n_segments == 60  # one minute in 1-s segments
@@ -104,7 +104,7 @@ def test_model2_likelihood_peaks_at_the_onset_delay(cohort_truth):
         model = _true_model(2, truth, leg)
         data = L.prepare(cohort, model, trials=(1,), legs=[leg])
         x = {k: v[0] for k, v in data.leg_arrays().items()}
-        ll = L.leg_loglik_by_delay(model, {"sigma": 40.0, "nu": 10.0}, x, data.response_length)
+        ll = L.leg_loglik_by_delay(model, {"sigma": 40.0, "nu": 10.0}, x, data.response_length)[:, 0]
         # DARMA's first output comes one sample after u_{k-d}: d = floor of the true onset
         assert int(jnp.argmax(ll)) == int(np.floor(truth["legs"][leg]["active"]["delay_samples"]))
 
@@ -157,3 +157,37 @@ def test_stateful_gains_are_refused():
     model = paper_model(1).add(CountingGain())
     with pytest.raises(ValueError, match="test_counting_gain"):
         L.gain_factors(model, jnp.zeros(3), jnp.zeros(3), jnp.zeros(3))
+
+
+@pytest.mark.parametrize("number", [2, 3])
+def test_angle_delay_reduces_to_plain_delays_at_its_limits(cohort_truth, number):
+    """Shift 0 is no effect; a threshold above every angle shortens every pulse: delay d − shift."""
+    cohort, truth = cohort_truth
+    leg = "TN-left"
+    plain = _true_model(number, truth, leg)
+    data0 = L.prepare(cohort, plain, trials=(1,), legs=[leg])
+    x0 = {k: v[0] for k, v in data0.leg_arrays().items()}
+    noise = {"sigma": 40.0, "nu": 8.0}
+    ref = np.asarray(L.leg_loglik_by_delay(plain, noise, x0, data0.response_length))[:, 0]
+    for threshold, shortened in ((500.0, True), (-500.0, False)):
+        model = plain.add(AngleDelay(threshold=threshold))
+        data = L.prepare(cohort, model, trials=(1,), legs=[leg])
+        assert data.max_shift == AngleDelay.max_shift
+        x = {k: v[0] for k, v in data.leg_arrays().items()}
+        ll = np.asarray(L.leg_loglik_by_delay(model, noise, x, data.response_length, data.max_shift))
+        np.testing.assert_allclose(ll[:, 0], ref, rtol=2e-6)
+        for shift in range(1, data.max_shift + 1):
+            want = ref[: MAX_DELAY + 1 - shift] if shortened else ref[shift:]
+            np.testing.assert_allclose(ll[shift:, shift], want, rtol=2e-6)
+
+
+def test_pointwise_segments_with_an_angle_delay_sum_to_its_loglik(cohort_truth):
+    """Pointwise segments with an angle-dependent delay sum to the (d, shift) log-likelihood."""
+    cohort, truth = cohort_truth
+    model = _true_model(2, truth, "TN-left").add(AngleDelay(threshold=-20.0))
+    data = L.prepare(cohort, model, trials=(1,), legs=["TN-left"])
+    x = {k: v[0] for k, v in data.leg_arrays().items()}
+    noise = {"sigma": 40.0, "nu": 8.0}
+    ll = L.leg_loglik_by_delay(model, noise, x, data.response_length, data.max_shift)
+    seg = L.leg_pointwise(model, noise, x, 5, data.response_length, data.n_segments, data.max_shift, 1)
+    assert float(jnp.sum(seg)) == pytest.approx(float(ll[5, 1]), rel=1e-5)

@@ -177,15 +177,30 @@ def numpyro_model(
     with numpyro.plate("legs", n_legs):
         sigma = numpyro.sample("sigma", dist.LogNormal(*SIGMA_PRIOR))
         nu = numpyro.sample("nu", dist.Gamma(*NU_PRIOR))
-    # the delay leaf is unused here (summed out below) but must carry the leg axis
-    stacked = model.with_params(values, delay=jnp.zeros(n_legs, jnp.int32))
-    R = data.response_length
-    ll = jax.vmap(lambda m, s, n, xi: leg_loglik_by_delay(m, {"sigma": s, "nu": n}, xi, R))(stacked, sigma, nu, x)
-    prior = jnp.full(ll.shape, -math.log(N_DELAYS)) if log_delay_prior is None else jnp.asarray(log_delay_prior)
-    logp = ll + prior
-    total = jax.scipy.special.logsumexp(logp, axis=-1)
-    numpyro.deterministic("delay_logp", logp - total[:, None])
+    stacked = _with_discrete_axes(model.with_params(values), (n_legs,))
+    R, K = data.response_length, data.max_shift
+    ll = jax.vmap(lambda m, s, n, xi: leg_loglik_by_delay(m, {"sigma": s, "nu": n}, xi, R, K))(stacked, sigma, nu, x)
+    d_prior = jnp.full((n_legs, N_DELAYS), -math.log(N_DELAYS)) if log_delay_prior is None else jnp.asarray(log_delay_prior)
+    logp = ll + d_prior[:, :, None] + jnp.asarray(log_shift_prior(K))[None]  # (L, D, K + 1)
+    total = jax.scipy.special.logsumexp(logp, axis=(-2, -1))
+    joint = logp - total[:, None, None]
+    numpyro.deterministic("delay_logp", jax.scipy.special.logsumexp(joint, axis=-1))
+    if K:
+        numpyro.deterministic("delay_shift_logp", joint)
     numpyro.factor("likelihood", jnp.sum(total))
+
+
+def log_shift_prior(K: int) -> np.ndarray:
+    """log π(d, shift) part of the shift, (D, K + 1): half the prior on no change, the rest
+    spread over shifts 1 … K; a shift longer than d is impossible.  Normalised over d and shift
+    together with a uniform π(d)."""
+    if K == 0:
+        return np.zeros((N_DELAYS, 1))
+    p = np.concatenate([[0.5], np.full(K, 0.5 / K)])
+    joint = np.where(np.arange(K + 1)[None, :] <= np.arange(N_DELAYS)[:, None], p[None, :], 0.0)
+    joint = joint / joint.sum(axis=1, keepdims=True)  # π(shift | d): d keeps its own prior
+    with np.errstate(divide="ignore"):
+        return np.log(joint)
 
 
 def delay_prior_from(summary: dict, legs, floor: float = DELAY_PRIOR_FLOOR) -> np.ndarray:
@@ -257,7 +272,15 @@ def leg_models(model: Model, posterior: dict[str, np.ndarray]) -> Model:
     """``model`` with leaves of shape (draws, legs, ...) taken from flat posterior arrays."""
     values = {p.name: jnp.asarray(posterior[p.name]) for p in model_params(model)}
     lead = next(iter(values.values())).shape[:2]
-    return model.with_params(values, delay=jnp.zeros(lead, jnp.int32))
+    return _with_discrete_axes(model.with_params(values), lead)
+
+
+def _with_discrete_axes(model: Model, lead: tuple) -> Model:
+    """The discrete leaves (delay, a delay effect's shift), which the likelihood sums out
+    and never reads, given the leading axes of the parameters so the model can be vmapped."""
+    zeros = jnp.zeros(lead, jnp.int32)
+    model = model.with_params(delay=zeros)
+    return model.with_delay_shift(zeros) if model.delay_effect is not None else model
 
 
 def hyper_draws(model: Model, samples: dict, leg_subject, n_subjects: int, seed: int) -> dict:
@@ -306,31 +329,46 @@ def hyper_draws(model: Model, samples: dict, leg_subject, n_subjects: int, seed:
     return out
 
 
-def sample_delays(delay_logp: np.ndarray, seed: int) -> np.ndarray:
-    """One d per draw and leg from P(d | θ, data) (Gumbel-max); delay_logp (..., legs, D)."""
-    g = jax.random.gumbel(jax.random.PRNGKey(seed + 1), delay_logp.shape)
-    return np.asarray(jnp.argmax(jnp.asarray(delay_logp) + g, axis=-1))
+def sample_delays(delay_logp: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """One (d, shift) per draw and leg from P(d, shift | θ, data) by Gumbel-max.
+
+    ``delay_logp`` is (..., legs, D) (no delay effect: shift 0) or the joint
+    (..., legs, D, K + 1).  Returns (d, shift), each (..., legs).
+    """
+    logp = np.asarray(delay_logp)
+    if logp.ndim >= 3 and logp.shape[-1] != N_DELAYS:
+        flat = logp.reshape(*logp.shape[:-2], -1)
+        n_shift = logp.shape[-1]
+    else:
+        flat, n_shift = logp, 1
+    g = jax.random.gumbel(jax.random.PRNGKey(seed + 1), flat.shape)
+    k = np.asarray(jnp.argmax(jnp.asarray(flat) + g, axis=-1))
+    return k // n_shift, k % n_shift
 
 
-def pointwise_loglik(model: Model, data: LikelihoodData, posterior: dict, delays: np.ndarray, chunk: int = 64):
-    """log p(segment | θ, d) per draw, leg and 1-s segment: array (draws, legs, segments)."""
+def pointwise_loglik(
+    model: Model, data: LikelihoodData, posterior: dict, delays: np.ndarray, shifts: np.ndarray, chunk: int = 64
+):
+    """log p(segment | θ, d, shift) per draw, leg and 1-s segment: array (draws, legs, segments)."""
     x = data.leg_arrays()
-    R = data.response_length
+    R, K = data.response_length, data.max_shift
     S = data.n_segments
 
-    def one_draw(m, s, n, d):
-        return jax.vmap(lambda mi, si, ni, xi, di: leg_pointwise(mi, {"sigma": si, "nu": ni}, xi, di, R, S))(
-            m, s, n, x, d
-        )
+    def one_leg(mi, si, ni, xi, di, ki):
+        return leg_pointwise(mi, {"sigma": si, "nu": ni}, xi, di, R, S, K, ki)
+
+    def one_draw(m, s, n, d, k):
+        return jax.vmap(one_leg)(m, s, n, x, d, k)
 
     stacked = leg_models(model, posterior)
-    f = jax.jit(lambda m, s, n, d: jax.vmap(one_draw)(m, s, n, d))
+    f = jax.jit(jax.vmap(one_draw))
     n_draws = delays.shape[0]
     out = []
     for i in range(0, n_draws, chunk):
         sl = slice(i, min(i + chunk, n_draws))
         m = jax.tree_util.tree_map(lambda v: v[sl], stacked)
-        out.append(np.asarray(f(m, posterior["sigma"][sl], posterior["nu"][sl], jnp.asarray(delays[sl]))))
+        args = (posterior["sigma"][sl], posterior["nu"][sl], jnp.asarray(delays[sl]), jnp.asarray(shifts[sl]))
+        out.append(np.asarray(f(m, *args)))
     ll = np.concatenate(out, axis=0)
     return np.where(data.segment_mask[None], ll, np.nan)
 

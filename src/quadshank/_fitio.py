@@ -68,15 +68,22 @@ def to_inference_data(
     samples = {k: np.asarray(v) for k, v in mcmc.get_samples(group_by_chain=True).items()}
     samples.update(hyper_draws(model, samples, data.leg_subject, len(data.subjects), settings.seed))
     chains, draws = samples["delay_logp"].shape[:2]
-    delays = sample_delays(samples["delay_logp"].reshape(chains * draws, data.n_legs, N_DELAYS), settings.seed)
+    joint = samples.get("delay_shift_logp", samples["delay_logp"])
+    delays, shifts = sample_delays(joint.reshape(chains * draws, *joint.shape[2:]), settings.seed)
     flat = {k: v.reshape(chains * draws, *v.shape[2:]) for k, v in samples.items()}
-    ll = pointwise_loglik(model, data, flat, delays)
+    ll = pointwise_loglik(model, data, flat, delays, shifts)
     samples["delay"] = delays.reshape(chains, draws, data.n_legs)
+    if data.max_shift:
+        samples["delay_shift"] = shifts.reshape(chains, draws, data.n_legs)
 
     legs = list(data.legs)
     subjects = list(data.subjects)
     coords = {"leg": legs, "subject": subjects, "delay_samples": np.arange(N_DELAYS)}
     dims = {"delay_logp": ["leg", "delay_samples"], "delay": ["leg"], "sigma": ["leg"], "nu": ["leg"]}
+    if data.max_shift:
+        coords["shift_samples"] = np.arange(data.max_shift + 1)
+        dims["delay_shift_logp"] = ["leg", "delay_samples", "shift_samples"]
+        dims["delay_shift"] = ["leg"]
     for p in model_params(model):
         comp = [f"{p.name}_dim"] if p.shape else []
         if p.shape:
@@ -132,7 +139,7 @@ def to_inference_data(
 
 def _sampled_vars(idata) -> list[str]:
     """Variables checked for convergence: everything sampled or derived, but the discrete delay."""
-    return [v for v in idata.posterior.data_vars if v not in ("delay", "delay_logp")]
+    return [v for v in idata.posterior.data_vars if v not in ("delay", "delay_logp", "delay_shift", "delay_shift_logp")]
 
 
 def diagnose_sampling(idata) -> dict:
@@ -196,6 +203,59 @@ def _interval(values: np.ndarray) -> dict:
     return {"median": np.median(values, axis=0).tolist(), "lo": lo.tolist(), "hi": hi.tolist()}
 
 
+#: Knee angles of the delay–angle curve [deg]: the operating range of section II.
+ANGLE_GRID = np.arange(-40.0, 60.5, 1.0)
+#: A threshold counts as a change only where it splits a leg's pulses, between these quantiles of their angles.
+SPLIT_QUANTILES = (0.05, 0.95)
+
+
+def _leg_draws(idata, name: str, i: int) -> np.ndarray:
+    v = idata.posterior[name]
+    return np.asarray(v).reshape(-1, *v.shape[2:])[:, i]
+
+
+def delay_angle_curve(idata, desc: dict, i: int) -> np.ndarray:
+    """Effective delay [samples] of pulses delivered at each ANGLE_GRID angle, per draw: d − shift·w(φ)."""
+    from ._effects import AngleDelay
+
+    d = _leg_draws(idata, "delay", i).astype(float)
+    shift = _leg_draws(idata, "delay_shift", i).astype(float)
+    threshold = _leg_draws(idata, "threshold", i)
+    w = 1.0 / (1.0 + np.exp(-(threshold[:, None] - ANGLE_GRID[None, :]) / AngleDelay.SOFTNESS_DEG))
+    return d[:, None] - shift[:, None] * w
+
+
+def delay_angle_summary(idata, desc: dict, i: int) -> dict:
+    """Whether the delay of leg i changes with angle, by how much, where, and the curve's band.
+
+    ``change_probability`` is the posterior mean of P(shift ≥ 1 | θ, data) over the
+    draws whose threshold splits the leg's pulses (between the SPLIT_QUANTILES of
+    their angles): a shorter delay for no pulse, or for all of them, is no angle
+    dependence.  ``threshold_deg`` is the threshold's interval over the draws with
+    a change.
+    """
+    joint = np.exp(_leg_draws(idata, "delay_shift_logp", i))  # (draws, D, K + 1)
+    p_shift = joint.sum(axis=1)  # (draws, K + 1)
+    threshold = _leg_draws(idata, "threshold", i)
+    stim = np.asarray(idata.constant_data["stimulation"])[i]
+    angle = np.asarray(idata.constant_data["angle"])[i]
+    mask = np.asarray(idata.constant_data["sample_mask"])[i].astype(bool)
+    pulse_angles = angle[(stim > 0) & mask]
+    lo, hi = np.quantile(pulse_angles, SPLIT_QUANTILES) if pulse_angles.size else (np.inf, -np.inf)
+    splits = (threshold > lo) & (threshold < hi)
+    change = float(np.mean(np.where(splits, 1.0 - p_shift[:, 0], 0.0)))
+    shifted = _leg_draws(idata, "delay_shift", i) > 0
+    with_change = threshold[shifted & splits]
+    return {
+        "change_probability": change,
+        "shift_posterior": p_shift.mean(axis=0).tolist(),
+        "threshold_deg": _interval(with_change) if with_change.size else None,
+        "pulse_angle_range_deg": [float(lo), float(hi)],
+        "angle_deg": ANGLE_GRID.tolist(),
+        **_interval(delay_angle_curve(idata, desc, i)),
+    }
+
+
 def fit_summary(idata) -> dict:
     """Per leg: delay posterior and each parameter's median and 90 % interval; diagnostics."""
     desc = from_json(idata.posterior.attrs["quadshank_model"])
@@ -216,12 +276,21 @@ def fit_summary(idata) -> dict:
             "delay_mode_samples": int(np.argmax(probs)),
             "params": params,
         }
+        if "delay_shift_logp" in flat:
+            legs[leg]["delay_angle"] = delay_angle_summary(idata, desc, i)
+    if "delay_shift_logp" in flat:
+        pooled = [delay_angle_curve(idata, desc, i) for i in range(len(desc["legs"]))]
+        population = _interval(np.concatenate(pooled, axis=0))
     diag = diagnose_sampling(idata)
+    extra = {}
+    if "delay_shift_logp" in flat:
+        extra["delay_angle_population"] = {"angle_deg": ANGLE_GRID.tolist(), **population}
     return {
         "model": desc["model"],
         "effects": desc["effects"],
         "trials": desc["trials"],
         "legs": legs,
+        **extra,
         "diagnostics": diag,
         "banner": None if diag["ok"] else "FIT FAILED ITS CHECKS: " + "; ".join(diag["problems"]),
         "settings": desc["settings"],
@@ -288,6 +357,10 @@ def posterior_models(idata, model: Model, leg: str, n_draws: int | None = None, 
         arr = np.asarray(post[p.name]).reshape(total, *post[p.name].shape[2:])[idx, i]
         values[p.name] = jnp.asarray(arr)
     delay = np.asarray(post["delay"]).reshape(total, -1)[idx, i]
-    return model.with_params(values, delay=jnp.asarray(delay, jnp.int32)), delay
+    stacked = model.with_params(values, delay=jnp.asarray(delay, jnp.int32))
+    if "delay_shift" in post:
+        shift = np.asarray(post["delay_shift"]).reshape(total, -1)[idx, i]
+        stacked = stacked.with_delay_shift(jnp.asarray(shift, jnp.int32))
+    return stacked, delay
 
 

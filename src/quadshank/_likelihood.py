@@ -74,6 +74,7 @@ __all__ = [
     "leg_loglik_by_delay",
     "leg_pointwise",
     "student_t_logpdf",
+    "max_shift",
     "SEGMENT_SAMPLES",
     "N_DELAYS",
 ]
@@ -104,6 +105,7 @@ class LikelihoodData:
     trials: tuple[int, ...]
     resolution: str
     response_length: int
+    max_shift: int  # K: the delay effect may shorten d by 0 … K samples (0 without one)
     angle: np.ndarray  # (L, N) deg
     velocity: np.ndarray  # (L, N) deg/s
     acceleration: np.ndarray  # (L, N) deg/s²
@@ -117,9 +119,9 @@ class LikelihoodData:
     segment_mask: np.ndarray  # (L, S) bool
     pulse_sample: np.ndarray  # (L, P)
     pulse_u: np.ndarray  # (L, P) 0 for padding
-    touch_sample: np.ndarray  # (L, D, P*R) sample reached by pulse i, lag j at delay d
-    touch_valid: np.ndarray  # (L, D, P*R) bool
-    touch_pos: np.ndarray  # (L, D, P*R) index into touch_window
+    touch_sample: np.ndarray  # (L, D, P*(R+K)) sample reached by pulse i, lag j - K at delay d
+    touch_valid: np.ndarray  # (L, D, P*(R+K)) bool
+    touch_pos: np.ndarray  # (L, D, P*(R+K)) index into touch_window
     touch_window: np.ndarray  # (L, D, U) windows reached at delay d
     touch_mask: np.ndarray  # (L, D, U) bool
 
@@ -154,11 +156,24 @@ def _windows(stim: np.ndarray, resolution: str) -> np.ndarray:
     return starts
 
 
+def max_shift(model: Model) -> int:
+    """Largest shortening of the delay the model's delay effect allows (0 without one)."""
+    eff = model.delay_effect
+    if eff is None:
+        return 0
+    if not hasattr(eff, "pulse_weight") or not hasattr(eff, "max_shift"):
+        raise LikelihoodError(
+            f"effect {eff.name!r}: the hierarchical fit needs a delay effect to declare max_shift and pulse_weight(angle)"
+        )
+    return int(eff.max_shift)
+
+
 def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodData:
     """Arrange a cohort's chosen trials for the likelihood of ``model``."""
     act = model.activation
     resolution = getattr(act, "resolution", "sample")
     R = int(getattr(act, "response_length", 40))
+    K = max_shift(model)
     legs = tuple(legs) if legs is not None else cohort.legs
     trials = tuple(int(t) for t in trials)
     gap = MAX_DELAY + R + 1
@@ -226,16 +241,19 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         pulse_sample[i, : p.size] = p
         pulse_u[i, : p.size] = stimulation[i, p]
 
+    # at delay d a pulse's response may reach from d - K (the shortest delay an angle
+    # effect allows) to d + R - 1 samples after it: R + K extended lags
     D = N_DELAYS
-    lag = np.arange(R)
-    touch_sample = np.zeros((L, D, P * R), np.int64)
-    touch_valid = np.zeros((L, D, P * R), bool)
-    touch_pos = np.zeros((L, D, P * R), np.int64)
+    RK = R + K
+    lag = np.arange(RK) - K
+    touch_sample = np.zeros((L, D, P * RK), np.int64)
+    touch_valid = np.zeros((L, D, P * RK), bool)
+    touch_pos = np.zeros((L, D, P * RK), np.int64)
     found = []
     for i in range(L):
         for d in range(D):
             s = (pulse_sample[i][:, None] + d + lag[None, :]).reshape(-1)
-            ok = (s < N) & (pulse_u[i][:, None] > 0).repeat(R, axis=1).reshape(-1)
+            ok = (s >= 0) & (s < N) & (pulse_u[i][:, None] > 0).repeat(RK, axis=1).reshape(-1)
             s = np.where(ok, s, 0)
             ok &= sample_mask[i][s]
             w = window[i][s]
@@ -259,6 +277,7 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         trials=trials,
         resolution=resolution,
         response_length=R,
+        max_shift=K,
         angle=angle,
         velocity=velocity,
         acceleration=acceleration,
@@ -312,10 +331,6 @@ def _is_stateless(effect: Effect) -> bool:
 
 def gain_factors(model: Model, angle, velocity, stimulation):
     """Π of the gain effects' factors at every sample's measured state."""
-    if model.delay_effect is not None:
-        raise LikelihoodError(
-            f"effect {model.delay_effect.name!r}: delay effects are not yet supported by the hierarchical fit"
-        )
     F = jnp.ones_like(angle)
     ctx = StepContext(angle=angle, velocity=velocity, u=stimulation, u_now=stimulation)
     for g in model.gains:
@@ -337,11 +352,22 @@ def _window_terms(model: Model, noise: dict, x: dict):
     return E, scale, lp0
 
 
-def _amplitudes(model: Model, x: dict, R: int):
-    """u_i · h_j for every (pulse, lag), flattened, and the gain factor F at every sample."""
+def _amplitudes(model: Model, x: dict, R: int, K: int, shift: int):
+    """u_i · (response of pulse i over its R + K extended lags) at one shift, flattened.
+
+    Extended lag q is sample p_i + d − K + q.  A pulse takes delay d with weight
+    1 − w_i and d − shift with weight w_i (w from the delay effect at the pulse's
+    angle); without a delay effect, or at shift 0, it is the plain response.
+    """
     h = impulse_response(model.activation, R)
-    F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
-    return (x["pulse_u"][:, None] * h[None, :]).reshape(-1), F
+    h_pad = jnp.concatenate([jnp.zeros(K, h.dtype), h, jnp.zeros(K, h.dtype)])
+    long = h_pad[None, : R + K]
+    u = x["pulse_u"][:, None]
+    if K == 0 or shift == 0:
+        return (u * long).reshape(-1)
+    w = model.delay_effect.pulse_weight(x["angle"][x["pulse_sample"]])[:, None]
+    short = h_pad[None, shift : shift + R + K]
+    return (u * ((1.0 - w) * long + w * short)).reshape(-1)
 
 
 def _contributions(amp, F, sample, valid):
@@ -349,28 +375,38 @@ def _contributions(amp, F, sample, valid):
     return jnp.where(valid, amp * F[sample], 0.0)
 
 
-def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int):
-    """log p(y_leg | θ, d) for d = 0 … MAX_DELAY, one leg (vmap over legs outside)."""
+def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
+    """log p(y_leg | θ, d, shift), shape (MAX_DELAY + 1, K + 1), one leg (vmap over legs outside).
+
+    Entries with shift > d are computed but meaningless (the prior excludes them).
+    """
     E, scale, lp0 = _window_terms(model, noise, x)
     base = jnp.sum(lp0)
-    amp, F = _amplitudes(model, x, R)
+    F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
     U = x["touch_window"].shape[-1]
+    out = []
+    for shift in range(K + 1):
+        amp = _amplitudes(model, x, R, K, shift)
 
-    def one(ts, valid, pos, tw, tm):
-        M = jax.ops.segment_sum(_contributions(amp, F, ts, valid), pos, num_segments=U)
-        lp = student_t_logpdf(E[tw] - M, noise["nu"], scale[tw]) - lp0[tw]
-        return jnp.sum(jnp.where(tm, lp, 0.0))
+        def one(ts, valid, pos, tw, tm, amp=amp):
+            M = jax.ops.segment_sum(_contributions(amp, F, ts, valid), pos, num_segments=U)
+            lp = student_t_logpdf(E[tw] - M, noise["nu"], scale[tw]) - lp0[tw]
+            return jnp.sum(jnp.where(tm, lp, 0.0))
 
-    delta = jax.vmap(one)(x["touch_sample"], x["touch_valid"], x["touch_pos"], x["touch_window"], x["touch_mask"])
-    return base + delta
+        out.append(
+            jax.vmap(one)(x["touch_sample"], x["touch_valid"], x["touch_pos"], x["touch_window"], x["touch_mask"])
+        )
+    return base + jnp.stack(out, axis=-1)
 
 
-def leg_pointwise(model: Model, noise: dict, x: dict, d_index, R: int, n_segments: int):
-    """log p(y_segment | θ, d) per PSIS-LOO segment of one leg."""
+def leg_pointwise(model: Model, noise: dict, x: dict, d_index, R: int, n_segments: int, K: int = 0, shift=0):
+    """log p(y_segment | θ, d, shift) per PSIS-LOO segment of one leg."""
     E, scale, _ = _window_terms(model, noise, x)
     W = E.shape[-1]
     N = x["angle"].shape[-1]
-    amp, F = _amplitudes(model, x, R)
+    F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
+    amps = jnp.stack([_amplitudes(model, x, R, K, s) for s in range(K + 1)])
+    amp = amps[shift]
     c = _contributions(amp, F, x["touch_sample"][d_index], x["touch_valid"][d_index])
     M_sample = jax.ops.segment_sum(c, x["touch_sample"][d_index], num_segments=N)
     M = jax.ops.segment_sum(M_sample, x["window"], num_segments=W)

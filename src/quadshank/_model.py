@@ -123,6 +123,14 @@ class Model:
             raise KeyError(f"model {self.name!r} has no parameter(s) {sorted(remaining)}; it has {sorted(self.params())}")
         return dataclasses.replace(self, effects=tuple(effects), delay=self.delay if delay is None else delay)
 
+    def with_delay_shift(self, shift) -> Model:
+        """A copy whose delay effect shortens the delay by ``shift`` samples where it applies."""
+        eff = self.delay_effect
+        if eff is None:
+            raise ValueError(f"model {self.name!r} has no delay effect to shift")
+        effects = tuple(dataclasses.replace(e, shift=shift) if e is eff else e for e in self.effects)
+        return dataclasses.replace(self, effects=effects)
+
     def add(self, *effects: Effect | str, name: str | None = None) -> Model:
         """A copy with further effects (instances, or registered names with default values)."""
         new = tuple(get_effect(e)() if isinstance(e, str) else e for e in effects)
