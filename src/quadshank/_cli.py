@@ -77,8 +77,36 @@ def cmd_evaluate(args) -> int:
     from ._pipeline import load_identification, models_from_summary, run_identify
 
     data = Path(args.data)
-    cohort = load_cohort(data)
     out = Path(args.out)
+    if args.fit:
+        from ._posterior_eval import run_posterior_evaluate
+
+        if args.identified:
+            raise ValueError("give --fit (posterior evaluation) or --identified (point estimates), not both")
+        summary = run_posterior_evaluate(
+            load_cohort(data), args.fit, out, n_draws=args.draws, start_stride=args.start_stride,
+            progress=not args.quiet,
+        )
+        for model, info in summary["fits"].items():
+            if info["banner"]:
+                print(f"quadshank: warning: {model} ({info['folder']}): {info['banner']}", file=sys.stderr)
+        for model, trials in summary["J"].items():
+            _say(args, f"{model}: " + "; ".join(
+                f"trial {t}: " + ", ".join(f"{h} ms {v['median']:.1f}° [{v['lo']:.1f}, {v['hi']:.1f}]"
+                                           for h, v in hv.items())
+                for t, hv in trials.items()
+            ))
+        for model, v in summary["loo"]["fits"].items():
+            _say(args, f"{model}: elpd_loo {v['elpd_loo']:.1f} ± {v['se']:.1f}, p_loo {v['p_loo']:.1f}, "
+                       f"{v['pareto_k_over_0.7']} segment(s) with Pareto k > 0.7")
+        for group in summary["loo"]["compare"]:
+            ranked = sorted(group["table"].items(), key=lambda kv: kv[1]["rank"])
+            _say(args, "LOO ranking: " + ", ".join(
+                f"{m} (Δelpd {r['elpd_diff']:.1f} ± {r['dse']:.1f}, weight {r['weight']:.2f})" for m, r in ranked
+            ))
+        _say(args, f"posterior Table V, sign tests, PSIS-LOO, figures and summary.json in {out}")
+        return 0
+    cohort = load_cohort(data)
     if args.identified:
         models = load_identification(args.identified)
     else:
@@ -207,6 +235,12 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("data", help="interchange folder or .nc cohort file")
     e.add_argument("--out", required=True)
     e.add_argument("--identified", default="", help="output folder of `quadshank identify` (default: identify now)")
+    e.add_argument("--fit", action="append", metavar="DIR",
+                   help="fit folder of `quadshank fit` (repeat for several models): evaluate the posterior, "
+                        "with 90 %% bands and PSIS-LOO, instead of identifying")
+    e.add_argument("--draws", type=int, default=200, help="posterior draws per fit to evaluate (default 200)")
+    e.add_argument("--start-stride", type=int, default=1, metavar="K",
+                   help="posterior J from every K-th start sample (default 1: all, as eq. 12)")
     e.set_defaults(func=cmd_evaluate)
 
     f = sub.add_parser("fit", help="hierarchical Bayesian fit (NUTS) of one model across legs")

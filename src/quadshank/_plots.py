@@ -145,3 +145,77 @@ def plot_delay_scan(ident: dict):
     ax.legend(fontsize=8)
     fig.tight_layout()
     return fig
+
+
+def _horizon_axis(ax):
+    ax.set_xscale("log")
+    ax.set_xticks(list(HORIZON_MS.values()))
+    ax.set_xticklabels([str(h) for h in HORIZON_MS.values()])
+    ax.minorticks_off()
+    ax.set_xlabel("prediction horizon [ms]")
+
+
+def plot_posterior_j_vs_horizon(J: dict):
+    """Posterior Table V: median J of the mean over legs with its 90 % band, per model and trial.
+
+    ``J[model][trial][horizon_ms] = {"median", "lo", "hi"}`` (horizon keys str or int);
+    the paper's mean ± s.d. is drawn beside for the models it reports.
+    """
+    trials = sorted({t for by_trial in J.values() for t in by_trial}, key=int)
+    fig, axes = plt.subplots(1, len(trials), figsize=(4.2 * len(trials), 3.8), sharey=True, squeeze=False)
+    for ax, trial in zip(axes[0], trials):
+        for model in sorted(J):
+            if trial not in J[model]:
+                continue
+            hv = sorted(J[model][trial].items(), key=lambda kv: int(kv[0]))
+            hs = [int(h) for h, _ in hv]
+            line, = ax.plot(hs, [v["median"] for _, v in hv], marker="o", color=_MODEL_COLOURS.get(model),
+                            label=f"{model} (posterior median, 90 %)")
+            ax.fill_between(hs, [v["lo"] for _, v in hv], [v["hi"] for _, v in hv], color=line.get_color(),
+                            alpha=0.25)
+            paper = TABLE_V.get(trial, {}).get(model)
+            if paper:
+                ax.errorbar([h * 1.04 for h in paper], [v[0] for v in paper.values()],
+                            yerr=[v[1] for v in paper.values()], fmt=":x", capsize=3, color=line.get_color(),
+                            label=f"{model} (paper, mean ± s.d.)")
+        _horizon_axis(ax)
+        ax.set_title(f"trial {trial}")
+    axes[0, 0].set_ylabel("J_φ,p, mean over legs [deg]")
+    axes[0, -1].legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def plot_posterior_predictions(trial, predicted: dict, p: int, *, j: dict | None = None,
+                               start_s: float = 30.0, length_s: float = 20.0):
+    """Figs. 5 and 6 from a posterior: measured angle, median prediction ``p`` samples ahead and 90 % band.
+
+    ``predicted[model] = (starts, pred)`` with ``pred`` of shape (draws, starts): the
+    angle predicted p samples after each start, per draw.  ``j[model]``, when
+    given, is the trial's J {"median", "lo", "hi"} at this horizon, for the titles.
+    """
+    sl = _window(trial, start_s, length_s)
+    names = sorted(predicted)
+    fig, axes = plt.subplots(len(names), 1, figsize=(9, 2.6 * len(names)), sharex=True, squeeze=False)
+    ms = p * trial.sampling_period_s * 1000
+    for ax, name in zip(axes[:, 0], names):
+        starts, pred = predicted[name]
+        target = np.asarray(starts) + p
+        keep = (target >= sl.start) & (target < sl.stop)
+        t = trial.time_s[target[keep]]
+        lo, med, hi = np.quantile(np.asarray(pred)[:, keep], (0.05, 0.5, 0.95), axis=0)
+        ax.plot(trial.time_s[sl], trial.angle_deg[sl], "k-", lw=1.2, label="measured")
+        line, = ax.plot(t, med, "--", color=_MODEL_COLOURS.get(name), lw=1.2,
+                        label=f"{name}, {ms:.0f} ms ahead (median)")
+        ax.fill_between(t, lo, hi, color=line.get_color(), alpha=0.3, lw=0, label="90 % band over draws")
+        band = (j or {}).get(name)
+        title = name
+        if band:
+            title += f": J = {band['median']:.2f}° [{band['lo']:.2f}, {band['hi']:.2f}] over the trial"
+        ax.set_title(title, fontsize=9)
+        ax.set_ylabel("angle [deg]")
+        ax.legend(fontsize=8, loc="upper right")
+    axes[-1, 0].set_xlabel("time [s]")
+    fig.suptitle(f"{trial.key}, trial {trial.trial}: posterior prediction {ms:.0f} ms ahead")
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,495 @@
+"""Posterior predictive evaluation of fitted models: J_φ,p with 90 % bands, sign tests, PSIS-LOO.
+
+The classical evaluation (:mod:`quadshank._evaluate`) scores one identified
+model per leg.  Here a model is a posterior, a fit folder written by
+``quadshank fit`` (see :mod:`quadshank._fitio`), and every score is computed
+per posterior draw, so it comes with its uncertainty.
+
+Prediction error J_φ,p (eq. 12)
+    For ``n_draws`` posterior draws (a random subset, fixed seed; the same draw
+    indices for every leg of a fit, so the draws stay joint across legs) the
+    rollouts of :func:`quadshank._model.predict_ahead` are vmapped over draws
+    (a :class:`~quadshank._model.Model` is a pytree whose leaves, the delay
+    included, carry a leading draws axis) and, inside ``predict_ahead``, over
+    starts.  Draws go through in chunks of equal size (the last one padded
+    with a repeated draw, so one compiled function serves a whole trial) that
+    keep the (draws × starts × horizon) rollout array under
+    :data:`CHUNK_ELEMENTS`.  ``start_stride`` = k uses the starts
+    n = 0, k, 2k, … < N - max(horizons): the same starts for every horizon, so
+    horizons stay comparable; k = 1 is eq. (12) exactly, and for one draw the
+    result equals :func:`quadshank._evaluate.prediction_errors`.
+
+Summaries
+    Per model, leg, trial and horizon: median and 90 % band (5 % and 95 %
+    quantiles) over draws.  Per model, trial and horizon: the same for the
+    per-draw mean over legs, i.e. the posterior of the Table V mean.  The
+    paper's sign test (section III-E-1) is applied to the posterior-median J
+    when at least two models are given.  Trials a fit was fitted on are
+    in-sample; the summary records them per fit.
+
+PSIS-LOO
+    ``az.loo`` on the per-leg, 1-s-segment log-likelihood stored in each fit
+    (legs × segments stacked into one observation axis, padded segments
+    dropped), and ``az.compare`` among fits of the same data: same legs,
+    trials and likelihood resolution, and identical observed accelerations.
+    Fits without such a partner are listed as not compared, with the reason.
+
+:func:`run_posterior_evaluate` writes tables, figures, ``report.md`` and,
+last, ``summary.json`` into an output folder, every file atomically.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import time
+import warnings
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._cohort import Cohort, Trial
+from ._evaluate import sign_tests
+from ._fitio import INTERVAL, _sampled_vars, load_fit, posterior_models, read_summary
+from ._io import atomic_write_text, save_figure, write_json
+from ._model import Model, predict_ahead
+from ._paper import HORIZON_MS, HORIZONS, TABLE_V
+from ._plots import plot_posterior_j_vs_horizon, plot_posterior_predictions
+from ._progress import progress_bar
+from ._tables import markdown_table, sign_test_rows, write_table
+
+__all__ = [
+    "LoadedFit",
+    "load_fits",
+    "prediction_starts",
+    "posterior_predictions",
+    "posterior_prediction_errors",
+    "posterior_j",
+    "interval",
+    "summarise_j",
+    "psis_loo",
+    "loo_report",
+    "run_posterior_evaluate",
+    "CHUNK_ELEMENTS",
+    "PARETO_K_BAD",
+]
+
+#: Largest (draws × starts × horizon) rollout array computed at once (float32: 64 MiB).
+CHUNK_ELEMENTS = 1 << 24
+#: Pareto k above which a PSIS-LOO observation's estimate is unreliable.
+PARETO_K_BAD = 0.7
+#: (start, length) [s] of the prediction figures' window; on shorter trials the start moves earlier.
+FIGURE_WINDOW_S = (30.0, 20.0)
+
+
+class LoadedFit(NamedTuple):
+    """A fit folder in memory; ``label`` (the model's name) names it in every output."""
+
+    label: str
+    folder: Path
+    idata: Any
+    model: Model
+    desc: dict
+    summary: dict
+
+
+def load_fits(folders) -> list[LoadedFit]:
+    """Load fit folders; a missing or incomplete folder, or two fits of one model, is an error."""
+    fits = []
+    for folder in folders:
+        idata, model, desc = load_fit(folder)
+        fits.append(LoadedFit(desc["model"], Path(folder), idata, model, desc, read_summary(folder)))
+    seen: dict[str, Path] = {}
+    for f in fits:
+        if f.label in seen:
+            raise ValueError(
+                f"fits {seen[f.label]} and {f.folder} are both of {f.label!r}; give one fit per model"
+            )
+        seen[f.label] = f.folder
+    return fits
+
+
+def _check_legs(fits: list[LoadedFit], cohort: Cohort) -> None:
+    for f in fits:
+        missing = [leg for leg in f.desc["legs"] if leg not in cohort.legs]
+        if missing:
+            raise KeyError(
+                f"fit {f.folder} ({f.label}) has leg(s) {', '.join(missing)} that the data lacks "
+                f"(the data has {', '.join(cohort.legs)})"
+            )
+
+
+# ============================================================================ J per draw
+
+
+def prediction_starts(trial: Trial, horizon: int, stride: int = 1) -> np.ndarray:
+    """Starts n = 0, stride, 2·stride, … < N - horizon (all horizons share them)."""
+    n = trial.n_samples - horizon
+    if n <= 0:
+        raise ValueError(
+            f"{trial.key} trial {trial.trial}: {trial.n_samples} samples, fewer than the horizon {horizon}"
+        )
+    return np.arange(0, n, stride)
+
+
+@functools.partial(jax.jit, static_argnames=("horizon", "columns"))
+def _rollouts(models, angle, velocity, stimulation, starts, horizon, columns):
+    """Predicted angles (draws, starts, len(columns)) at the given rollout columns."""
+    cols = jnp.asarray(columns)
+    return jax.vmap(lambda m: predict_ahead(m, angle, velocity, stimulation, starts, horizon)[:, cols])(models)
+
+
+def _n_draws(models: Model) -> int:
+    return int(np.shape(models.delay)[0])
+
+
+def _prediction_chunks(models: Model, trial: Trial, starts: np.ndarray, horizons):
+    """Yield the predictions (chunk, starts, horizons) of consecutive chunks of draws."""
+    horizon = max(horizons)
+    n = _n_draws(models)
+    size = int(np.clip(CHUNK_ELEMENTS // max(1, len(starts) * horizon), 1, n))
+    columns = tuple(int(p) - 1 for p in horizons)
+    starts = jnp.asarray(starts)
+    for i in range(0, n, size):
+        idx = np.minimum(np.arange(i, i + size), n - 1)  # the last chunk repeats the last draw
+        chunk = jax.tree_util.tree_map(lambda x: x[idx], models)
+        pred = _rollouts(chunk, trial.angle_deg, trial.velocity_deg_s, trial.stimulation, starts, horizon, columns)
+        yield np.asarray(pred, dtype=float)[: min(size, n - i)]
+
+
+def posterior_predictions(models: Model, trial: Trial, starts, horizons=HORIZONS) -> np.ndarray:
+    """Angles predicted p samples after each start, per draw: array (draws, starts, horizons).
+
+    ``models`` has leaves with a leading draws axis (see
+    :func:`quadshank._fitio.posterior_models`); ``starts + max(horizons)`` must
+    stay inside the trial.
+    """
+    return np.concatenate(list(_prediction_chunks(models, trial, np.asarray(starts), horizons)), axis=0)
+
+
+def posterior_prediction_errors(models: Model, trial: Trial, horizons=HORIZONS, start_stride: int = 1) -> np.ndarray:
+    """J_φ,p [deg] (eq. 12) per draw and horizon: array (draws, len(horizons))."""
+    starts = prediction_starts(trial, max(horizons), start_stride)
+    target = trial.angle_deg[starts[:, None] + np.asarray(horizons)[None, :]]  # (S, H)
+    chunks = _prediction_chunks(models, trial, starts, horizons)
+    return np.concatenate([np.sqrt(np.mean((target[None] - pred) ** 2, axis=1)) for pred in chunks])
+
+
+def posterior_j(
+    fits: list[LoadedFit],
+    cohort: Cohort,
+    *,
+    horizons=HORIZONS,
+    n_draws: int = 200,
+    start_stride: int = 1,
+    seed: int = 0,
+    progress: bool = False,
+) -> dict:
+    """J per draw: ``J[label][leg][trial_str]`` = array (draws, len(horizons)).
+
+    Every leg of every fit is evaluated on all of that leg's trials in ``cohort``.
+    """
+    jobs = [(f, leg, t) for f in fits for leg in f.desc["legs"] for t in cohort.trials_of(leg)]
+    out: dict = {}
+    loaded = None
+    for f, leg, t in progress_bar(jobs, desc="posterior J", enabled=progress):
+        if loaded != (f.label, leg):  # jobs come leg by leg: one leg's draws in memory at a time
+            loaded = (f.label, leg)
+            models, _ = posterior_models(f.idata, f.model, leg, n_draws, seed)
+        errs = posterior_prediction_errors(models, t, horizons, start_stride)
+        out.setdefault(f.label, {}).setdefault(leg, {})[str(t.trial)] = errs
+    return out
+
+
+def interval(values) -> dict[str, float]:
+    """Median and 90 % band (quantiles :data:`quadshank._fitio.INTERVAL`) of draws."""
+    lo, hi = np.quantile(values, INTERVAL)
+    return {"median": float(np.median(values)), "lo": float(lo), "hi": float(hi)}
+
+
+def summarise_j(draws: dict, horizons=HORIZONS) -> tuple[dict, dict]:
+    """(cohort, per leg) summaries of :func:`posterior_j`'s draws, horizon keys in ms (str).
+
+    ``cohort[label][trial][h]`` summarises the per-draw mean over the legs that
+    have that trial; ``legs[label][leg][trial][h]`` each leg's own draws.
+    """
+    keys = [str(HORIZON_MS[p]) for p in horizons]
+    legs = {
+        label: {
+            leg: {tr: {h: interval(v[:, j]) for j, h in enumerate(keys)} for tr, v in trials.items()}
+            for leg, trials in by_leg.items()
+        }
+        for label, by_leg in draws.items()
+    }
+    cohort: dict = {}
+    for label, by_leg in draws.items():
+        for tr in sorted({tr for trials in by_leg.values() for tr in trials}, key=int):
+            mean = np.mean([trials[tr] for trials in by_leg.values() if tr in trials], axis=0)  # (draws, H)
+            cohort.setdefault(label, {})[tr] = {h: interval(mean[:, j]) for j, h in enumerate(keys)}
+    return cohort, legs
+
+
+def _medians(J_legs: dict) -> dict:
+    """Posterior-median J shaped as :func:`quadshank._evaluate.sign_tests` expects (horizon keys int)."""
+    return {
+        label: {leg: {tr: {int(h): v["median"] for h, v in hv.items()} for tr, hv in trials.items()}
+                for leg, trials in by_leg.items()}
+        for label, by_leg in J_legs.items()
+    }
+
+
+# ============================================================================ PSIS-LOO
+
+
+def psis_loo(idata, source: str = "the fit"):
+    """``az.loo`` (pointwise) over legs × 1-s segments of a fit, padded segments dropped.
+
+    ``source`` names the fit in the error raised when an unpadded segment's
+    log-likelihood is not finite.
+    """
+    import arviz as az
+    import xarray as xr
+
+    ll = idata.log_likelihood["acceleration_segment"]
+    legs = sorted(str(x) for x in ll["leg"].values)
+    stacked = ll.sel(leg=legs).stack(observation=("leg", "segment"))
+    keep = idata.constant_data["segment_mask"].sel(leg=legs).stack(observation=("leg", "segment")).values.astype(bool)
+    stacked = stacked.isel(observation=np.flatnonzero(keep))
+    names = [f"{leg}/{seg}" for leg, seg in zip(stacked["leg"].values, stacked["segment"].values)]
+    stacked = stacked.drop_vars(["observation", "leg", "segment"]).assign_coords(observation=names)
+    if not np.isfinite(stacked.values).all():
+        raise ValueError(f"{source}: the log-likelihood is not finite on every unpadded segment")
+    data = az.InferenceData(
+        posterior=idata.posterior[_sampled_vars(idata)],
+        log_likelihood=xr.Dataset({"acceleration_segment": stacked}),
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # high Pareto k: reported in the summary instead
+        return az.loo(data, pointwise=True, var_name="acceleration_segment")
+
+
+def _data_key(f: LoadedFit) -> tuple:
+    """What must agree for two fits' LOO to be comparable: legs, trials, resolution, observations."""
+    acc = f.idata.observed_data["acceleration"].sel(leg=sorted(f.desc["legs"])).values
+    digest = hashlib.sha1(np.ascontiguousarray(acc, dtype=np.float64).tobytes()).hexdigest()
+    return tuple(sorted(f.desc["legs"])), tuple(sorted(f.desc["trials"])), f.desc.get("resolution"), acc.shape, digest
+
+
+def loo_report(fits: list[LoadedFit]) -> dict:
+    """PSIS-LOO per fit, and ``az.compare`` within each group of fits made on the same data."""
+    import arviz as az
+
+    elpd = {f.label: psis_loo(f.idata, str(f.folder)) for f in fits}
+    per_fit = {}
+    for label, e in elpd.items():
+        k = np.asarray(e.pareto_k)
+        per_fit[label] = {
+            "elpd_loo": float(e.elpd_loo),
+            "se": float(e.se),
+            "p_loo": float(e.p_loo),
+            "n_observations": int(e.n_data_points),
+            "n_draws": int(e.n_samples),
+            "pareto_k_max": float(np.max(k)),
+            f"pareto_k_over_{PARETO_K_BAD}": int(np.sum(k > PARETO_K_BAD)),
+        }
+    groups: dict[tuple, list[LoadedFit]] = {}
+    for f in fits:
+        groups.setdefault(_data_key(f), []).append(f)
+    compare, not_compared = [], []
+    for (legs, trials, *_), members in groups.items():
+        if len(members) < 2:
+            if len(fits) > 1:
+                not_compared.append({
+                    "model": members[0].label,
+                    "reason": "no other fit was made on the same data (legs, trials, resolution, observations)",
+                })
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)  # arviz's own use of pandas
+            table = az.compare({f.label: elpd[f.label] for f in members}, ic="loo")
+        compare.append({
+            "legs": list(legs),
+            "trials": list(trials),
+            "table": {
+                str(label): {
+                    "rank": int(row["rank"]),
+                    "elpd_diff": float(row["elpd_diff"]),
+                    "dse": float(row["dse"]),
+                    "weight": float(row["weight"]),
+                }
+                for label, row in table.iterrows()
+            },
+        })
+    return {"fits": per_fit, "compare": compare, "not_compared": not_compared}
+
+
+# ============================================================================ tables
+
+
+def _table_v_rows(J: dict, labels: list[str]) -> list[dict]:
+    """Posterior Table V: median and 90 % band of the mean over legs, the paper's mean (s.d.) beside."""
+    rows = []
+    for tr in sorted({tr for by_trial in J.values() for tr in by_trial}, key=int):
+        for h in (str(HORIZON_MS[p]) for p in HORIZONS):
+            row: dict = {"trial": tr, "horizon [ms]": int(h)}
+            for label in labels:
+                v = J[label].get(tr, {}).get(h, {})
+                row[f"{label} median"] = v.get("median")
+                row[f"{label} 5%"] = v.get("lo")
+                row[f"{label} 95%"] = v.get("hi")
+            for label in labels:
+                paper = TABLE_V.get(tr, {}).get(label, {}).get(int(h))
+                row[f"paper {label}"] = f"{paper[0]} ({paper[1]})" if paper else "–"
+            rows.append(row)
+    return rows
+
+
+def _per_leg_rows(J_legs: dict, fits: list[LoadedFit]) -> list[dict]:
+    fitted = {f.label: {str(t) for t in f.desc["trials"]} for f in fits}
+    return [
+        {
+            "model": label,
+            "leg": leg,
+            "trial": tr,
+            "fitted on it": "yes" if tr in fitted[label] else "no",
+            "horizon [ms]": int(h),
+            "median": v["median"],
+            "5%": v["lo"],
+            "95%": v["hi"],
+        }
+        for label, by_leg in J_legs.items()
+        for leg, trials in by_leg.items()
+        for tr, hv in sorted(trials.items(), key=lambda kv: int(kv[0]))
+        for h, v in hv.items()
+    ]
+
+
+def _loo_rows(loo: dict) -> tuple[list[dict], list[dict]]:
+    key = f"pareto_k_over_{PARETO_K_BAD}"
+    fits = [
+        {"model": label, "elpd_loo": v["elpd_loo"], "se": v["se"], "p_loo": v["p_loo"],
+         "observations": v["n_observations"], f"k > {PARETO_K_BAD}": v[key], "k max": v["pareto_k_max"]}
+        for label, v in loo["fits"].items()
+    ]
+    compare = [
+        {"legs": ", ".join(group["legs"]), "trials": ", ".join(map(str, group["trials"])), "model": label,
+         "rank": row["rank"], "elpd_diff": row["elpd_diff"], "dse": row["dse"], "weight": row["weight"]}
+        for group in loo["compare"]
+        for label, row in sorted(group["table"].items(), key=lambda kv: kv[1]["rank"])
+    ]
+    return fits, compare
+
+
+# ============================================================================ figures
+
+
+def _figure_case(fits: list[LoadedFit], cohort: Cohort) -> tuple[str, Trial]:
+    """The leg and trial of the prediction figures: JM-left, trial 2, as the paper, when available."""
+    common = [leg for leg in cohort.legs if all(leg in f.desc["legs"] for f in fits)]
+    candidates = common or list(fits[0].desc["legs"])
+    leg = "JM-left" if "JM-left" in candidates else candidates[0]
+    numbers = [t.trial for t in cohort.trials_of(leg)]
+    return leg, cohort.get(leg, 2 if 2 in numbers else numbers[0])
+
+
+def _prediction_figures(fits, cohort, J_legs, out: Path, *, n_draws: int, seed: int) -> list[Path]:
+    """Figs. 5-6 with a 90 % band over draws: 100 ms and 1 s ahead over a 20-s window."""
+    leg, trial = _figure_case(fits, cohort)
+    dt = trial.sampling_period_s
+    start_s = min(FIGURE_WINDOW_S[0], max(0.0, trial.n_samples * dt - FIGURE_WINDOW_S[1]))
+    i0 = int(round(start_s / dt))
+    i1 = min(trial.n_samples, i0 + int(round(FIGURE_WINDOW_S[1] / dt)))
+    models = {f.label: posterior_models(f.idata, f.model, leg, n_draws, seed)[0] for f in fits if leg in f.desc["legs"]}
+    paths = []
+    for p, name in ((10, "fig5_posterior_predictions_100ms.png"), (100, "fig6_posterior_predictions_1s.png")):
+        starts = np.arange(max(0, i0 - p), min(i1, trial.n_samples) - p)
+        predicted = {label: (starts, posterior_predictions(m, trial, starts, (p,))[:, :, 0])
+                     for label, m in models.items()}
+        j = {label: J_legs[label][leg][str(trial.trial)][str(HORIZON_MS[p])] for label in models}
+        fig = plot_posterior_predictions(trial, predicted, p, j=j, start_s=start_s, length_s=FIGURE_WINDOW_S[1])
+        paths.append(save_figure(fig, out / "figures" / name))
+    return paths
+
+
+# ============================================================================ the command
+
+
+def run_posterior_evaluate(
+    cohort: Cohort,
+    folders,
+    out: str | Path,
+    *,
+    n_draws: int = 200,
+    start_stride: int = 1,
+    seed: int = 0,
+    progress: bool = False,
+) -> dict:
+    """Posterior J (Table V with bands), sign tests, PSIS-LOO, Figs. 5-6 with bands; summary.json last."""
+    if n_draws < 1:
+        raise ValueError(f"--draws must be at least 1, not {n_draws}")
+    if start_stride < 1:
+        raise ValueError(f"--start-stride must be at least 1, not {start_stride}")
+    out = Path(out)
+    fits = load_fits(folders)
+    _check_legs(fits, cohort)
+    labels = [f.label for f in fits]
+
+    t0 = time.perf_counter()
+    draws = posterior_j(fits, cohort, n_draws=n_draws, start_stride=start_stride, seed=seed, progress=progress)
+    elapsed = time.perf_counter() - t0
+    J, J_legs = summarise_j(draws)
+    tests = sign_tests(_medians(J_legs)) if len(fits) >= 2 else []
+    loo = loo_report(fits)
+
+    md = ["# Posterior evaluation: k-step-ahead angle prediction (eq. 12) and PSIS-LOO", ""]
+    for f in fits:
+        banner = f.summary.get("banner")
+        md.append(f"- {f.label}: fit {f.folder}, fitted on trial(s) {', '.join(map(str, f.desc['trials']))}"
+                  + (f" — **{banner}**" if banner else ""))
+    md.append("")
+    md.append(write_table(_table_v_rows(J, labels), out / "tables", "table5_posterior",
+                          "Table V (posterior): J_φ,p of the mean over legs, median and 90 % band [deg]"))
+    md.append(write_table(_per_leg_rows(J_legs, fits), out / "tables", "j_per_leg_posterior",
+                          "J_φ,p per leg and trial, median and 90 % band over draws [deg]"))
+    md.append(write_table(sign_test_rows(tests), out / "tables", "sign_tests_posterior",
+                          "Sign tests on the posterior-median J (trials 2 and 3)"))
+    loo_fits, loo_compare = _loo_rows(loo)
+    md.append(write_table(loo_fits, out / "tables", "loo", "PSIS-LOO per fit (1-s segments)"))
+    md.append(write_table(loo_compare, out / "tables", "loo_compare", "PSIS-LOO comparison (same data)"))
+    if loo["not_compared"]:
+        md.append(markdown_table(loo["not_compared"], "Fits not compared by LOO"))
+
+    figures = [save_figure(plot_posterior_j_vs_horizon(J), out / "figures" / "table5_posterior_j_vs_horizon.png")]
+    figures += _prediction_figures(fits, cohort, J_legs, out, n_draws=n_draws, seed=seed)
+    md += ["## Figures", "", *[f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in figures], ""]
+
+    summary = {
+        "method": "posterior",
+        "J": J,
+        "J_legs": J_legs,
+        "sign_tests": tests,
+        "loo": loo,
+        "fits": {
+            f.label: {
+                "folder": str(f.folder),
+                "legs": list(f.desc["legs"]),
+                "trials_fitted": list(f.desc["trials"]),
+                "draws_used": min(n_draws, f.idata.posterior.sizes["chain"] * f.idata.posterior.sizes["draw"]),
+                "banner": f.summary.get("banner"),
+            }
+            for f in fits
+        },
+        "legs": list(dict.fromkeys(leg for f in fits for leg in f.desc["legs"])),
+        "horizons_samples": list(HORIZONS),
+        "interval": list(INTERVAL),
+        "n_draws": n_draws,
+        "start_stride": start_stride,
+        "seed": seed,
+        "evaluation_seconds": elapsed,
+    }
+    atomic_write_text(out / "report.md", "\n".join(md))
+    write_json(out / "summary.json", summary)
+    return summary

@@ -1,0 +1,191 @@
+"""Posterior predictive evaluation (`quadshank evaluate --fit`) on two tiny fits.
+
+The fits are far too short to converge; what is tested is the machinery: the
+per-draw J against the point-estimate function, the summaries and their
+structure, PSIS-LOO and its comparison, the files, and the errors.
+"""
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+import quadshank._posterior_eval as pe
+from quadshank._cli import main
+from quadshank._evaluate import prediction_errors, predictions
+from quadshank._fitio import load_fit, posterior_models
+from quadshank._interchange import load_cohort, write_interchange
+from quadshank._paper import HORIZONS
+
+TINY = ["--chains", "2", "--warmup", "30", "--draws", "20"]
+HORIZON_KEYS = {"100", "250", "500", "1000"}
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("posterior")
+    data = root / "data"
+    assert main(["-q", "simulate", "--out", str(data), "--minutes", "0.5",
+                 "--legs", "TN-left,JM-left", "--trials", "1,2"]) == 0
+    fits = []
+    for model in ("model1", "model3"):
+        fits.append(root / model)
+        assert main(["-q", "fit", str(data), "--model", model, *TINY, "--out", str(fits[-1])]) in (0, 3)
+    out = root / "eval"
+    code = main(["-q", "evaluate", str(data), "--fit", str(fits[0]), "--fit", str(fits[1]),
+                 "--draws", "10", "--start-stride", "10", "--out", str(out)])
+    return {"root": root, "data": data, "fits": fits, "out": out, "code": code}
+
+
+@pytest.fixture(scope="module")
+def summary(run):
+    assert run["code"] == 0
+    return json.loads((run["out"] / "summary.json").read_text())
+
+
+def _draws(run, n, leg="JM-left", trial=2):
+    idata, model, _ = load_fit(run["fits"][1])
+    models, _ = posterior_models(idata, model, leg, n_draws=n, seed=3)
+    return models, load_cohort(run["data"]).get(leg, trial)
+
+
+def _draw(models, i):
+    return jax.tree_util.tree_map(lambda x: x[i], models)
+
+
+def test_vmapped_j_equals_the_point_function_draw_by_draw(run):
+    models, trial = _draws(run, 3)
+    J = pe.posterior_prediction_errors(models, trial, HORIZONS, start_stride=1)
+    assert J.shape == (3, len(HORIZONS))
+    for i in (0, 2):
+        point = prediction_errors(_draw(models, i), trial, HORIZONS)
+        np.testing.assert_allclose(J[i], [point[p] for p in HORIZONS], rtol=1e-4)
+
+
+def test_start_stride_uses_every_kth_start_for_all_horizons(run):
+    models, trial = _draws(run, 2)
+    J = pe.posterior_prediction_errors(models, trial, HORIZONS, start_stride=7)
+    starts, pred = predictions(_draw(models, 1), trial, max(HORIZONS))
+    keep = starts % 7 == 0
+    for j, p in enumerate(HORIZONS):
+        err = trial.angle_deg[starts[keep] + p] - pred[keep, p - 1]
+        assert J[1, j] == pytest.approx(np.sqrt(np.mean(err**2)), rel=1e-4)
+
+
+def test_chunked_draws_give_the_same_j(run, monkeypatch):
+    models, trial = _draws(run, 5)
+    whole = pe.posterior_prediction_errors(models, trial, HORIZONS, start_stride=10)
+    n_starts = len(pe.prediction_starts(trial, max(HORIZONS), 10))
+    monkeypatch.setattr(pe, "CHUNK_ELEMENTS", 2 * n_starts * max(HORIZONS))  # chunks of 2, the last padded
+    chunked = pe.posterior_prediction_errors(models, trial, HORIZONS, start_stride=10)
+    np.testing.assert_allclose(chunked, whole, rtol=1e-6)
+
+
+def test_summary_holds_medians_and_bands_per_model_leg_trial_horizon(summary):
+    assert {"J", "J_legs", "sign_tests", "loo", "fits"} <= set(summary)
+    assert set(summary["J"]) == {"model1", "model3"}
+    for model, trials in summary["J"].items():
+        assert set(trials) == {"1", "2"}
+        for hv in trials.values():
+            assert set(hv) == HORIZON_KEYS
+            for v in hv.values():
+                assert set(v) == {"median", "lo", "hi"}
+                assert v["lo"] <= v["median"] <= v["hi"]
+            assert hv["100"]["median"] < hv["1000"]["median"]  # errors grow with horizon
+        widths = [v["hi"] - v["lo"] for hv in trials.values() for v in hv.values()]
+        assert max(widths) > 0, model  # draws differ, so J does
+        assert set(summary["J_legs"][model]) == {"TN-left", "JM-left"}
+        for leg, by_trial in summary["J_legs"][model].items():
+            for hv in by_trial.values():
+                assert set(hv) == HORIZON_KEYS
+                assert all(v["lo"] <= v["median"] <= v["hi"] for v in hv.values()), (model, leg)
+        assert summary["fits"][model]["draws_used"] == 10
+        assert summary["fits"][model]["trials_fitted"] == [1]
+
+
+def test_cohort_j_is_the_per_draw_mean_over_legs():
+    rng = np.random.default_rng(0)
+    a, b = rng.gamma(4.0, size=(50, 4)), rng.gamma(4.0, size=(50, 4))
+    cohort, legs = pe.summarise_j({"m": {"A": {"2": a}, "B": {"2": b}}})
+    assert cohort["m"]["2"]["1000"] == pytest.approx(pe.interval((a + b)[:, 3] / 2))
+    assert legs["m"]["B"]["2"]["100"]["median"] == pytest.approx(np.median(b[:, 0]))
+
+
+def test_sign_tests_on_posterior_medians(summary):
+    tests = summary["sign_tests"]
+    assert {t["horizon_ms"] for t in tests} == {100, 250, 500, 1000}
+    for t in tests:
+        assert {t["model_a"], t["model_b"]} == {"model1", "model3"}
+        assert t["n_pairs"] <= 2  # two legs, validation trial 2 only
+        medians = [summary["J_legs"][m][leg]["2"][str(t["horizon_ms"])]["median"]
+                   for leg in ("TN-left", "JM-left") for m in (t["model_a"], t["model_b"])]
+        a_better = sum(x < y for x, y in zip(medians[::2], medians[1::2]))
+        assert t["a_better"] == a_better
+
+
+def test_psis_loo_and_comparison(summary):
+    loo = summary["loo"]
+    assert set(loo["fits"]) == {"model1", "model3"}
+    for v in loo["fits"].values():
+        assert np.isfinite(v["elpd_loo"]) and v["se"] > 0
+        assert v["n_observations"] == 2 * 30  # 2 legs × 30 one-second segments of trial 1
+        assert 0 <= v["pareto_k_over_0.7"] <= v["n_observations"]
+    assert loo["not_compared"] == []
+    (group,) = loo["compare"]
+    table = group["table"]
+    assert set(table) == {"model1", "model3"}
+    assert sorted(r["rank"] for r in table.values()) == [0, 1]
+    assert sum(r["weight"] for r in table.values()) == pytest.approx(1.0, abs=1e-6)
+    best = min(table, key=lambda m: table[m]["rank"])
+    assert table[best]["elpd_diff"] == 0.0
+    assert max(loo["fits"], key=lambda m: loo["fits"][m]["elpd_loo"]) == best
+
+
+def test_fits_of_different_data_are_not_compared(run):
+    fits = pe.load_fits(run["fits"])
+    fits[1] = fits[1]._replace(desc={**fits[1].desc, "trials": [1, 2]})
+    loo = pe.loo_report(fits)
+    assert loo["compare"] == []
+    assert {x["model"] for x in loo["not_compared"]} == {"model1", "model3"}
+    assert set(loo["fits"]) == {"model1", "model3"}
+
+
+def test_tables_and_figures_are_written(run, summary):
+    out = run["out"]
+    for name in ("table5_posterior", "j_per_leg_posterior", "sign_tests_posterior", "loo", "loo_compare"):
+        assert (out / "tables" / f"{name}.csv").exists() and (out / "tables" / f"{name}.md").exists()
+    for name in ("table5_posterior_j_vs_horizon", "fig5_posterior_predictions_100ms", "fig6_posterior_predictions_1s"):
+        assert (out / "figures" / f"{name}.png").stat().st_size > 10_000
+    rows = (out / "tables" / "table5_posterior.csv").read_text().splitlines()
+    assert len(rows) == 1 + 2 * 4  # header, 2 trials × 4 horizons
+    assert "model3 median" in rows[0] and "paper model3" in rows[0]
+
+
+def test_one_fit_has_nothing_to_compare(run, tmp_path):
+    out = tmp_path / "one"
+    assert main(["-q", "evaluate", str(run["data"]), "--fit", str(run["fits"][0]),
+                 "--draws", "10", "--start-stride", "10", "--out", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert list(s["J"]) == ["model1"] and s["sign_tests"] == []
+    assert s["loo"]["compare"] == [] and s["loo"]["not_compared"] == []
+
+
+def test_missing_fit_or_leg_exits_2_naming_it(run, tmp_path, capsys):
+    data, fit1 = str(run["data"]), str(run["fits"][0])
+    nowhere = tmp_path / "nowhere"
+    capsys.readouterr()
+    assert main(["-q", "evaluate", data, "--fit", fit1, "--fit", str(nowhere), "--out", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("quadshank: error:") and str(nowhere) in err and "Traceback" not in err
+    assert not (tmp_path / "a" / "summary.json").exists()
+
+    one_leg = tmp_path / "one_leg"
+    write_interchange(load_cohort(run["data"]).select(legs=["TN-left"]), one_leg)
+    assert main(["-q", "evaluate", str(one_leg), "--fit", fit1, "--out", str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err
+    assert "JM-left" in err and fit1 in err
+    assert not (tmp_path / "b" / "summary.json").exists()
+
+    assert main(["-q", "evaluate", data, "--fit", fit1, "--identified", fit1, "--out", str(tmp_path / "c")]) == 2
+    assert "not both" in capsys.readouterr().err
