@@ -13,21 +13,24 @@ its declared level:
 
 so the declared prior is the population-level belief and the spread between
 subjects and between the legs of a subject is learnt (weakly informative: at
-most about one prior scale).  By default the legs are sampled directly
-(centred) with the subject level integrated out analytically,
+most about one prior scale).  That is the non-centred form
+(``FitSettings(centred=False)``), for sparse data.  By default the legs are
+sampled directly, standardised by the prior, x_leg = loc + scale · s_leg, with
+the population mean and the subject level integrated out analytically,
 
-    x_leg ~ MultivariateNormal(μ, τ_subject² S + τ_leg² I),  S_ij = [legs i, j share a subject],
+    s_leg ~ MultivariateNormal(0, 11ᵀ + r_s² S + r_l² I),  S_ij = [legs i, j share a subject],
 
-because each leg's thousands of samples pin its values down: with such
-informative data the non-centred form turns the data's precision into a
-narrow ridge between μ, τ and z, and a sampled subject level between μ and a
-lone leg is a funnel.  Subject values (for shrinkage plots) are their
-conditional means given the legs.  ``FitSettings(centred=False)`` gives the
-fully non-centred form for sparse data.  A dense mass matrix absorbs the remaining linear correlations
+r = τ/scale, because each leg's thousands of samples pin its values down: a
+sampled population mean or subject level between them is a funnel, and
+parameters whose prior scales differ by seven orders of magnitude
+(γ_velocity, G') defeat the mass matrix's adaptation unless standardised.
+Population means and subject values are drawn afterwards from their Gaussian
+conditional given each draw (:func:`hyper_draws`).  A dense mass matrix absorbs the remaining linear correlations
 (k1 with k2, gain with the gain factors).  Noise (Student-t, see
 :mod:`quadshank._likelihood`) is per leg: σ ~ LogNormal(log 40 deg/s², 1),
 ν ~ Gamma(2, 0.1).  The delay d of each leg has a uniform prior on 0 … 10
-samples and is summed out exactly; P(d | data) is the posterior mean of the
+samples (or another fit's posterior, :func:`delay_prior_from`) and is summed
+out exactly, jointly with a delay effect's shift; P(d | data) is the posterior mean of the
 per-draw conditional P(d | θ, data), and one d per draw is drawn from that
 conditional for the pointwise log-likelihood (so PSIS-LOO is over (θ, d)).
 """
@@ -191,9 +194,9 @@ def numpyro_model(
 
 
 def log_shift_prior(K: int) -> np.ndarray:
-    """log π(d, shift) part of the shift, (D, K + 1): half the prior on no change, the rest
-    spread over shifts 1 … K; a shift longer than d is impossible.  Normalised over d and shift
-    together with a uniform π(d)."""
+    """log π(shift | d), (D, K + 1): half the prior on no change, the rest spread over
+    shifts 1 … K; a shift longer than d is impossible, and each row is renormalised, so
+    d keeps its own prior π(d)."""
     if K == 0:
         return np.zeros((N_DELAYS, 1))
     p = np.concatenate([[0.5], np.full(K, 0.5 / K)])
