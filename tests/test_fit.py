@@ -156,3 +156,23 @@ def test_delay_prior_from_another_fit(fitted, data_dir):
         delay_prior_from(src, ["OT-left"])
     assert main(["-q", "fit", str(data_dir / "data"), *TINY, "--delay-from", str(data_dir / "nowhere"),
                  "--out", str(data_dir / "bad2")]) == 2
+
+
+def test_angle_delay_fit_reports_the_delay_angle_curve(tmp_path):
+    from quadshank._fitio import fit_summary, to_inference_data
+    from quadshank._paper import MAX_DELAY
+
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.3, seed=4, effects=["angle_delay"], trials=(1,))
+    model = build_model("model1", ["angle_delay"])
+    settings = FitSettings(chains=1, warmup=10, draws=10, seed=0)
+    mcmc, data = fit(cohort, model, settings, progress=False)
+    idata = to_inference_data(mcmc, model, data, settings)
+    leg = fit_summary(idata)["legs"]["TN-left"]["delay_angle"]
+    assert 0.0 <= leg["change_probability"] <= 1.0
+    assert sum(leg["shift_posterior"]) == pytest.approx(1.0, abs=1e-3)  # float32 log-probabilities
+    lo, med, hi = (np.asarray(leg[k]) for k in ("lo", "median", "hi"))
+    assert len(med) == len(leg["angle_deg"])
+    assert np.all(lo <= med) and np.all(med <= hi) and np.all(lo >= 0) and np.all(hi <= MAX_DELAY)
+    m, delays = posterior_models(idata, model, "TN-left", n_draws=5)
+    shifts = np.asarray(m.delay_effect.shift)
+    assert shifts.shape == (5,) and np.all(shifts <= delays)

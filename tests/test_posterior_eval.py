@@ -13,7 +13,7 @@ import pytest
 
 import quadshank._posterior_eval as pe
 from quadshank._cli import main
-from quadshank._evaluate import prediction_errors, predictions
+from quadshank._evaluate import prediction_errors, prediction_starts, predictions
 from quadshank._fitio import load_fit, posterior_models
 from quadshank._interchange import load_cohort, write_interchange
 from quadshank._paper import HORIZONS
@@ -76,7 +76,7 @@ def test_start_stride_uses_every_kth_start_for_all_horizons(run):
 def test_chunked_draws_give_the_same_j(run, monkeypatch):
     models, trial = _draws(run, 5)
     whole = pe.posterior_prediction_errors(models, trial, HORIZONS, start_stride=10)
-    n_starts = len(pe.prediction_starts(trial, max(HORIZONS), 10))
+    n_starts = len(prediction_starts(trial, max(HORIZONS), 10))
     monkeypatch.setattr(pe, "CHUNK_ELEMENTS", 2 * n_starts * max(HORIZONS))  # chunks of 2, the last padded
     chunked = pe.posterior_prediction_errors(models, trial, HORIZONS, start_stride=10)
     np.testing.assert_allclose(chunked, whole, rtol=1e-6)

@@ -24,21 +24,22 @@ from ._cohort import Cohort, Trial
 from ._model import Model, predict_ahead
 from ._paper import HORIZON_MS, HORIZONS
 
-__all__ = ["prediction_errors", "predictions", "evaluate_cohort", "sign_tests", "table_v", "ALPHA"]
+__all__ = ["prediction_errors", "prediction_starts", "predictions", "evaluate_cohort", "sign_tests", "table_v", "ALPHA"]
 
 ALPHA = 0.05
 
 
-def _starts(trial: Trial, horizon: int) -> np.ndarray:
+def prediction_starts(trial: Trial, horizon: int, stride: int = 1) -> np.ndarray:
+    """Starts n = 0, stride, 2·stride, … < N - horizon (all horizons share them)."""
     n = trial.n_samples - horizon
     if n <= 0:
         raise ValueError(f"{trial.key} trial {trial.trial}: {trial.n_samples} samples, fewer than the horizon {horizon}")
-    return np.arange(n)
+    return np.arange(0, n, stride)
 
 
 def predictions(model: Model, trial: Trial, horizon: int = max(HORIZONS)) -> tuple[np.ndarray, np.ndarray]:
     """(starts, predicted) with predicted[i, j-1] the angle predicted j samples after starts[i]."""
-    starts = _starts(trial, horizon)
+    starts = prediction_starts(trial, horizon)
     pred = predict_ahead(model, trial.angle_deg, trial.velocity_deg_s, trial.stimulation, starts, horizon)
     return starts, np.asarray(pred, dtype=float)
 

@@ -137,7 +137,7 @@ def to_inference_data(
     return idata
 
 
-def _sampled_vars(idata) -> list[str]:
+def sampled_vars(idata) -> list[str]:
     """Variables checked for convergence: everything sampled or derived, but the discrete delay."""
     return [v for v in idata.posterior.data_vars if v not in ("delay", "delay_logp", "delay_shift", "delay_shift_logp")]
 
@@ -146,7 +146,7 @@ def diagnose_sampling(idata) -> dict:
     """R-hat, bulk and tail ESS, divergences, E-BFMI against :data:`THRESHOLDS`, with advice."""
     import arviz as az
 
-    names = _sampled_vars(idata)
+    names = sampled_vars(idata)
     post = idata.posterior[names]
     chains = idata.posterior.sizes["chain"]
     rhat = az.rhat(post)
@@ -214,25 +214,25 @@ def _leg_draws(idata, name: str, i: int) -> np.ndarray:
     return np.asarray(v).reshape(-1, *v.shape[2:])[:, i]
 
 
-def delay_angle_curve(idata, desc: dict, i: int) -> np.ndarray:
+def delay_angle_curve(idata, i: int) -> np.ndarray:
     """Effective delay [samples] of pulses delivered at each ANGLE_GRID angle, per draw: d − shift·w(φ)."""
     from ._effects import AngleDelay
 
     d = _leg_draws(idata, "delay", i).astype(float)
     shift = _leg_draws(idata, "delay_shift", i).astype(float)
     threshold = _leg_draws(idata, "threshold", i)
-    w = 1.0 / (1.0 + np.exp(-(threshold[:, None] - ANGLE_GRID[None, :]) / AngleDelay.SOFTNESS_DEG))
+    w = np.asarray(AngleDelay(threshold=threshold[:, None]).pulse_weight(ANGLE_GRID[None, :]), np.float64)
     return d[:, None] - shift[:, None] * w
 
 
-def delay_angle_summary(idata, desc: dict, i: int) -> dict:
+def delay_angle_summary(idata, i: int, curve: np.ndarray) -> dict:
     """Whether the delay of leg i changes with angle, by how much, where, and the curve's band.
 
     ``change_probability`` is the posterior mean of P(shift ≥ 1 | θ, data) over the
     draws whose threshold splits the leg's pulses (between the SPLIT_QUANTILES of
     their angles): a shorter delay for no pulse, or for all of them, is no angle
     dependence.  ``threshold_deg`` is the threshold's interval over the draws with
-    a change.
+    a change.  ``curve`` is the leg's :func:`delay_angle_curve`.
     """
     joint = np.exp(_leg_draws(idata, "delay_shift_logp", i))  # (draws, D, K + 1)
     p_shift = joint.sum(axis=1)  # (draws, K + 1)
@@ -252,7 +252,7 @@ def delay_angle_summary(idata, desc: dict, i: int) -> dict:
         "threshold_deg": _interval(with_change) if with_change.size else None,
         "pulse_angle_range_deg": [float(lo), float(hi)],
         "angle_deg": ANGLE_GRID.tolist(),
-        **_interval(delay_angle_curve(idata, desc, i)),
+        **_interval(curve),
     }
 
 
@@ -262,6 +262,7 @@ def fit_summary(idata) -> dict:
     post = idata.posterior
     flat = {v: np.asarray(post[v]).reshape(-1, *post[v].shape[2:]) for v in post.data_vars}
     delay_post = np.exp(flat["delay_logp"]).mean(axis=0)  # (legs, D)
+    curves = [delay_angle_curve(idata, i) for i in range(len(desc["legs"]))] if "delay_shift_logp" in flat else None
     legs = {}
     for i, leg in enumerate(desc["legs"]):
         params = {}
@@ -276,15 +277,13 @@ def fit_summary(idata) -> dict:
             "delay_mode_samples": int(np.argmax(probs)),
             "params": params,
         }
-        if "delay_shift_logp" in flat:
-            legs[leg]["delay_angle"] = delay_angle_summary(idata, desc, i)
-    if "delay_shift_logp" in flat:
-        pooled = [delay_angle_curve(idata, desc, i) for i in range(len(desc["legs"]))]
-        population = _interval(np.concatenate(pooled, axis=0))
+        if curves:
+            legs[leg]["delay_angle"] = delay_angle_summary(idata, i, curves[i])
     diag = diagnose_sampling(idata)
     extra = {}
-    if "delay_shift_logp" in flat:
-        extra["delay_angle_population"] = {"angle_deg": ANGLE_GRID.tolist(), **population}
+    if curves:
+        # the population curve: every leg's draws pooled
+        extra["delay_angle_population"] = {"angle_deg": ANGLE_GRID.tolist(), **_interval(np.concatenate(curves))}
     return {
         "model": desc["model"],
         "effects": desc["effects"],
@@ -320,24 +319,26 @@ def begin_fit(folder: str | os.PathLike) -> None:
     (Path(folder) / "summary.json").unlink(missing_ok=True)
 
 
+def _complete_fit(folder: str | os.PathLike) -> Path:
+    """``folder`` as a Path, after checking that it holds a complete fit."""
+    folder = Path(folder)
+    if not (folder / "summary.json").exists() or not (folder / "fit.nc").exists():
+        raise FitFolderError(f"{folder}: no complete fit here (fit.nc and summary.json are written by `quadshank fit`)")
+    return folder
+
+
 def read_summary(folder: str | os.PathLike) -> dict:
     """``summary.json`` of a complete fit folder."""
     from ._io import read_json
 
-    folder = Path(folder)
-    if not (folder / "summary.json").exists() or not (folder / "fit.nc").exists():
-        raise FitFolderError(f"{folder}: no complete fit here (fit.nc and summary.json are written by `quadshank fit`)")
-    return read_json(folder / "summary.json")
+    return read_json(_complete_fit(folder) / "summary.json")
 
 
 def load_fit(folder: str | os.PathLike):
     """(InferenceData, Model without values, description) of a saved fit."""
     import arviz as az
 
-    folder = Path(folder)
-    if not (folder / "summary.json").exists() or not (folder / "fit.nc").exists():
-        raise FitFolderError(f"{folder}: no complete fit here (fit.nc and summary.json are written by `quadshank fit`)")
-    idata = az.from_netcdf(folder / "fit.nc")
+    idata = az.from_netcdf(_complete_fit(folder) / "fit.nc")
     desc = from_json(idata.posterior.attrs["quadshank_model"])
     return idata, model_from_description(desc), desc
 

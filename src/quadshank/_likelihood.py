@@ -352,21 +352,21 @@ def _window_terms(model: Model, noise: dict, x: dict):
     return E, scale, lp0
 
 
-def _amplitudes(model: Model, x: dict, R: int, K: int, shift: int):
+def _amplitudes(model: Model, x: dict, R: int, K: int, shift):
     """u_i · (response of pulse i over its R + K extended lags) at one shift, flattened.
 
     Extended lag q is sample p_i + d − K + q.  A pulse takes delay d with weight
     1 − w_i and d − shift with weight w_i (w from the delay effect at the pulse's
-    angle); without a delay effect, or at shift 0, it is the plain response.
+    angle), so shift 0 is the plain response.  ``shift`` may be traced.
     """
     h = impulse_response(model.activation, R)
     h_pad = jnp.concatenate([jnp.zeros(K, h.dtype), h, jnp.zeros(K, h.dtype)])
     long = h_pad[None, : R + K]
     u = x["pulse_u"][:, None]
-    if K == 0 or shift == 0:
+    if K == 0:
         return (u * long).reshape(-1)
     w = model.delay_effect.pulse_weight(x["angle"][x["pulse_sample"]])[:, None]
-    short = h_pad[None, shift : shift + R + K]
+    short = jax.lax.dynamic_slice_in_dim(h_pad, shift, R + K)[None, :]
     return (u * ((1.0 - w) * long + w * short)).reshape(-1)
 
 
@@ -405,8 +405,7 @@ def leg_pointwise(model: Model, noise: dict, x: dict, d_index, R: int, n_segment
     W = E.shape[-1]
     N = x["angle"].shape[-1]
     F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
-    amps = jnp.stack([_amplitudes(model, x, R, K, s) for s in range(K + 1)])
-    amp = amps[shift]
+    amp = _amplitudes(model, x, R, K, shift)
     c = _contributions(amp, F, x["touch_sample"][d_index], x["touch_valid"][d_index])
     M_sample = jax.ops.segment_sum(c, x["touch_sample"][d_index], num_segments=N)
     M = jax.ops.segment_sum(M_sample, x["window"], num_segments=W)

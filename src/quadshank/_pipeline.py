@@ -330,14 +330,13 @@ def run_fit(
     """
     from ._fit import FitSettings, build_model, delay_prior_from, fit
     from ._fitio import begin_fit, read_summary, save_fit, to_inference_data
-    from ._likelihood import prepare
 
     settings = settings or FitSettings()
     out = Path(out)
     m = build_model(model, add_effects)
     log_prior = None
     if delay_from is not None:
-        chosen = prepare(cohort, m, trials=settings.trials, legs=legs).legs
+        chosen = tuple(legs) if legs is not None else cohort.legs  # the legs fit() will use
         log_prior = delay_prior_from(read_summary(delay_from), chosen)
     out.mkdir(parents=True, exist_ok=True)
     begin_fit(out)

@@ -52,8 +52,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._cohort import Cohort, Trial
-from ._evaluate import sign_tests
-from ._fitio import INTERVAL, _sampled_vars, load_fit, posterior_models, read_summary
+from ._evaluate import prediction_starts, sign_tests
+from ._fitio import INTERVAL, load_fit, posterior_models, read_summary, sampled_vars
 from ._io import atomic_write_text, save_figure, write_json
 from ._model import Model, predict_ahead
 from ._paper import HORIZON_MS, HORIZONS, TABLE_V
@@ -64,7 +64,6 @@ from ._tables import markdown_table, sign_test_rows, write_table
 __all__ = [
     "LoadedFit",
     "load_fits",
-    "prediction_starts",
     "posterior_predictions",
     "posterior_prediction_errors",
     "posterior_j",
@@ -123,16 +122,6 @@ def _check_legs(fits: list[LoadedFit], cohort: Cohort) -> None:
 
 
 # ============================================================================ J per draw
-
-
-def prediction_starts(trial: Trial, horizon: int, stride: int = 1) -> np.ndarray:
-    """Starts n = 0, stride, 2·stride, … < N - horizon (all horizons share them)."""
-    n = trial.n_samples - horizon
-    if n <= 0:
-        raise ValueError(
-            f"{trial.key} trial {trial.trial}: {trial.n_samples} samples, fewer than the horizon {horizon}"
-        )
-    return np.arange(0, n, stride)
 
 
 @functools.partial(jax.jit, static_argnames=("horizon", "columns"))
@@ -263,7 +252,7 @@ def psis_loo(idata, source: str = "the fit"):
     if not np.isfinite(stacked.values).all():
         raise ValueError(f"{source}: the log-likelihood is not finite on every unpadded segment")
     data = az.InferenceData(
-        posterior=idata.posterior[_sampled_vars(idata)],
+        posterior=idata.posterior[sampled_vars(idata)],
         log_likelihood=xr.Dataset({"acceleration_segment": stacked}),
     )
     with warnings.catch_warnings():
