@@ -173,6 +173,33 @@ def cmd_fit(args) -> int:
     return 0
 
 
+def cmd_recovery(args) -> int:
+    from ._fit import FitSettings
+    from ._recovery import run_recovery
+
+    command = "quadshank " + " ".join(shlex.quote(a) for a in args.argv)
+    settings = FitSettings(chains=args.chains, warmup=args.warmup, draws=args.draws)
+    result = run_recovery(
+        args.out,
+        models=_csv_list(args.models),
+        seeds=[int(s) for s in _csv_list(args.seeds)],
+        legs=_csv_list(args.legs) if args.legs else None,
+        minutes=args.minutes,
+        settings=settings,
+        progress=not args.quiet,
+        command=command,
+    )
+    for model, m in result["models"].items():
+        lo, hi = m["expected_band_95"]
+        _say(
+            args,
+            f"{model}: {m['covered']}/{m['n_intervals']} 90 % intervals cover the truth ({m['coverage']:.2f}; "
+            f"calibrated: {lo:.2f}-{hi:.2f}), delay mode right for {m['delay_mode_right']}/{m['delay_legs']} legs",
+        )
+    _say(args, f"table: {Path(args.out) / 'coverage.md'}")
+    return 0
+
+
 def cmd_reproduce(args, default_out: str | None = None) -> int:
     from ._pipeline import run_reproduce
 
@@ -261,6 +288,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     f.add_argument("--out", required=True)
     f.set_defaults(func=cmd_fit)
+
+    rc = sub.add_parser("recovery", help="coverage of the posterior intervals on data simulated from the fitted model")
+    rc.add_argument("--models", default="model1,model2,model3", help="models, comma-separated")
+    rc.add_argument("--seeds", default="0,1,2", help="simulation and sampling seeds, comma-separated")
+    rc.add_argument("--legs", default="", help="legs, comma-separated (default: the paper's five)")
+    rc.add_argument("--minutes", type=float, default=1.0, help="length of trial 1 [min]")
+    rc.add_argument("--chains", type=int, default=2)
+    rc.add_argument("--warmup", type=int, default=500)
+    rc.add_argument("--draws", type=int, default=500)
+    rc.add_argument("--out", required=True)
+    rc.set_defaults(func=cmd_recovery)
 
     r = sub.add_parser("reproduce", help="simulate, identify, evaluate: the paper end to end")
     r.add_argument("--out", required=True)

@@ -1,0 +1,97 @@
+"""Parameter recovery on a matching truth: the data generator, the coverage count, the command."""
+
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from quadshank._cli import main
+from quadshank._fit import build_model
+from quadshank._likelihood import leg_loglik_by_delay, prepare
+from quadshank._model import equivalent_acceleration, simulate_angles
+from quadshank._recovery import MATCHING_NOISE, ANGLE_RANGE, coverage_rows, matching_values, simulate_matching
+
+
+@pytest.mark.parametrize("model", ["model1", "model2", "model3"])
+def test_matching_data_are_the_model_plus_student_t_noise(model):
+    cohort, truth = simulate_matching(model, legs=["JM-left", "OT-left"], minutes=0.5, seed=4)
+    assert truth["model"] == model and set(truth["legs"]) == {"JM-left", "OT-left"}
+    for trial in cohort.trials:
+        true = truth["legs"][trial.key]
+        m = build_model(model).with_params({k: jnp.asarray(v) for k, v in true["params"].items()}, delay=true["delay"])
+        u = truth["recruitment"][trial.key]["1"]
+        assert set(np.unique(trial.stimulation)) <= {0.0, u}
+        assert ANGLE_RANGE[0] <= trial.angle_deg.min() and trial.angle_deg.max() <= ANGLE_RANGE[1]
+        angle, velocity, em = (np.asarray(v) for v in simulate_angles(m, jnp.asarray(trial.stimulation, jnp.float32)))
+        np.testing.assert_allclose(trial.angle_deg, angle, atol=1e-4)
+        np.testing.assert_allclose(trial.velocity_deg_s, velocity, atol=1e-3)
+        resid = np.asarray(equivalent_acceleration(m, trial.angle_deg, trial.velocity_deg_s, trial.acceleration_deg_s2)) - em
+        # t(5) scaled by 40: median |x| = 0.727 * 40; a wrong scale or no noise misses this
+        assert np.median(np.abs(resid)) == pytest.approx(0.727 * MATCHING_NOISE["sigma"], rel=0.1)
+    again, _ = simulate_matching(model, legs=["JM-left", "OT-left"], minutes=0.5, seed=4)
+    np.testing.assert_array_equal(again.trials[0].acceleration_deg_s2, cohort.trials[0].acceleration_deg_s2)
+    other, _ = simulate_matching(model, legs=["JM-left", "OT-left"], minutes=0.5, seed=5)
+    assert not np.array_equal(other.trials[0].stimulation, cohort.trials[0].stimulation)
+
+
+def test_the_recruitment_is_lowered_only_where_the_model_leaves_the_range():
+    _, t1 = simulate_matching("model1", legs=["OT-left"], minutes=1.0, seed=0)
+    _, t3 = simulate_matching("model3", legs=["OT-left"], minutes=1.0, seed=0)
+    assert t3["recruitment"]["OT-left"]["1"] == 1.0  # model 3's torque-angle factor keeps it in range
+    assert t1["recruitment"]["OT-left"]["1"] < 1.0
+
+
+def test_the_likelihood_peaks_at_the_true_delay_of_matching_data():
+    cohort, truth = simulate_matching("model2", legs=["TN-right"], minutes=1.0, seed=1)
+    true = truth["legs"]["TN-right"]
+    m = build_model("model2").with_params({k: jnp.asarray(v, jnp.float32) for k, v in true["params"].items()})
+    data = prepare(cohort, m)
+    x = {k: v[0] for k, v in data.leg_arrays().items()}
+    noise = {"sigma": jnp.float32(MATCHING_NOISE["sigma"]), "nu": jnp.float32(MATCHING_NOISE["nu"])}
+    ll = np.asarray(leg_loglik_by_delay(m, noise, x, data.response_length))[:, 0]
+    assert int(np.argmax(ll)) == true["delay"] == 5
+    assert ll[5] - np.sort(ll)[-2] > 50.0
+
+
+def test_coverage_rows_count_each_component_and_the_delay_mode():
+    truth = {"legs": {"A-left": {"params": {"gain": 2.0, "a": [-1.5, 0.6]}, "delay": 4}}}
+    p = np.full(11, 0.01)
+    p[3] = 0.9
+    summary = {"legs": {"A-left": {
+        "params": {"gain": {"median": 2.1, "lo": 1.9, "hi": 2.3},
+                   "a": {"median": [-1.4, 0.6], "lo": [-1.45, 0.5], "hi": [-1.3, 0.7]}},
+        "delay_posterior": p.tolist(),
+    }}}  # fmt: skip
+    rows = {r["param"]: r for r in coverage_rows(summary, truth)}
+    assert set(rows) == {"gain", "a[0]", "a[1]", "delay"}
+    assert rows["gain"]["covered"] and rows["a[1]"]["covered"]
+    assert not rows["a[0]"]["covered"]  # -1.5 is below the interval [-1.45, -1.3]
+    assert not rows["delay"]["covered"] and rows["delay"]["median"] == 3.0
+    with pytest.raises(KeyError, match="B-left"):
+        coverage_rows(summary, {"legs": {"B-left": truth["legs"]["A-left"]}})
+
+
+def test_matching_values_follow_the_paper_tables():
+    v = matching_values("model3", "JM-left")
+    assert v["params"]["gamma_angle"] == pytest.approx(-2.16e-2) and v["delay"] == 4
+    assert matching_values("model2", "TN-left")["params"]["b"] == [541.0, 645.0]
+    with pytest.raises(ValueError, match="model4"):
+        matching_values("model4", "TN-left")
+
+
+def test_recovery_command_writes_the_coverage_table(tmp_path):
+    out = tmp_path / "rec"
+    code = main(["-q", "recovery", "--models", "model1", "--seeds", "3", "--legs", "TN-left,JM-left",
+                 "--minutes", "0.5", "--chains", "1", "--warmup", "30", "--draws", "20", "--out", str(out)])  # fmt: skip
+    assert code == 0
+    result = json.loads((out / "coverage.json").read_text())
+    m = result["models"]["model1"]
+    # per leg: gain and four passive parameters, and the delay row
+    assert m["n_intervals"] == 2 * 5 and m["delay_legs"] == 2
+    assert m["covered"] == sum(r["covered"] for r in result["rows"] if r["param"] != "delay")
+    lo, hi = m["expected_band_95"]
+    assert lo < 0.9 < hi
+    assert (out / "model1-seed3" / "fit.nc").exists() and (out / "model1-seed3" / "truth.json").exists()
+    md = (out / "coverage.md").read_text()
+    assert "quadshank" in md and "| model1 |" in md
