@@ -176,3 +176,41 @@ def test_angle_delay_fit_reports_the_delay_angle_curve(tmp_path):
     m, delays = posterior_models(idata, model, "TN-left", n_draws=5)
     shifts = np.asarray(m.delay_effect.shift)
     assert shifts.shape == (5,) and np.all(shifts <= delays)
+
+
+def test_chains_start_at_the_classical_estimate_of_the_leading_delay_mode():
+    from functools import partial
+
+    import jax
+
+    from quadshank._fit import INIT_JITTER, _init_near, classical_start
+    from quadshank._likelihood import prepare
+    from quadshank._recovery import simulate_matching
+
+    cohort, truth = simulate_matching("model2", legs=["TN-left", "JM-left"], minutes=1.0, seed=0)
+    model = build_model("model2")
+    data = prepare(cohort, model)
+    start = classical_start(cohort, model, data, 1)
+    assert set(start) == {"a_s_leg", "b_s_leg", "damping_s_leg", "gravity_s_leg", "k1_s_leg", "k2_s_leg"}
+    # back to parameter values: the start lies in the true delay's mode of every leg
+    from quadshank._fit import model_params
+    from quadshank._likelihood import leg_loglik_by_delay
+
+    x = data.leg_arrays()
+    for i, leg in enumerate(data.legs):
+        values = {}
+        for p in model_params(model):
+            loc, scale = np.asarray(p.prior[1]), np.asarray(p.prior[2])
+            v = loc + scale * (start[f"{p.name}_s_leg"][..., i])
+            values[p.name] = np.exp(v) if p.prior[0] == "lognormal" else v
+        m = model.with_params({k: np.float32(v) for k, v in values.items()})
+        xi = {k: v[i] for k, v in x.items()}
+        ll = np.asarray(leg_loglik_by_delay(m, {"sigma": np.float32(40), "nu": np.float32(5)}, xi, data.response_length))
+        assert int(np.argmax(ll[:, 0])) == truth["legs"][leg]["delay"], leg
+        np.testing.assert_allclose(values["a"], truth["legs"][leg]["params"]["a"], atol=0.2)  # within a prior scale
+    site = {"name": "a_s_leg", "type": "sample", "is_observed": False, "kwargs": {"rng_key": jax.random.PRNGKey(1)}}
+    init = partial(_init_near, values=start, fallback=lambda s: 0.0)
+    v1 = np.asarray(init(site))
+    v2 = np.asarray(init({**site, "kwargs": {"rng_key": jax.random.PRNGKey(2)}}))
+    assert 0 < np.abs(v1 - start["a_s_leg"]).max() < 5 * INIT_JITTER and not np.allclose(v1, v2)
+    assert init({**site, "name": "sigma"}) == 0.0  # other sites: the fallback

@@ -95,3 +95,28 @@ def test_recovery_command_writes_the_coverage_table(tmp_path):
     assert (out / "model1-seed3" / "fit.nc").exists() and (out / "model1-seed3" / "truth.json").exists()
     md = (out / "coverage.md").read_text()
     assert "quadshank" in md and "| model1 |" in md
+
+
+@pytest.mark.parametrize("with_step", [True, False])
+def test_the_angle_delay_likelihood_finds_the_step_of_matching_data(with_step):
+    cohort, truth = simulate_matching("model2", legs=["TN-left"], minutes=2.0, seed=2,
+                                      add_effects=["angle_delay"] if with_step else [])  # fmt: skip
+    true = truth["legs"]["TN-left"]
+    m = build_model("model2", ["angle_delay"])
+    params = {k: jnp.asarray(v, jnp.float32) for k, v in true["params"].items() if k != "threshold"}
+    data = prepare(cohort, m)
+    x = {k: v[0] for k, v in data.leg_arrays().items()}
+    noise = {"sigma": jnp.float32(MATCHING_NOISE["sigma"]), "nu": jnp.float32(MATCHING_NOISE["nu"])}
+    grid = np.arange(-35.0, 10.5, 1.0)
+    ll = np.stack([
+        np.asarray(leg_loglik_by_delay(m.with_params(params, threshold=jnp.float32(t)), noise, x,
+                                       data.response_length, data.max_shift))[true["delay"]]
+        for t in grid
+    ])  # (thresholds, shifts)  # fmt: skip
+    if with_step:
+        best = grid[np.argmax(ll[:, 1])]
+        assert abs(best + 20.0) <= 2.0, best
+        assert ll[:, 1].max() - ll[0, 0] > 20.0  # the step beats no change clearly
+    else:
+        # no threshold inside the pulses' angles makes a shorter delay better than none
+        assert ll[:, 1].max() - ll[0, 0] < 2.0 and ll[:, 2].max() - ll[0, 0] < 2.0

@@ -188,6 +188,8 @@ def cmd_recovery(args) -> int:
         settings=settings,
         progress=not args.quiet,
         command=command,
+        add_effects=args.add_effect or (),
+        truth_effects=None if args.truth_effects is None else _csv_list(args.truth_effects),
     )
     for model, m in result["models"].items():
         lo, hi = m["expected_band_95"]
@@ -293,6 +295,9 @@ def build_parser() -> argparse.ArgumentParser:
     rc.add_argument("--models", default="model1,model2,model3", help="models, comma-separated")
     rc.add_argument("--seeds", default="0,1,2", help="simulation and sampling seeds, comma-separated")
     rc.add_argument("--legs", default="", help="legs, comma-separated (default: the paper's five)")
+    rc.add_argument("--add-effect", action="append", metavar="NAME", help="extend every fitted model by an effect")
+    rc.add_argument("--truth-effects", default=None, metavar="A,B",
+                    help="effects in the simulated truth (default: the added ones; '' for none)")
     rc.add_argument("--minutes", type=float, default=1.0, help="length of trial 1 [min]")
     rc.add_argument("--chains", type=int, default=2)
     rc.add_argument("--warmup", type=int, default=500)

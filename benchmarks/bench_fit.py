@@ -1,0 +1,183 @@
+"""Benchmark: the hierarchical NUTS fit and the posterior bands on J_φ,p.
+
+The issue's configuration is the default: model 3 with the angle-dependent
+delay on the simulated cohort (5 legs, trial 1 of 5 minutes, data simulated
+with the delay step), 4 chains × 1000 draws after 1000 warm-up; then J_φ,p
+for 200 posterior draws on all 15 trials, every start, four horizons.
+Smaller sizes are arguments, and the section written records what ran.
+
+Compilation is timed separately: JAX reports the duration of every trace,
+lowering and backend compile through ``jax.monitoring``, and their sum is
+subtracted from the wall time of the same call.
+
+    python benchmarks/bench_fit.py [--legs ...] [--minutes 5] [--chains 4] [--warmup 1000] [--draws 1000]
+        [--j-draws 200] [--out results/benchmarks.md]
+
+A peer sampler (the same model in PyMC sampled by nutpie, an optional
+``bench`` extra) is not written yet: the section says so rather than compare.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import shlex
+import sys
+import tempfile
+import time
+from datetime import date
+from pathlib import Path
+
+import jax
+
+from quadshank._fit import FitSettings
+from quadshank._io import atomic_write_text, write_json
+from quadshank._paper import LEGS
+from quadshank._pipeline import run_fit
+from quadshank._posterior_eval import load_fits, posterior_j
+from quadshank._simulate import simulate_cohort
+
+MARK_BEGIN = "<!-- bench_fit:begin -->"
+MARK_END = "<!-- bench_fit:end -->"
+
+_COMPILE_EVENTS = (
+    "/jax/core/compile/jaxpr_trace_duration",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration",
+    "/jax/core/compile/backend_compile_duration",
+)
+
+
+class CompileClock:
+    """Seconds JAX spent tracing, lowering and compiling while the clock was on."""
+
+    def __init__(self):
+        self.seconds = 0.0
+        self.on = False
+        jax.monitoring.register_event_duration_secs_listener(self._listen)
+
+    def _listen(self, event, duration, **kwargs):
+        if self.on and event in _COMPILE_EVENTS:
+            self.seconds += duration
+
+    def timed(self, fn, *args, **kwargs):
+        self.seconds, self.on = 0.0, True
+        t0 = time.perf_counter()
+        try:
+            out = fn(*args, **kwargs)
+        finally:
+            self.on = False
+        return out, time.perf_counter() - t0, self.seconds
+
+
+def replace_section(path: Path, text: str) -> None:
+    old = path.read_text() if path.exists() else "# Benchmarks\n\nEach section is written by the command shown in it.\n"
+    block = f"{MARK_BEGIN}\n{text.rstrip()}\n{MARK_END}"
+    if MARK_BEGIN in old and MARK_END in old:
+        head, rest = old.split(MARK_BEGIN, 1)
+        _, tail = rest.split(MARK_END, 1)
+        new = head + block + tail
+    else:
+        new = old.rstrip() + "\n\n" + block + "\n"
+    atomic_write_text(path, new)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", default="model3")
+    ap.add_argument("--add-effect", action="append", default=None, help="default: angle_delay")
+    ap.add_argument("--legs", default=",".join(LEGS))
+    ap.add_argument("--minutes", type=float, default=5.0)
+    ap.add_argument("--chains", type=int, default=4)
+    ap.add_argument("--warmup", type=int, default=1000)
+    ap.add_argument("--draws", type=int, default=1000)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--j-draws", type=int, default=200, help="posterior draws for the J bands (0: skip)")
+    ap.add_argument("--out", default="results/benchmarks.md")
+    args = ap.parse_args(argv)
+    effects = args.add_effect if args.add_effect is not None else ["angle_delay"]
+    legs = [x for x in args.legs.split(",") if x]
+    command = "python benchmarks/bench_fit.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
+
+    clock = CompileClock()
+    cohort, _ = simulate_cohort(legs=legs, minutes=args.minutes, seed=args.seed, effects=effects, trials=(1, 2, 3))
+    settings = FitSettings(chains=args.chains, warmup=args.warmup, draws=args.draws, seed=args.seed)
+    with tempfile.TemporaryDirectory() as tmp:
+        fit_dir = Path(tmp) / "fit"
+        summary, wall, compile_s = clock.timed(run_fit, cohort, fit_dir, args.model, effects, settings, progress=True)
+        diag = summary["diagnostics"]
+        sampling = wall - compile_s
+        j_wall = j_compile = None
+        if args.j_draws:
+            fits = load_fits([fit_dir])
+            _, j_wall, j_compile = clock.timed(posterior_j, fits, cohort, n_draws=args.j_draws, progress=True)
+    n_trials = len(cohort.trials)
+    ess_per_s = diag["ess_bulk_min"] / sampling if sampling > 0 else float("nan")
+    record = {
+        "command": command,
+        "date": date.today().isoformat(),
+        "machine": f"{platform.machine()}, {jax.default_backend().upper()} (jax {jax.__version__}), Python {platform.python_version()}",
+        "model": args.model,
+        "effects": effects,
+        "legs": legs,
+        "minutes": args.minutes,
+        "chains": args.chains,
+        "warmup": args.warmup,
+        "draws": args.draws,
+        "fit_wall_s": wall,
+        "fit_compile_s": compile_s,
+        "fit_sampling_s": sampling,
+        "rhat_max": diag["rhat_max"],
+        "ess_bulk_min": diag["ess_bulk_min"],
+        "ess_tail_min": diag.get("ess_tail_min"),
+        "divergences": diag["divergences"],
+        "ess_bulk_min_per_s": ess_per_s,
+        "delay_mode": {leg: s["delay_mode_samples"] for leg, s in summary["legs"].items()},
+        "j_draws": args.j_draws,
+        "j_trials": n_trials,
+        "j_wall_s": j_wall,
+        "j_compile_s": j_compile,
+    }
+    write_json(Path(args.out).with_name("bench_fit.json"), record)
+
+    full = (len(legs), args.minutes, args.chains, args.warmup, args.draws) == (5, 5.0, 4, 1000, 1000)
+    t = [
+        "## Hierarchical fit and posterior J bands",
+        "",
+        f"Command: `{command}`",
+        "",
+        f"Machine: {record['machine']}; measured {record['date']}.",
+        "",
+        f"{args.model} + {', '.join(effects) or 'nothing'} on the simulated cohort ({len(legs)} legs, trial 1 of "
+        f"{args.minutes:g} min, data simulated with {', '.join(effects) or 'no hidden effect'}), "
+        f"{args.chains} chains × {args.draws} draws after {args.warmup} warm-up"
+        + ("" if full else " — **smaller than the issue's configuration (5 legs × 5 min, 4 × 1000 + 1000)**")
+        + ".",
+        "",
+        "| measure | value | target |",
+        "|---|---|---|",
+        f"| sampling wall time (compilation excluded) | {sampling:.0f} s | ≤ 60 s (full size) |",
+        f"| compilation | {compile_s:.0f} s | reported separately |",
+        f"| R-hat max | {diag['rhat_max']:.3f} | < 1.01 |",
+        f"| bulk ESS min | {diag['ess_bulk_min']:.0f} | ≥ 400 |",
+        f"| divergences | {diag['divergences']} | 0 |",
+        f"| bulk ESS min per second of sampling | {ess_per_s:.2f} | ≥ the peer's |",
+    ]
+    if j_wall is not None:
+        t.append(
+            f"| posterior J: {args.j_draws} draws × {n_trials} trials, every start, 4 horizons | "
+            f"{j_wall - j_compile:.0f} s (+ {j_compile:.0f} s compilation) | ≤ 30 s (full size) |"
+        )
+    t += [
+        "",
+        "Peer (the same model in PyMC sampled by nutpie): not written yet, so no ESS-per-second ratio is claimed.",
+        "",
+        "Delay mode per leg [samples]: " + ", ".join(f"{k} {v}" for k, v in record["delay_mode"].items()) + ".",
+    ]
+    replace_section(Path(args.out), "\n".join(t))
+    print(json.dumps(record, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
