@@ -98,6 +98,8 @@ class FitSettings:
 
 #: Spread of the chains' starting points about the classical estimate [prior scales].
 INIT_JITTER = 0.05
+#: A classical estimate further than this from the prior median [prior scales] is not used.
+INIT_MAX_Z = 3.0
 
 
 def build_model(name: str, add_effects=()) -> Model:
@@ -211,8 +213,10 @@ def classical_start(cohort: Cohort, model: Model, data: LikelihoodData, trial: i
     d = 4 stayed at d = 3).  The paper's identification (model 2 over every d, the
     smallest residual) finds the leading mode, and the chains start there.  A leg
     the classical identification cannot handle (too few isolated twitches) starts
-    its values at the prior median (s = 0), with a warning; parameters it does not
-    estimate (an added effect's) are left to the prior median.
+    its values at the prior median (s = 0), with a warning; so does an estimate more
+    than ``INIT_MAX_Z`` prior scales out (least squares running along a ridge the data
+    do not close); parameters it does not estimate (an added effect's) are left to
+    the prior median.
     """
     from ._identify import IdentificationError, identify_leg
 
@@ -240,10 +244,12 @@ def classical_start(cohort: Cohort, model: Model, data: LikelihoodData, trial: i
             x = np.asarray(v[p.name], np.float64)
             if family == "lognormal":
                 x = np.log(np.maximum(x, 1e-30))
-            cols.append(np.clip((x - loc) / scale, -4.0, 4.0))  # inside the prior, whatever LS found
+            z = (x - loc) / scale
+            # beyond INIT_MAX_Z prior scales the least squares ran along a ridge the data do
+            # not close (k1 with k2 and G' when the knee stays out of flexion): prior median
+            cols.append(np.where(np.isfinite(z) & (np.abs(z) <= INIT_MAX_Z), z, 0.0))
         s = np.stack(cols, axis=-1)  # (*shape, L): (L,) scalar, (C, L) vector
-        if np.all(np.isfinite(s)):
-            out[f"{p.name}_s_leg"] = s.reshape(-1, len(data.legs)) if p.shape else s
+        out[f"{p.name}_s_leg"] = s.reshape(-1, len(data.legs)) if p.shape else s
     return out
 
 
