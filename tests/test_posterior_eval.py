@@ -189,3 +189,22 @@ def test_missing_fit_or_leg_exits_2_naming_it(run, tmp_path, capsys):
 
     assert main(["-q", "evaluate", data, "--fit", fit1, "--identified", fit1, "--out", str(tmp_path / "c")]) == 2
     assert "not both" in capsys.readouterr().err
+
+
+def test_delay_angle_figure_has_a_panel_per_leg_and_the_population():
+    from quadshank._plots import plot_delay_angle
+
+    grid = list(np.arange(-40.0, 61.0, 1.0))
+    step = [3.0 if a < -20 else 4.0 for a in grid]
+    da = {"angle_deg": grid, "median": step, "lo": step, "hi": step, "change_probability": 0.97,
+          "pulse_angle_range_deg": [-30.0, 45.0]}  # fmt: skip
+    summary = {"legs": {"TN-left": {"delay_angle": da}, "JM-left": {"delay_angle": {**da, "change_probability": 0.1}},
+                        "OT-left": {}},
+               "delay_angle_population": {k: da[k] for k in ("angle_deg", "median", "lo", "hi")}}  # fmt: skip
+    fig = plot_delay_angle(summary, "model2+angle_delay")
+    visible = [ax for ax in fig.axes if ax.get_visible()]
+    assert [ax.get_title() for ax in visible] == [
+        "TN-left: P(change) 0.97", "JM-left: P(change) 0.10", "population (legs pooled)"
+    ]
+    line = visible[0].get_lines()[0]
+    np.testing.assert_array_equal(line.get_ydata(), step)

@@ -11,7 +11,10 @@ import numpy as np  # noqa: E402
 
 from ._paper import HORIZON_MS, TABLE_V  # noqa: E402
 
-__all__ = ["plot_signals", "plot_twitch_dependence", "plot_predictions", "plot_j_vs_horizon", "plot_delay_scan"]
+__all__ = [
+    "plot_signals", "plot_twitch_dependence", "plot_predictions", "plot_j_vs_horizon", "plot_delay_scan",
+    "plot_delay_angle",
+]  # fmt: skip
 
 _MODEL_COLOURS = {"model1": "tab:blue", "model2": "tab:orange", "model3": "tab:green"}
 
@@ -217,5 +220,42 @@ def plot_posterior_predictions(trial, predicted: dict, p: int, *, j: dict | None
         ax.legend(fontsize=8, loc="upper right")
     axes[-1, 0].set_xlabel("time [s]")
     fig.suptitle(f"{trial.key}, trial {trial.trial}: posterior prediction {ms:.0f} ms ahead")
+    fig.tight_layout()
+    return fig
+
+
+def plot_delay_angle(summary: dict, label: str = ""):
+    """The delay–angle curve d − shift·w(φ) per leg with its 90 % band, and the population's.
+
+    ``summary`` is a fit's ``summary.json`` with ``delay_angle`` per leg (an
+    ``angle_delay`` fit).  The pulses' angle range of each leg is marked: outside it
+    the data say nothing about the threshold.  The paper's −20° is drawn dotted.
+    """
+    legs = {leg: s["delay_angle"] for leg, s in summary["legs"].items() if "delay_angle" in s}
+    pop = summary.get("delay_angle_population")
+    n = len(legs) + (pop is not None)
+    cols = min(3, n)
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.0 * cols, 3.0 * rows), sharex=True, sharey=True, squeeze=False)
+    panels = [(leg, da) for leg, da in legs.items()] + ([("population (legs pooled)", pop)] if pop else [])
+    for ax, (name, da) in zip(axes.flat, panels):
+        phi = np.asarray(da["angle_deg"])
+        ax.fill_between(phi, da["lo"], da["hi"], step="mid", color="tab:purple", alpha=0.25, label="90 % band")
+        ax.step(phi, da["median"], where="mid", color="tab:purple", label="posterior median")
+        if "pulse_angle_range_deg" in da:
+            lo, hi = da["pulse_angle_range_deg"]
+            ax.axvspan(phi[0], lo, color="0.9", zorder=0)
+            ax.axvspan(hi, phi[-1], color="0.9", zorder=0, label="no pulses")
+            ax.set_title(f"{name}: P(change) {da['change_probability']:.2f}", fontsize=9)
+        else:
+            ax.set_title(name, fontsize=9)
+        ax.axvline(-20.0, color="k", ls=":", lw=1, label="paper: about −20°")
+        ax.set_xlabel("knee angle at the pulse [deg]")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("delay [samples]")
+    for ax in list(axes.flat)[len(panels):]:
+        ax.set_visible(False)
+    axes.flat[0].legend(fontsize=7)
+    fig.suptitle(f"Delay against knee angle{': ' + label if label else ''}", fontsize=10)
     fig.tight_layout()
     return fig

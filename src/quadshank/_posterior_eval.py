@@ -57,7 +57,7 @@ from ._fitio import INTERVAL, load_fit, posterior_models, read_summary, sampled_
 from ._io import atomic_write_text, save_figure, write_json
 from ._model import Model, predict_ahead
 from ._paper import HORIZON_MS, HORIZONS, TABLE_V
-from ._plots import plot_posterior_j_vs_horizon, plot_posterior_predictions
+from ._plots import plot_delay_angle, plot_posterior_j_vs_horizon, plot_posterior_predictions
 from ._progress import progress_bar
 from ._tables import markdown_table, sign_test_rows, write_table
 
@@ -453,6 +453,10 @@ def run_posterior_evaluate(
 
     figures = [save_figure(plot_posterior_j_vs_horizon(J), out / "figures" / "table5_posterior_j_vs_horizon.png")]
     figures += _prediction_figures(fits, cohort, J_legs, out, n_draws=n_draws, seed=seed)
+    for f in fits:
+        if any("delay_angle" in s for s in f.summary["legs"].values()):
+            fig = plot_delay_angle(f.summary, f.label)
+            figures.append(save_figure(fig, out / "figures" / f"delay_angle_{f.label.replace('+', '_')}.png"))
     md += ["## Figures", "", *[f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in figures], ""]
 
     summary = {
