@@ -120,3 +120,35 @@ def test_the_angle_delay_likelihood_finds_the_step_of_matching_data(with_step):
     else:
         # no threshold inside the pulses' angles makes a shorter delay better than none
         assert ll[:, 1].max() - ll[0, 0] < 2.0 and ll[:, 2].max() - ll[0, 0] < 2.0
+
+
+def test_recovery_reuses_a_finished_fit_of_the_same_truth_and_settings(tmp_path, monkeypatch):
+    import quadshank._pipeline as pipeline
+    from quadshank._fit import FitSettings
+    from quadshank._recovery import run_recovery
+
+    calls = []
+
+    def fake_run_fit(cohort, out, model, add_effects, settings, progress=False):
+        calls.append(settings.seed)
+        truth = json.loads((out / "truth.json").read_text())
+        legs = {leg: {"params": {k: {"median": v, "lo": v, "hi": v} for k, v in t["params"].items()},
+                      "delay_posterior": [0.0] * 4 + [1.0] + [0.0] * 6} for leg, t in truth["legs"].items()}  # fmt: skip
+        summary = {"legs": legs, "diagnostics": {"rhat_max": 1.0, "ess_bulk_min": 500.0, "divergences": 0, "ok": True},
+                   "settings": json.loads(json.dumps({k: list(v) if isinstance(v, tuple) else v
+                                                      for k, v in settings.__dict__.items()}))}  # fmt: skip
+        (out / "summary.json").write_text(json.dumps(summary))
+        (out / "fit.nc").write_text("")
+        return summary
+
+    monkeypatch.setattr(pipeline, "run_fit", fake_run_fit)
+    settings = FitSettings(chains=1, warmup=5, draws=5)
+    kw = dict(models=["model1"], seeds=[0, 1], legs=["TN-left"], minutes=0.2, settings=settings)
+    run_recovery(tmp_path, **kw)
+    assert calls == [0, 1]
+    run_recovery(tmp_path, **kw)
+    assert calls == [0, 1]  # both reused
+    run_recovery(tmp_path, **{**kw, "minutes": 0.3})
+    assert calls == [0, 1, 0, 1]  # another truth: refitted
+    run_recovery(tmp_path, **{**kw, "minutes": 0.3, "settings": FitSettings(chains=1, warmup=6, draws=5)})
+    assert calls == [0, 1, 0, 1, 0, 1]  # other settings: refitted

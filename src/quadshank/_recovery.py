@@ -30,6 +30,7 @@ an approximation that leaves σ and ν without a true value to cover.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -48,6 +49,8 @@ MATCHING_FORMAT = "quadshank-matching-truth/1"
 ANGLE_RANGE = (-60.0, 75.0)
 #: Lower recruitments tried, in order, when the trial's own (1 or 0.5) drives the model out of range.
 RECRUITMENT_FALLBACK = (0.5, 0.35, 0.25, 0.15)
+#: A leg's data chose a delay when its posterior mode has at least this probability.
+DELAY_SEEN = 0.5
 
 
 #: True values of added effects in a matching truth: parameters and discrete leaves.
@@ -185,6 +188,7 @@ def coverage_rows(summary: dict, truth: dict) -> list[dict]:
         rows.append({
             "leg": leg, "param": "delay", "true": float(true["delay"]), "median": float(mode),
             "lo": float(mode), "hi": float(mode), "covered": mode == true["delay"],
+            "p_mode": float(np.max(s["delay_posterior"])),
         })  # fmt: skip
         if "shift" in true.get("discrete", {}) and "delay_angle" in s:
             shift = int(np.argmax(s["delay_angle"]["shift_posterior"]))
@@ -201,6 +205,23 @@ def _binomial_band(n: int, p: float = 0.9) -> tuple[float, float]:
         return (math.nan, math.nan)
     half = 1.959963984540054 * math.sqrt(p * (1 - p) / n)
     return max(0.0, p - half), min(1.0, p + half)
+
+
+def _finished_fit(fit_dir: Path, truth: dict, settings) -> dict | None:
+    """The summary of a complete earlier fit of the same truth with the same settings, else None.
+
+    A recovery run that was interrupted, or whose table is rebuilt, reuses such fits.
+    """
+    from ._fitio import read_summary
+    from ._io import read_json
+
+    try:
+        summary = read_summary(fit_dir)
+        same_truth = read_json(fit_dir / "truth.json") == json.loads(json.dumps(truth))
+    except (FileNotFoundError, ValueError, KeyError):
+        return None
+    wanted = json.loads(json.dumps({k: (list(v) if isinstance(v, tuple) else v) for k, v in settings.__dict__.items()}))
+    return summary if same_truth and summary.get("settings") == wanted else None
 
 
 def run_recovery(
@@ -220,7 +241,8 @@ def run_recovery(
     ``add_effects`` extend every fitted model; the truth holds ``truth_effects``
     (default: the same effects, so the truth matches; ``()`` asks whether a fit with
     an effect claims it on data without it).  Writes ``out/{name}-seed{S}/``
-    (truth.json, fit.nc, summary.json), then ``out/coverage.json`` (every row, and per
+    (truth.json, fit.nc, summary.json; a complete fit already there of the same truth
+    with the same settings is reused), then ``out/coverage.json`` (every row, and per
     model the covered fraction of the 90 % intervals with the band expected of a
     calibrated posterior, whether the posterior mode of d — and of an angle delay's
     shift — was right for every leg, and an angle delay's change probability per leg)
@@ -244,10 +266,12 @@ def run_recovery(
         for seed in seeds:
             cohort, truth = simulate_matching(model, legs, minutes, seed, add_effects=truth_effects)
             fit_dir = out / f"{name}-seed{seed}"
-            fit_dir.mkdir(parents=True, exist_ok=True)
-            write_json(fit_dir / "truth.json", truth)
             fs = FitSettings(**{**settings.__dict__, "seed": seed})
-            summary = run_fit(cohort, fit_dir, model, add_effects, fs, progress=progress)
+            summary = _finished_fit(fit_dir, truth, fs)
+            if summary is None:
+                fit_dir.mkdir(parents=True, exist_ok=True)
+                write_json(fit_dir / "truth.json", truth)
+                summary = run_fit(cohort, fit_dir, model, add_effects, fs, progress=progress)
             diag = summary["diagnostics"]
             info = {"seed": seed, **{k: diag[k] for k in ("rhat_max", "ess_bulk_min", "divergences", "ok")},
                     "sampling_seconds": summary.get("sampling_seconds")}  # fmt: skip
@@ -276,6 +300,8 @@ def run_recovery(
             if hits:
                 per_model[name][f"{discrete}_mode_right"] = int(sum(hits))
                 per_model[name][f"{discrete}_legs"] = len(hits)
+        # a mode of a flat P(d) means nothing: count the legs whose data chose a delay at all
+        per_model[name]["delay_seen_legs"] = sum(r.get("p_mode", 0.0) >= DELAY_SEEN for r in rows if r["param"] == "delay")
         all_rows.extend(rows)
     result = {
         "command": command,
@@ -317,7 +343,8 @@ def coverage_markdown(result: dict) -> str:
         shift = f"{m['shift_mode_right']}/{m['shift_legs']} legs" if "shift_legs" in m else "–"
         lines.append(
             f"| {model} | {', '.join(m['truth_effects']) or 'none'} | {m['covered']}/{m['n_intervals']} = "
-            f"{m['coverage']:.2f} | {lo:.2f}–{hi:.2f} | {m['delay_mode_right']}/{m['delay_legs']} legs | {shift} "
+            f"{m['coverage']:.2f} | {lo:.2f}–{hi:.2f} | {m['delay_mode_right']}/{m['delay_legs']} legs "
+            f"(P(mode) ≥ {DELAY_SEEN} in {m['delay_seen_legs']}) | {shift} "
             f"| {ok}/{len(m['fits'])} |"
         )
     changes = [(model, f) for model, m in result["models"].items() for f in m["fits"] if "change_probability" in f]
