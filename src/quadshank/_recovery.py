@@ -278,6 +278,8 @@ def run_recovery(
             changes = {leg: s["delay_angle"]["change_probability"] for leg, s in summary["legs"].items() if "delay_angle" in s}
             if changes:
                 info["change_probability"] = changes
+                info["threshold_deg"] = {leg: s["delay_angle"]["threshold_deg"] for leg, s in summary["legs"].items()
+                                         if "delay_angle" in s}  # fmt: skip
             diags.append(info)
             for r in coverage_rows(summary, truth):
                 rows.append({"model": name, "seed": seed, **r})
@@ -349,10 +351,14 @@ def coverage_markdown(result: dict) -> str:
         )
     changes = [(model, f) for model, m in result["models"].items() for f in m["fits"] if "change_probability" in f]
     if changes:
-        lines += ["", "## Angle delay: posterior probability that the delay changes with angle", ""]
+        lines += ["", "## Angle delay: P(the delay changes with angle), and where (median, 90 % interval)", ""]
         for model, f in changes:
-            cells = ", ".join(f"{leg} {p:.2f}" for leg, p in f["change_probability"].items())
-            lines.append(f"- {model}, seed {f['seed']}: {cells}")
+            cells = []
+            for leg, p in f["change_probability"].items():
+                thr = f.get("threshold_deg", {}).get(leg)
+                where = f", threshold {thr['median']:.1f}° [{thr['lo']:.1f}, {thr['hi']:.1f}]" if thr else ""
+                cells.append(f"{leg} {p:.2f}{where}")
+            lines.append(f"- {model}, seed {f['seed']}: {'; '.join(cells)}")
     lines += ["", "## By parameter (covered / intervals, over legs and seeds)", ""]
     for model, m in result["models"].items():
         cells = ", ".join(f"{k} {v['covered']}/{v['n']}" for k, v in m["by_param"].items())
