@@ -83,9 +83,11 @@ def test_matching_values_follow_the_paper_tables():
 def test_recovery_command_writes_the_coverage_table(tmp_path):
     out = tmp_path / "rec"
     code = main(["-q", "recovery", "--models", "model1", "--seeds", "3", "--legs", "TN-left,JM-left",
-                 "--minutes", "0.5", "--chains", "1", "--warmup", "30", "--draws", "20", "--out", str(out)])  # fmt: skip
+                 "--minutes", "0.5", "--chains", "1", "--warmup", "30", "--draws", "20", "--start", "prior",
+                 "--out", str(out)])  # fmt: skip
     assert code == 0
     result = json.loads((out / "coverage.json").read_text())
+    assert result["settings"]["init_classical"] is False
     m = result["models"]["model1"]
     # per leg: gain and four passive parameters, and the delay row
     assert m["n_intervals"] == 2 * 5 and m["delay_legs"] == 2

@@ -142,6 +142,7 @@ def cmd_fit(args) -> int:
         draws=args.draws,
         seed=args.seed,
         trials=tuple(int(t) for t in _csv_list(args.trials)),
+        init_classical=args.start == "classical",
     )
     legs = _csv_list(args.legs) if args.legs else None
     summary = run_fit(
@@ -178,7 +179,9 @@ def cmd_recovery(args) -> int:
     from ._recovery import run_recovery
 
     command = "quadshank " + " ".join(shlex.quote(a) for a in args.argv)
-    settings = FitSettings(chains=args.chains, warmup=args.warmup, draws=args.draws)
+    settings = FitSettings(
+        chains=args.chains, warmup=args.warmup, draws=args.draws, init_classical=args.start == "classical"
+    )
     result = run_recovery(
         args.out,
         models=_csv_list(args.models),
@@ -288,6 +291,8 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FITDIR",
         help="take the delay prior from another fit's delay posterior (the paper took d from model 2)",
     )
+    f.add_argument("--start", choices=["classical", "prior"], default="classical",
+                   help="where the chains start: the classical least-squares identification (default) or the prior median")
     f.add_argument("--out", required=True)
     f.set_defaults(func=cmd_fit)
 
@@ -302,6 +307,8 @@ def build_parser() -> argparse.ArgumentParser:
     rc.add_argument("--chains", type=int, default=2)
     rc.add_argument("--warmup", type=int, default=500)
     rc.add_argument("--draws", type=int, default=500)
+    rc.add_argument("--start", choices=["classical", "prior"], default="classical",
+                    help="where the chains start: the classical least-squares identification (default) or the prior median")
     rc.add_argument("--out", required=True)
     rc.set_defaults(func=cmd_recovery)
 

@@ -33,6 +33,9 @@ samples (or another fit's posterior, :func:`delay_prior_from`) and is summed
 out exactly, jointly with a delay effect's shift; P(d | data) is the posterior mean of the
 per-draw conditional P(d | θ, data), and one d per draw is drawn from that
 conditional for the pointwise log-likelihood (so PSIS-LOO is over (θ, d)).
+Chains start at the classical least-squares identification, jittered
+(:func:`classical_start`): each d has its own mode in θ, and the paper's
+identification finds the leading one.
 """
 
 from __future__ import annotations
