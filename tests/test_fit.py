@@ -183,8 +183,8 @@ def test_chains_start_at_the_classical_estimate_of_the_leading_delay_mode():
 
     import jax
 
-    from quadshank._fit import INIT_JITTER, _init_near, classical_start
-    from quadshank._likelihood import prepare
+    from quadshank._fit import INIT_JITTER, _init_near, classical_start, model_params
+    from quadshank._likelihood import leg_loglik_by_delay, prepare
     from quadshank._recovery import simulate_matching
 
     cohort, truth = simulate_matching("model2", legs=["TN-left", "JM-left"], minutes=1.0, seed=0)
@@ -193,9 +193,6 @@ def test_chains_start_at_the_classical_estimate_of_the_leading_delay_mode():
     start = classical_start(cohort, model, data, 1)
     assert set(start) == {"a_s_leg", "b_s_leg", "damping_s_leg", "gravity_s_leg", "k1_s_leg", "k2_s_leg"}
     # back to parameter values: the start lies in the true delay's mode of every leg
-    from quadshank._fit import model_params
-    from quadshank._likelihood import leg_loglik_by_delay
-
     x = data.leg_arrays()
     for i, leg in enumerate(data.legs):
         values = {}
