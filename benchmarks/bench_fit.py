@@ -38,14 +38,15 @@ import jax
 import numpy as np
 
 from quadshank._fit import FitSettings
-from quadshank._io import atomic_write_text, write_json
+from quadshank._io import write_json
 from quadshank._paper import LEGS
 from quadshank._pipeline import run_fit
 from quadshank._posterior_eval import load_fits, posterior_j
 from quadshank._simulate import simulate_cohort
 
-MARK_BEGIN = "<!-- bench_fit:begin -->"
-MARK_END = "<!-- bench_fit:end -->"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from results_md import write_section  # noqa: E402
+
 
 _COMPILE_EVENTS = (
     "/jax/core/compile/jaxpr_trace_duration",
@@ -76,18 +77,6 @@ class CompileClock:
         return out, time.perf_counter() - t0, self.seconds
 
 
-def replace_section(path: Path, text: str) -> None:
-    old = path.read_text() if path.exists() else "# Benchmarks\n\nEach section is written by the command shown in it.\n"
-    block = f"{MARK_BEGIN}\n{text.rstrip()}\n{MARK_END}"
-    if MARK_BEGIN in old and MARK_END in old:
-        head, rest = old.split(MARK_BEGIN, 1)
-        _, tail = rest.split(MARK_END, 1)
-        new = head + block + tail
-    else:
-        new = old.rstrip() + "\n\n" + block + "\n"
-    atomic_write_text(path, new)
-
-
 def run_peer(cohort, model_name: str, effects, settings) -> dict:
     """The same model in PyMC sampled by nutpie: timings and diagnostics, or the reason it could not run."""
     try:
@@ -99,7 +88,6 @@ def run_peer(cohort, model_name: str, effects, settings) -> dict:
     from numpyro.infer import init_to_median
     from numpyro.infer.util import initialize_model
 
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
     from peer_pymc import build_pymc_model, check_same_density
 
     from quadshank._fit import build_model, numpyro_model
@@ -258,7 +246,7 @@ def main(argv=None) -> int:
         "",
         "Delay mode per leg [samples]: " + ", ".join(f"{k} {v}" for k, v in record["delay_mode"].items()) + ".",
     ]
-    replace_section(Path(args.out), "\n".join(t))
+    write_section(args.out, "bench_fit", "\n".join(t))
     print(json.dumps(record, indent=1))
     return 0
 

@@ -22,14 +22,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from reference_jphi import j_phi_loop  # noqa: E402
+from results_md import write_section  # noqa: E402
 
 from quadshank._evaluate import prediction_errors  # noqa: E402
 from quadshank._identify import identify_leg  # noqa: E402
-from quadshank._io import atomic_write_text  # noqa: E402
 from quadshank._simulate import simulate_cohort  # noqa: E402
-
-MARK_BEGIN = "<!-- bench_jphi:begin -->"
-MARK_END = "<!-- bench_jphi:end -->"
 
 
 def main(argv=None) -> int:
@@ -74,7 +71,6 @@ def main(argv=None) -> int:
 
     speedup = t_loop / t_jax
     lines = [
-        MARK_BEGIN,
         "## J_φ,p for one trial: vectorised JAX rollouts vs a per-window NumPy loop",
         "",
         f"Command: `python benchmarks/bench_jphi.py --minutes {args.minutes:g} --loop-starts {args.loop_starts}`",
@@ -96,18 +92,10 @@ def main(argv=None) -> int:
         f"Largest relative difference in J between the two on {k} starts: {max_rel:.1e}.",
         "",
         "J_φ,p [deg] on the whole trial: " + ", ".join(f"{h * 10} ms: {v:.2f}" for h, v in ours.items()),
-        MARK_END,
     ]
-    block = "\n".join(lines) + "\n"
+    block = "\n".join(lines)
     print(block)
-    out = Path(args.out)
-    text = out.read_text() if out.exists() else "# Benchmarks\n\nEach section is written by the command shown in it.\n\n"
-    if MARK_BEGIN in text:
-        head, rest = text.split(MARK_BEGIN, 1)
-        text = head + block + rest.split(MARK_END, 1)[1].lstrip("\n")
-    else:
-        text = text + block
-    atomic_write_text(out, text)
+    write_section(args.out, "bench_jphi", block)
     return 0
 
 
