@@ -30,6 +30,7 @@ an approximation that leaves σ and ν without a true value to cover.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Iterable, Sequence
@@ -109,7 +110,7 @@ def simulate_matching(
     import jax.numpy as jnp
 
     from ._fit import build_model
-    from ._model import simulate_angles
+    from ._model import _passive_acc, simulate_angles
     from ._simulate import _check_legs, _check_trials, _plan_leg
 
     legs = _check_legs(legs)
@@ -138,7 +139,7 @@ def simulate_matching(
             else:
                 raise ValueError(f"{leg} trial {trial}: the {model} matching truth leaves {ANGLE_RANGE} deg at every recruitment")
             recruitment.setdefault(leg, {})[str(trial)] = float(u)
-            passive = sum(np.asarray(e.acceleration(angle, velocity), np.float64) for e in m.passives)
+            passive = np.asarray(_passive_acc(m, angle, velocity), np.float64)
             ss = np.random.SeedSequence(int(seed), spawn_key=(LEGS.index(leg), int(trial), 7))  # not the simulator's keys
             rng = np.random.default_rng(ss)
             acc = em + passive + noise["sigma"] * rng.standard_t(noise["nu"], size=n)
@@ -222,8 +223,14 @@ def _finished_fit(fit_dir: Path, truth: dict, settings) -> dict | None:
         same_truth = read_json(fit_dir / "truth.json") == json.loads(json.dumps(truth))
     except (FileNotFoundError, ValueError, KeyError):
         return None
-    wanted = json.loads(json.dumps({k: (list(v) if isinstance(v, tuple) else v) for k, v in settings.__dict__.items()}))
-    return summary if same_truth and summary.get("settings") == wanted else None
+    return summary if same_truth and summary.get("settings") == _settings_json(settings) else None
+
+
+def _settings_json(settings) -> dict:
+    """FitSettings as a fit's summary.json holds them (through the fit description's JSON)."""
+    from ._fit import from_json, to_json
+
+    return from_json(to_json(dataclasses.asdict(settings)))
 
 
 def run_recovery(
@@ -268,7 +275,7 @@ def run_recovery(
         for seed in seeds:
             cohort, truth = simulate_matching(model, legs, minutes, seed, add_effects=truth_effects)
             fit_dir = out / f"{name}-seed{seed}"
-            fs = FitSettings(**{**settings.__dict__, "seed": seed})
+            fs = dataclasses.replace(settings, seed=seed)
             summary = _finished_fit(fit_dir, truth, fs)
             if summary is None:
                 fit_dir.mkdir(parents=True, exist_ok=True)
@@ -313,7 +320,7 @@ def run_recovery(
         "legs": list(legs),
         "minutes": minutes,
         "seeds": seeds,
-        "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in settings.__dict__.items()},
+        "settings": _settings_json(settings),
         "noise": MATCHING_NOISE,
         "models": per_model,
         "rows": all_rows,
