@@ -9,6 +9,8 @@ import sys
 import time
 from pathlib import Path
 
+from ._model import MODELS
+
 __all__ = ["main"]
 
 EXPECTED_ERRORS: tuple[type[BaseException], ...] = (FileNotFoundError, KeyError, ValueError, NotADirectoryError)
@@ -277,7 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     f = sub.add_parser("fit", help="hierarchical Bayesian fit (NUTS) of one model across legs")
     f.add_argument("data", help="interchange folder or .nc cohort file")
-    f.add_argument("--model", choices=["model1", "model2", "model3"], default="model3")
+    f.add_argument("--model", choices=list(MODELS), default="model3")
     f.add_argument("--add-effect", action="append", metavar="NAME", help="extend the model by a registered effect")
     f.add_argument("--trials", default="1", help="identification trials, comma-separated (default 1, as the paper)")
     f.add_argument("--legs", default="", help="legs, comma-separated (default: all in the data)")

@@ -10,9 +10,17 @@ depends on its *kind*:
     dynamics, eq. (1), turning the delayed recruitment level into an equivalent
     acceleration ``m`` [deg/s²].  Exactly one per model.
 ``gain``
-    ``factor(ctx) -> scalar``: a multiplicative modulation of ``m`` (torque–angle,
-    torque–velocity, ...), eq. (2).  Stateful gains override ``init_state`` and
-    ``gain(state, ctx) -> (state, factor)`` instead.
+    ``factor(ctx) -> scalar``: a multiplicative modulation (torque–angle,
+    torque–velocity, ...), eq. (2), of the input reaching the muscle at this
+    sample, evaluated at the state at that instant: the twitch it starts is
+    scaled as a whole by the state at its onset (for the zero-order activation
+    of models 1 and 3 this is exactly eq. 5).
+``pulse``
+    ``pulse_factor(pctx) -> scalar``: a modulation of a pulse's twitch by what
+    is known when it is delivered (:class:`PulseContext`: its recruitment
+    level, the preceding interpulse interval, the pulses delivered before it
+    in the trial, the time in the trial): fatigue, potentiation, a
+    recruitment nonlinearity.
 ``passive``
     ``acceleration(angle, velocity) -> deg/s²``: a term of the passive system,
     eq. (8), added to the angular acceleration.
@@ -25,6 +33,12 @@ depends on its *kind*:
     the share of a pulse delivered at ``angle`` that takes the shorter delay,
     and its integer field ``shift`` (a discrete leaf, listed in the class
     attribute ``discrete``) is summed out by the hierarchical fit like d.
+
+Two class attributes serve the modelling loop (:mod:`quadshank._diagnose`):
+``replaces`` names effects this one generalises (a torque–angle relation with
+a maximum replaces the linear one when it is added to a model), and
+``signature`` names the residual feature where its absence shows (``angle``,
+``velocity``, ``ipi``, ``pulse_count``, ``time``, ``onset``).
 
 Writing a new effect is a few lines::
 
@@ -68,9 +82,16 @@ __all__ = [
     "Gravity",
     "ExponentialElasticity",
     "AngleDelay",
+    "PulseContext",
+    "PeakTorqueAngle",
+    "HillTorqueVelocity",
+    "Fatigue",
+    "Potentiation",
+    "RecruitmentPower",
 ]
 
 LEVELS = ("population", "subject", "leg")
+KINDS = ("activation", "gain", "pulse", "passive", "delay")
 SUPPORTS = ("real", "positive", "negative", "unit_interval")
 
 
@@ -121,12 +142,33 @@ class StepContext(NamedTuple):
     u_now: Any  # recruitment level of the pulse delivered at this sample
 
 
+class PulseContext(NamedTuple):
+    """What a pulse effect sees when a pulse is delivered."""
+
+    u: Any  # recruitment level of the pulse
+    ipi_s: Any  # time since the preceding pulse of the trial [s] (large for the first)
+    count: Any  # pulses delivered before this one in the trial
+    time_s: Any  # time in the trial [s]
+    angle: Any  # deg, at delivery
+    velocity: Any  # deg/s, at delivery
+
+
+#: ``PulseContext.ipi_s`` of a trial's first pulse [s].
+FIRST_IPI_S = 100.0
+
+
 class Effect:
     """Base of all effects.  Subclasses are frozen dataclasses; see module docs."""
 
     kind: ClassVar[str] = ""
     name: ClassVar[str] = ""
     params: ClassVar[tuple[Param, ...]] = ()
+    #: Effects this one generalises and takes the place of when added to a model.
+    replaces: ClassVar[tuple[str, ...]] = ()
+    #: The residual feature where this effect's absence shows (see module docs).
+    signature: ClassVar[str] = ""
+    #: Offered as a candidate by the modelling loop's ranking.
+    candidate: ClassVar[bool] = True
     #: Activation effects only: "sample" when the effect describes the twitch's
     #: shape, "twitch" when only its integral (see :mod:`quadshank._likelihood`).
     resolution: ClassVar[str] = "sample"
@@ -156,6 +198,9 @@ class Effect:
     def factor(self, ctx: StepContext):  # pragma: no cover - abstract for gains
         raise NotImplementedError(f"gain effect {self.name!r} must define factor() or gain()")
 
+    def pulse_factor(self, pctx: PulseContext):  # pragma: no cover - abstract for pulse effects
+        raise NotImplementedError(f"pulse effect {self.name!r} must define pulse_factor()")
+
 
 _REGISTRY: dict[str, type[Effect]] = {}
 
@@ -164,8 +209,8 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
     """Register an effect class: a JAX pytree over its declared parameters, listed by name."""
     if not dataclasses.is_dataclass(cls):
         raise TypeError(f"{cls.__name__} must be a frozen dataclass (decorate with @dataclasses.dataclass(frozen=True))")
-    if cls.kind not in ("activation", "gain", "passive", "delay"):
-        raise TypeError(f"{cls.__name__}.kind must be activation, gain, passive or delay, not {cls.kind!r}")
+    if cls.kind not in KINDS:
+        raise TypeError(f"{cls.__name__}.kind must be one of {', '.join(KINDS)}, not {cls.kind!r}")
     if not cls.name:
         raise TypeError(f"{cls.__name__} needs a class attribute 'name'")
     fields = [f.name for f in dataclasses.fields(cls)]
@@ -205,6 +250,7 @@ class ZeroOrderActivation(Effect):
 
     kind = "activation"
     name = "zero_order"
+    candidate = False
     #: The likelihood compares it with data summed over each twitch window (see _likelihood).
     resolution = "twitch"
     #: Samples of the response to one pulse (its impulse response is one sample).
@@ -236,6 +282,7 @@ class Darma(Effect):
 
     kind = "activation"
     name = "darma"
+    candidate = False
     #: Its twitch has a shape, so the likelihood compares it with every sample.
     resolution = "sample"
     #: Samples of the impulse response kept (poles near 0.77: 0.77**40 < 1e-4).
@@ -297,6 +344,7 @@ class LinearTorqueAngle(Effect):
 
     kind = "gain"
     name = "linear_torque_angle"
+    signature = "angle"
     params = (
         Param(
             "gamma_angle",
@@ -318,6 +366,7 @@ class LinearTorqueVelocity(Effect):
 
     kind = "gain"
     name = "linear_torque_velocity"
+    signature = "velocity"
     params = (
         Param(
             "gamma_velocity",
@@ -342,6 +391,7 @@ class Damping(Effect):
 
     kind = "passive"
     name = "damping"
+    candidate = False
     params = (
         Param("damping", "1/s", support="positive", prior=("lognormal", math.log(1.0), 0.5), doc="D' = D/I"),
     )
@@ -358,6 +408,7 @@ class Gravity(Effect):
 
     kind = "passive"
     name = "gravity"
+    candidate = False
     params = (
         Param(
             "gravity",
@@ -380,6 +431,7 @@ class ExponentialElasticity(Effect):
 
     kind = "passive"
     name = "elasticity"
+    candidate = False
     params = (
         Param("k1", "deg/s^2", support="positive", prior=("lognormal", math.log(25.0), 0.8), doc="k1' = k1/I"),
         Param("k2", "1/deg", support="positive", prior=("lognormal", math.log(0.05), 0.4)),
@@ -412,6 +464,7 @@ class AngleDelay(Effect):
 
     kind = "delay"
     name = "angle_delay"
+    signature = "onset"
     #: Largest shortening considered [samples].
     max_shift = 2
     #: Width of the smoothed step [deg]: about the goniometer's noise and a pulse's angle uncertainty.
@@ -438,3 +491,131 @@ class AngleDelay(Effect):
         w_long = 1.0 - self.pulse_weight(angle_hist[d])
         w_short = self.pulse_weight(angle_hist[short])
         return jnp.where(short == d, u_hist[d], u_hist[d] * w_long + u_hist[short] * w_short)
+
+
+# ==================================================================== the loop's candidates
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class PeakTorqueAngle(Effect):
+    """Torque–angle relation with a maximum: f(φ) = exp(−((φ − φ_opt)² − φ_opt²)/(2w²)).
+
+    A Gaussian in the knee angle, normalised to f(0) = 1 so the gain keeps its
+    meaning at rest; the force–length relation of the quadriceps peaks at an
+    optimal length inside the range of motion, which the linear factor of
+    model 3 cannot show.  Replaces ``linear_torque_angle``.
+    """
+
+    kind = "gain"
+    name = "torque_angle_peak"
+    signature = "angle"
+    replaces = ("linear_torque_angle",)
+    params = (
+        Param("phi_opt", "deg", prior=("normal", 10.0, 25.0), doc="knee angle of the largest twitch"),
+        Param("width", "deg", support="positive", prior=("lognormal", math.log(30.0), 0.5), doc="width of the maximum"),
+    )
+    phi_opt: Any = 10.0
+    width: Any = 30.0
+
+    def factor(self, ctx):
+        return jnp.exp(-((ctx.angle - self.phi_opt) ** 2 - self.phi_opt**2) / (2.0 * self.width**2))
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class HillTorqueVelocity(Effect):
+    """Hill-type torque–velocity: a hyperbola when shortening, a plateau when lengthening.
+
+    For knee-extension velocity v > 0 (the quadriceps shortens)
+    g = max(0, (1 − v/v_max)/(1 + v/(k·v_max))); for v < 0 (eccentric)
+    g = 1 + (g_ecc − 1)·(−v)/(−v + v_half), rising to the plateau g_ecc.
+    Replaces ``linear_torque_velocity``.
+    """
+
+    kind = "gain"
+    name = "hill_velocity"
+    signature = "velocity"
+    replaces = ("linear_torque_velocity",)
+    params = (
+        Param("vmax", "deg/s", support="positive", prior=("lognormal", math.log(600.0), 0.5), doc="shortening velocity of no force"),
+        Param("hill_k", "1", support="positive", prior=("lognormal", math.log(0.25), 0.5), doc="curvature a/F0 of Hill's hyperbola"),
+        Param("g_ecc", "1", prior=("normal", 1.3, 0.3), doc="eccentric plateau (1: none)"),
+        Param("v_half", "deg/s", support="positive", prior=("lognormal", math.log(50.0), 0.7), doc="lengthening velocity of half the plateau"),
+    )
+    vmax: Any = 600.0
+    hill_k: Any = 0.25
+    g_ecc: Any = 1.3
+    v_half: Any = 50.0
+
+    def factor(self, ctx):
+        vp = jnp.maximum(ctx.velocity, 0.0)
+        vn = -jnp.minimum(ctx.velocity, 0.0)
+        concentric = jnp.maximum((1.0 - vp / self.vmax) / (1.0 + vp / (self.hill_k * self.vmax)), 0.0)
+        return concentric + (self.g_ecc - 1.0) * vn / (vn + self.v_half)
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class Fatigue(Effect):
+    """Twitch gain falling with the pulses delivered: f_min + (1 − f_min)·exp(−n/N_f).
+
+    n counts the pulses delivered before this one in the trial; each trial is
+    taken to start rested (for the protocol's 15-min rests, recovery is
+    nearly complete after a first trial; later trials start somewhat
+    fatigued, which a per-trial fit absorbs in its gain).
+    """
+
+    kind = "pulse"
+    name = "fatigue"
+    signature = "pulse_count"
+    params = (
+        Param("f_min", "1", prior=("normal", 0.6, 0.25), doc="gain left when fully fatigued"),
+        Param("n_fatigue", "pulses", support="positive", prior=("lognormal", math.log(800.0), 0.8), doc="pulses to fatigue by 1/e"),
+    )
+    f_min: Any = 0.6
+    n_fatigue: Any = 800.0
+
+    def pulse_factor(self, pctx):
+        return self.f_min + (1.0 - self.f_min) * jnp.exp(-pctx.count / self.n_fatigue)
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class Potentiation(Effect):
+    """Nonlinear summation: a twitch following closely on another is larger, 1 + P·exp(−(IPI − T_s)/τ_p).
+
+    P < 0 describes depression instead.  The preceding interpulse interval IPI
+    is that of the delivered pulses; the first pulse of a trial has none.
+    """
+
+    kind = "pulse"
+    name = "potentiation"
+    signature = "ipi"
+    params = (
+        Param("potentiation", "1", prior=("normal", 0.3, 0.5), doc="extra twitch at the shortest interval"),
+        Param("tau_p", "s", support="positive", prior=("lognormal", math.log(0.06), 0.6), doc="decay of potentiation with the interval"),
+    )
+    potentiation: Any = 0.3
+    tau_p: Any = 0.06
+    #: Shortest interpulse interval, one sample [s].
+    SAMPLE_S = 0.01
+
+    def pulse_factor(self, pctx):
+        return 1.0 + self.potentiation * jnp.exp(-(pctx.ipi_s - self.SAMPLE_S) / self.tau_p)
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class RecruitmentPower(Effect):
+    """Recruitment nonlinearity: a pulse of level u acts as u^κ (κ = 1: linear recruitment)."""
+
+    kind = "pulse"
+    name = "recruitment_power"
+    signature = "u"
+    params = (Param("kappa", "1", support="positive", prior=("lognormal", 0.0, 0.3), doc="exponent of the recruitment curve"),)
+    kappa: Any = 1.0
+
+    def pulse_factor(self, pctx):
+        u = jnp.maximum(pctx.u, 1e-6)
+        return jnp.where(pctx.u > 0, jnp.exp((self.kappa - 1.0) * jnp.log(u)), 0.0)

@@ -99,6 +99,9 @@ class FitSettings:
     init_classical: bool = True
 
 
+#: Classical models whose estimates start a model's chains (model3s: model 2's twitch, model 3's gains).
+CLASSICAL_SOURCES = {"model3s": ("model3", "model2")}
+
 #: Spread of the chains' starting points about the classical estimate [prior scales].
 INIT_JITTER = 0.05
 #: A classical estimate further than this from the prior median [prior scales] is not used.
@@ -228,7 +231,10 @@ def classical_start(cohort: Cohort, model: Model, data: LikelihoodData, trial: i
     for leg in data.legs:
         try:
             ident = identify_leg(cohort.get(leg, trial))
-            per_leg.append(ident.models[base].params() if base in ident.models else {})
+            values = {}
+            for source in CLASSICAL_SOURCES.get(base, (base,)):
+                values.update(ident.models[source].params() if source in ident.models else {})
+            per_leg.append(values)
         except (IdentificationError, KeyError, ValueError) as exc:
             warnings.warn(f"{leg}: chains start at the prior median, not the classical estimate ({exc})", stacklevel=2)
             per_leg.append({})

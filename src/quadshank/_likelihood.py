@@ -2,12 +2,14 @@
 
 What is compared
     The equivalent acceleration of eq. (8), e_k = a_k − Σ passive(φ_k, φ̇_k),
-    with the model's active output M̂_k = F_k · Σ_i u_i h(k − p_i − d): the
-    activation effect's impulse response h (computed by stepping the effect
-    itself, so its physics is written once) placed at every pulse p_i, scaled
-    by the recruitment level u_i and by the gain effects' factors F_k at the
-    measured state (eqs. 2–5).  The passive parameters enter through e_k, so
-    they are fitted jointly with the active ones.
+    with the model's active output M̂_k = Σ_i u_i q_i F_{p_i+d} h(k − p_i − d):
+    the activation effect's impulse response h (computed by stepping the
+    effect itself, so its physics is written once) placed at every pulse p_i,
+    scaled by the recruitment level u_i, by the pulse effects' factor q_i
+    (fatigue, potentiation: known from the stimulation alone) and by the gain
+    effects' factors F at the measured state at the twitch's onset (eqs. 2–5).
+    The passive parameters enter through e_k, so they are fitted jointly with
+    the active ones.
 
 At what resolution
     The activation effect says.  A shaped twitch (DARMA, ``resolution =
@@ -62,8 +64,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._cohort import Cohort
-from ._effects import Effect, StepContext
-from ._model import Model, equivalent_acceleration
+from ._effects import FIRST_IPI_S, Effect, PulseContext, StepContext
+from ._model import Model, equivalent_acceleration, pulse_factors
 from ._paper import MAX_DELAY, TWITCH_SAMPLES
 
 __all__ = [
@@ -73,6 +75,7 @@ __all__ = [
     "gain_factors",
     "leg_loglik_by_delay",
     "leg_pointwise",
+    "leg_active_output",
     "student_t_logpdf",
     "max_shift",
     "SEGMENT_SAMPLES",
@@ -119,6 +122,9 @@ class LikelihoodData:
     segment_mask: np.ndarray  # (L, S) bool
     pulse_sample: np.ndarray  # (L, P)
     pulse_u: np.ndarray  # (L, P) 0 for padding
+    pulse_ipi_s: np.ndarray  # (L, P) time since the trial's preceding pulse [s]
+    pulse_count: np.ndarray  # (L, P) pulses before this one in its trial
+    pulse_time_s: np.ndarray  # (L, P) time in the trial [s]
     touch_sample: np.ndarray  # (L, D, P*(R+K)) sample reached by pulse i, lag j - K at delay d
     touch_valid: np.ndarray  # (L, D, P*(R+K)) bool
     touch_pos: np.ndarray  # (L, D, P*(R+K)) index into touch_window
@@ -133,7 +139,7 @@ class LikelihoodData:
         """The arrays the JAX functions need, keyed by name, leading axis = leg."""
         names = (
             "angle velocity acceleration stimulation sample_mask window window_len window_mask window_segment "
-            "segment_mask pulse_sample pulse_u touch_sample touch_valid touch_pos touch_window touch_mask"
+            "segment_mask pulse_sample pulse_u pulse_ipi_s pulse_count pulse_time_s touch_sample touch_valid touch_pos touch_window touch_mask"
         ).split()
         return {n: jnp.asarray(getattr(self, n)) for n in names}
 
@@ -183,7 +189,8 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         if not chosen:
             have = sorted(t.trial for t in cohort.trials_of(leg))
             raise KeyError(f"leg {leg} has no trial {', '.join(map(str, trials))} (it has {have})")
-        cols = {k: [] for k in ("angle", "velocity", "acceleration", "stimulation", "mask", "start", "segment")}
+        cols = {k: [] for k in ("angle", "velocity", "acceleration", "stimulation", "mask", "start", "segment", "trial_start")}
+        offset = 0
         seg0 = 0
         for t in chosen:
             n = t.n_samples
@@ -195,6 +202,8 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
             cols["start"] += [_windows(t.stimulation, resolution), np.ones(gap, bool)]
             seg = seg0 + np.arange(n) // SEGMENT_SAMPLES
             cols["segment"] += [seg, np.full(gap, -1)]
+            cols["trial_start"] += [np.full(n + gap, offset)]
+            offset += n + gap
             seg0 = int(seg[-1]) + 1
         per_leg.append({k: np.concatenate(v) for k, v in cols.items()} | {"n_segments": seg0})
         per_leg[-1]["subject"] = chosen[0].subject
@@ -237,9 +246,20 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
     P = max(1, max(p.size for p in pulses))
     pulse_sample = np.zeros((L, P), np.int64)
     pulse_u = np.zeros((L, P), np.float32)
+    pulse_ipi = np.full((L, P), FIRST_IPI_S, np.float32)
+    pulse_count = np.zeros((L, P), np.float32)
+    pulse_time = np.zeros((L, P), np.float32)
+    dt = model.sampling_period_s
     for i, p in enumerate(pulses):
         pulse_sample[i, : p.size] = p
         pulse_u[i, : p.size] = stimulation[i, p]
+        k0 = per_leg[i]["trial_start"][p]  # first sample of each pulse's trial
+        new_trial = np.concatenate([[True], k0[1:] != k0[:-1]])
+        first = np.maximum.accumulate(np.where(new_trial, np.arange(p.size), 0))
+        pulse_count[i, : p.size] = np.arange(p.size) - first
+        pulse_time[i, : p.size] = (p - k0) * dt
+        ipi = np.concatenate([[0.0], np.diff(p) * dt])
+        pulse_ipi[i, : p.size] = np.where(new_trial, FIRST_IPI_S + (p - k0) * dt, ipi)
 
     # at delay d a pulse's response may reach from d - K (the shortest delay an angle
     # effect allows) to d + R - 1 samples after it: R + K extended lags
@@ -291,6 +311,9 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         segment_mask=segment_mask,
         pulse_sample=pulse_sample,
         pulse_u=pulse_u,
+        pulse_ipi_s=pulse_ipi,
+        pulse_count=pulse_count,
+        pulse_time_s=pulse_time,
         touch_sample=touch_sample,
         touch_valid=touch_valid,
         touch_pos=touch_pos,
@@ -352,27 +375,40 @@ def _window_terms(model: Model, noise: dict, x: dict):
     return E, scale, lp0
 
 
-def _amplitudes(model: Model, x: dict, R: int, K: int, shift):
-    """u_i · (response of pulse i over its R + K extended lags) at one shift, flattened.
+def _pulse_q(model: Model, x: dict):
+    """u_i · q_i: each pulse's recruitment level times the pulse effects' factor."""
+    u = x["pulse_u"]
+    if not model.pulses:
+        return u
+    p = x["pulse_sample"]
+    pctx = PulseContext(
+        u=u, ipi_s=x["pulse_ipi_s"], count=x["pulse_count"], time_s=x["pulse_time_s"], angle=x["angle"][p], velocity=x["velocity"][p]
+    )
+    return u * pulse_factors(model, pctx)
+
+
+def _contributions(model: Model, x: dict, R: int, K: int, shift, d, F, uq, valid):
+    """M̂ of each (pulse, extended lag) at delay d and one shift, flattened; 0 where it reaches no sample.
 
     Extended lag q is sample p_i + d − K + q.  A pulse takes delay d with weight
     1 − w_i and d − shift with weight w_i (w from the delay effect at the pulse's
-    angle), so shift 0 is the plain response.  ``shift`` may be traced.
+    angle), so shift 0 is the plain response; each part is scaled by the gain
+    factors at its own onset.  ``shift`` and ``d`` may be traced.
     """
     h = impulse_response(model.activation, R)
     h_pad = jnp.concatenate([jnp.zeros(K, h.dtype), h, jnp.zeros(K, h.dtype)])
     long = h_pad[None, : R + K]
-    u = x["pulse_u"][:, None]
+    p = x["pulse_sample"]
+    last = F.shape[-1] - 1
+    F_long = F[jnp.clip(p + d, 0, last)][:, None]
     if K == 0:
-        return (u * long).reshape(-1)
-    w = model.delay_effect.pulse_weight(x["angle"][x["pulse_sample"]])[:, None]
-    short = jax.lax.dynamic_slice_in_dim(h_pad, shift, R + K)[None, :]
-    return (u * ((1.0 - w) * long + w * short)).reshape(-1)
-
-
-def _contributions(amp, F, sample, valid):
-    """M̂ of each (pulse, lag) at the sample it reaches (0 where it reaches none)."""
-    return jnp.where(valid, amp * F[sample], 0.0)
+        amp = uq[:, None] * F_long * long
+    else:
+        w = model.delay_effect.pulse_weight(x["angle"][p])[:, None]
+        short = jax.lax.dynamic_slice_in_dim(h_pad, shift, R + K)[None, :]
+        F_short = F[jnp.clip(p + d - shift, 0, last)][:, None]
+        amp = uq[:, None] * ((1.0 - w) * F_long * long + w * F_short * short)
+    return jnp.where(valid, amp.reshape(-1), 0.0)
 
 
 def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
@@ -383,31 +419,35 @@ def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
     E, scale, lp0 = _window_terms(model, noise, x)
     base = jnp.sum(lp0)
     F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
+    uq = _pulse_q(model, x)
     U = x["touch_window"].shape[-1]
+    delays = jnp.arange(x["touch_sample"].shape[0])
     out = []
     for shift in range(K + 1):
-        amp = _amplitudes(model, x, R, K, shift)
 
-        def one(ts, valid, pos, tw, tm, amp=amp):
-            M = jax.ops.segment_sum(_contributions(amp, F, ts, valid), pos, num_segments=U)
+        def one(d, valid, pos, tw, tm, shift=shift):
+            c = _contributions(model, x, R, K, shift, d, F, uq, valid)
+            M = jax.ops.segment_sum(c, pos, num_segments=U)
             lp = student_t_logpdf(E[tw] - M, noise["nu"], scale[tw]) - lp0[tw]
             return jnp.sum(jnp.where(tm, lp, 0.0))
 
-        out.append(
-            jax.vmap(one)(x["touch_sample"], x["touch_valid"], x["touch_pos"], x["touch_window"], x["touch_mask"])
-        )
+        out.append(jax.vmap(one)(delays, x["touch_valid"], x["touch_pos"], x["touch_window"], x["touch_mask"]))
     return base + jnp.stack(out, axis=-1)
+
+
+def leg_active_output(model: Model, x: dict, d_index, R: int, K: int = 0, shift=0):
+    """M̂_k/I at every sample of one leg at delay ``d_index`` and ``shift``: what the likelihood compares."""
+    N = x["angle"].shape[-1]
+    F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
+    c = _contributions(model, x, R, K, shift, d_index, F, _pulse_q(model, x), x["touch_valid"][d_index])
+    return jax.ops.segment_sum(c, x["touch_sample"][d_index], num_segments=N)
 
 
 def leg_pointwise(model: Model, noise: dict, x: dict, d_index, R: int, n_segments: int, K: int = 0, shift=0):
     """log p(y_segment | θ, d, shift) per PSIS-LOO segment of one leg."""
     E, scale, _ = _window_terms(model, noise, x)
     W = E.shape[-1]
-    N = x["angle"].shape[-1]
-    F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
-    amp = _amplitudes(model, x, R, K, shift)
-    c = _contributions(amp, F, x["touch_sample"][d_index], x["touch_valid"][d_index])
-    M_sample = jax.ops.segment_sum(c, x["touch_sample"][d_index], num_segments=N)
+    M_sample = leg_active_output(model, x, d_index, R, K, shift)
     M = jax.ops.segment_sum(M_sample, x["window"], num_segments=W)
     lp = jnp.where(x["window_mask"], student_t_logpdf(E - M, noise["nu"], scale), 0.0)
     seg = jnp.where(x["window_mask"], x["window_segment"], n_segments)

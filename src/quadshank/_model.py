@@ -2,11 +2,15 @@
 
 One sample of the discrete-time model (T_s, default 10 ms):
 
-1. the pulse delivered at sample k enters the input history;
+1. the pulse delivered at sample k, scaled by the pulse effects (fatigue,
+   potentiation, ...), enters the input history;
 2. the delay selects the input reaching the muscle, u_{k-d} (eq. 1);
-3. the activation effect turns it into an equivalent acceleration m_k;
-4. gain effects multiply it, evaluated at the state at the start of the
-   sample: M_k/I = m_k · Π f_i(φ_k, φ̇_k) (eqs. 2, 5);
+3. gain effects scale it, evaluated at the state at the start of the sample,
+   f_i(φ_k, φ̇_k) (eqs. 2, 5): a twitch is scaled as a whole by the state at
+   its onset;
+4. the activation effect turns it into an equivalent acceleration M_k/I
+   (for the zero-order activation of models 1 and 3, M_k/I =
+   G'·u_{k-d}·Π f_i(φ_k, φ̇_k), eq. 5 exactly);
 5. the passive system (eq. 8) is integrated over T_s by one RK4 step with
    M_k/I held constant, as in the paper.
 
@@ -26,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._effects import (
+    FIRST_IPI_S,
     Damping,
     Darma,
     Effect,
@@ -33,6 +38,7 @@ from ._effects import (
     Gravity,
     LinearTorqueAngle,
     LinearTorqueVelocity,
+    PulseContext,
     StepContext,
     ZeroOrderActivation,
     get_effect,
@@ -44,10 +50,12 @@ __all__ = [
     "ActiveCarry",
     "paper_model",
     "PAPER_MODELS",
+    "MODELS",
     "passive_effects",
     "equivalent_acceleration",
     "simulate_angles",
     "active_carries",
+    "active_output",
     "predict_ahead",
 ]
 
@@ -88,6 +96,10 @@ class Model:
     @property
     def gains(self) -> tuple[Effect, ...]:
         return tuple(e for e in self.effects if e.kind == "gain")
+
+    @property
+    def pulses(self) -> tuple[Effect, ...]:
+        return tuple(e for e in self.effects if e.kind == "pulse")
 
     @property
     def passives(self) -> tuple[Effect, ...]:
@@ -132,9 +144,15 @@ class Model:
         return dataclasses.replace(self, effects=effects)
 
     def add(self, *effects: Effect | str, name: str | None = None) -> Model:
-        """A copy with further effects (instances, or registered names with default values)."""
+        """A copy with further effects (instances, or registered names with default values).
+
+        An added effect takes the place of the effects it ``replaces`` (a
+        torque–angle relation with a maximum replaces the linear one).
+        """
         new = tuple(get_effect(e)() if isinstance(e, str) else e for e in effects)
-        return dataclasses.replace(self, effects=self.effects + new, name=name or self.name)
+        gone = {r for e in new for r in e.replaces}
+        kept = tuple(e for e in self.effects if e.name not in gone)
+        return dataclasses.replace(self, effects=kept + new, name=name or self.name)
 
     def describe(self) -> dict:
         """A JSON-able description of the structure (effects, parameters, units, priors, levels)."""
@@ -194,7 +212,8 @@ def passive_effects(damping=1.0, gravity=1800.0, k1=25.0, k2=0.05) -> tuple[Effe
 
 
 def paper_model(number: int | str, passive: tuple[Effect, ...] | None = None, delay=4) -> Model:
-    """Model 1, 2 or 3 of the paper (eqs. 3–5) as a composition of effects."""
+    """Model 1, 2 or 3 of the paper (eqs. 3–5) as a composition of effects, or ``model3s``
+    (model 3's gain factors scaling model 2's DARMA twitch at its onset)."""
     key = str(number).removeprefix("model")
     passive = passive_effects() if passive is None else tuple(passive)
     if key == "1":
@@ -203,31 +222,53 @@ def paper_model(number: int | str, passive: tuple[Effect, ...] | None = None, de
         active = (Darma(a=jnp.array([-1.46, 0.59]), b=jnp.array([480.0, 510.0])),)
     elif key == "3":
         active = (ZeroOrderActivation(), LinearTorqueAngle(), LinearTorqueVelocity())
+    elif key == "3s":
+        active = (Darma(a=jnp.array([-1.46, 0.59]), b=jnp.array([480.0, 510.0])), LinearTorqueAngle(), LinearTorqueVelocity())
     else:
-        raise ValueError(f"unknown model {number!r}; the paper's models are model1, model2, model3")
+        raise ValueError(f"unknown model {number!r}; the models are model1, model2, model3 (the paper's) and model3s")
     return Model(active + passive, delay=delay, name=f"model{key}")
 
 
 PAPER_MODELS = ("model1", "model2", "model3")
+#: The paper's models and model3s: model 3's gain factors on model 2's shaped (DARMA) twitch,
+#: the baseline of the modelling loop, whose likelihood sees a twitch's timing and its size.
+MODELS = PAPER_MODELS + ("model3s",)
 
 
 # ====================================================================== one sample
 
 
 class ActiveCarry(NamedTuple):
-    """Everything but the passive state: input/angle history and effect states."""
+    """Everything but the passive state: input/angle history, pulse counters, effect states."""
 
-    u_hist: Any  # (HISTORY,) u_hist[i] = u_{k-1-i} before sample k is processed
+    u_hist: Any  # (HISTORY,) u_hist[i] = u_{k-1-i} before sample k is processed (pulse effects applied)
     angle_hist: Any  # (HISTORY,) angles at the same samples
     activation: Any
     gains: tuple
+    since_pulse_s: Any = 0.0  # time since the last pulse delivered [s]
+    n_pulses: Any = 0.0  # pulses delivered so far in the trial
+    time_s: Any = 0.0  # time in the trial at sample k [s]
 
 
 def init_active(model: Model, dtype=jnp.float32) -> ActiveCarry:
     z = jnp.zeros(HISTORY, dtype)
     return ActiveCarry(
-        z, z, model.activation.init_state(), tuple(g.init_state() for g in model.gains)
+        z,
+        z,
+        model.activation.init_state(),
+        tuple(g.init_state() for g in model.gains),
+        jnp.asarray(FIRST_IPI_S, dtype),
+        jnp.asarray(0.0, dtype),
+        jnp.asarray(0.0, dtype),
     )
+
+
+def pulse_factors(model: Model, pctx: PulseContext):
+    """Π of the pulse effects' factors (1 without pulse effects)."""
+    q = 1.0
+    for e in model.pulses:
+        q = q * e.pulse_factor(pctx)
+    return q
 
 
 def _passive_acc(model: Model, angle, velocity):
@@ -239,6 +280,14 @@ def _passive_acc(model: Model, angle, velocity):
 
 def _active_step(model: Model, carry: ActiveCarry, u_now, angle, velocity):
     """Advance the active part by one sample; returns (carry, M_k/I)."""
+    dt = model.sampling_period_s
+    pulse = u_now > 0
+    since = carry.since_pulse_s
+    if model.pulses:
+        pctx = PulseContext(u=u_now, ipi_s=since, count=carry.n_pulses, time_s=carry.time_s, angle=angle, velocity=velocity)
+        u_now = jnp.where(pulse, u_now * pulse_factors(model, pctx), 0.0)
+    since = jnp.where(pulse, dt, since + dt)
+    counters = dict(since_pulse_s=since, n_pulses=carry.n_pulses + pulse, time_s=carry.time_s + dt)
     u_hist = jnp.concatenate([jnp.reshape(u_now, (1,)).astype(carry.u_hist.dtype), carry.u_hist[:-1]])
     angle_hist = jnp.concatenate([jnp.reshape(angle, (1,)).astype(carry.angle_hist.dtype), carry.angle_hist[:-1]])
     d = jnp.asarray(model.delay)
@@ -247,14 +296,15 @@ def _active_step(model: Model, carry: ActiveCarry, u_now, angle, velocity):
         u_del = u_hist[d]
     else:
         u_del = delay_effect.select(d, u_hist, angle_hist)
-    act_state, m = model.activation.step(carry.activation, u_del)
     ctx = StepContext(angle=angle, velocity=velocity, u=u_del, u_now=u_now)
     gain_states = []
     for g, s in zip(model.gains, carry.gains):
         s, f = g.gain(s, ctx)
         gain_states.append(s)
-        m = m * f
-    return ActiveCarry(u_hist, angle_hist, act_state, tuple(gain_states)), m
+        u_del = u_del * f
+    act_state, m = model.activation.step(carry.activation, u_del)
+    carry = ActiveCarry(u_hist, angle_hist, act_state, tuple(gain_states), **counters)
+    return carry, m
 
 
 def _rk4(model: Model, angle, velocity, m, dt):
@@ -319,6 +369,19 @@ def active_carries(model: Model, angle, velocity, stimulation) -> ActiveCarry:
 
     _, carries = jax.lax.scan(body, carry0, (stimulation, jnp.asarray(angle), jnp.asarray(velocity)))
     return carries
+
+
+@jax.jit
+def active_output(model: Model, angle, velocity, stimulation):
+    """M_k/I at every sample with the active part driven by the *measured* state (one step ahead)."""
+    stimulation = jnp.asarray(stimulation)
+
+    def body(c, x):
+        u, a, v = x
+        return _active_step(model, c, u, a, v)
+
+    _, m = jax.lax.scan(body, init_active(model, stimulation.dtype), (stimulation, jnp.asarray(angle), jnp.asarray(velocity)))
+    return m
 
 
 def predict_ahead(model: Model, angle, velocity, stimulation, starts, horizon: int = 100):

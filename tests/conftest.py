@@ -1,0 +1,22 @@
+"""Shared test set-up: a user-written effect, written exactly as the documentation shows.
+
+Registering it here puts it in the registry before the tests are collected, so
+the registry-driven checks of ``test_effects.py`` apply to it as to every
+built-in effect.
+"""
+
+import dataclasses
+
+from quadshank import Effect, Param, register_effect
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class CubicTorqueAngle(Effect):
+    kind = "gain"
+    name = "cubic_torque_angle"
+    params = (Param("c3", "1/deg^3", prior=("normal", 0.0, 1e-6)),)
+    c3: float = 0.0
+
+    def factor(self, ctx):
+        return 1.0 + self.c3 * ctx.angle**3

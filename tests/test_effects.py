@@ -1,0 +1,137 @@
+"""Every registered effect, built-in or user-written, through the same checks.
+
+The parametrisation reads the registry when the tests are collected, so an
+effect registered by the user (here: the documentation's example, registered
+in ``conftest.py``) is tested like the built-in ones: its model runs, its
+likelihood agrees with the rollout, gradients are finite, jit and vmap agree,
+and parameters drawn from its prior give a finite likelihood.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from quadshank import _likelihood as L
+from quadshank._effects import Effect, registered_effects
+from quadshank._model import active_output, paper_model, simulate_angles
+from quadshank._simulate import simulate_cohort
+
+CANDIDATES = sorted(name for name, cls in registered_effects().items() if cls.candidate)
+NOISE = {"sigma": 40.0, "nu": 8.0}
+
+
+@pytest.fixture(scope="module")
+def cohort():
+    cohort, _ = simulate_cohort(legs=["JM-left"], minutes=0.5, seed=5, trials=(1, 3))
+    return cohort
+
+
+def _extended(name):
+    base = paper_model("3s")
+    if name in [e.name for e in base.effects]:
+        base = paper_model(2)
+    return base.add(name)
+
+
+def _leg_x(cohort, model):
+    data = L.prepare(cohort, model, trials=(1, 3), legs=["JM-left"])  # trial 3: u = 0.5
+    return data, {k: v[0] for k, v in data.leg_arrays().items()}
+
+
+def _prior_draw(p, rng):
+    family, loc, scale = p.prior[:3]
+    z = rng.standard_normal(p.shape)
+    x = np.asarray(loc, float) + np.asarray(scale, float) * z
+    return np.exp(x) if family == "lognormal" else x
+
+
+def test_the_loop_offers_the_issue_effects():
+    for name in ("torque_angle_peak", "hill_velocity", "angle_delay", "fatigue", "potentiation"):
+        assert name in CANDIDATES
+    assert "cubic_torque_angle" in CANDIDATES  # the user-written effect of conftest.py
+
+
+def test_an_added_effect_replaces_what_it_generalises():
+    names = [e.name for e in _extended("torque_angle_peak").effects]
+    assert "linear_torque_angle" not in names and "torque_angle_peak" in names
+    assert "linear_torque_velocity" in names
+
+
+@pytest.mark.parametrize("name", CANDIDATES)
+def test_likelihood_output_equals_the_rollout(cohort, name):
+    """The likelihood's pulse-by-pulse M̂ equals stepping the model on the measured state."""
+    model = _extended(name).with_params(delay=4)
+    if model.delay_effect is not None:
+        model = model.with_delay_shift(1)
+    data, x = _leg_x(cohort, model)
+    t = cohort.get("JM-left", 1)
+    stepped = np.asarray(active_output(model, t.angle_deg, t.velocity_deg_s, t.stimulation))
+    K = data.max_shift
+    shift = 1 if K else 0
+    sparse = np.asarray(L.leg_active_output(model, x, 4, data.response_length, K, shift))[: t.n_samples]
+    assert np.abs(stepped).max() > 100.0  # twitches are there
+    np.testing.assert_allclose(sparse, stepped, atol=2e-3 * np.abs(stepped).max())
+
+
+@pytest.mark.parametrize("name", CANDIDATES)
+def test_gradient_finite_and_jit_vmap_agree(cohort, name):
+    model = _extended(name)
+    data, x = _leg_x(cohort, model)
+    R, K = data.response_length, data.max_shift
+    eff = model.effect(name)
+    values = eff.values()
+
+    def loglik(vals):
+        m = model.with_params(vals)
+        return jax.scipy.special.logsumexp(L.leg_loglik_by_delay(m, NOISE, x, R, K)[:, : K + 1])
+
+    grads = jax.grad(loglik)({k: jnp.asarray(v, jnp.float32) for k, v in values.items()})
+    for k, g in grads.items():
+        assert np.all(np.isfinite(np.asarray(g))), (name, k)
+    assert any(np.any(np.asarray(g) != 0) for g in grads.values()), f"{name}: the data do not depend on it"
+
+    rng = np.random.default_rng(0)
+    draws = [{p.name: _prior_draw(p, rng).astype(np.float32) for p in eff.declared_params()} for _ in range(3)]
+    stacked = {k: jnp.stack([jnp.asarray(d[k]) for d in draws]) for k in values}
+    batched = np.asarray(jax.vmap(jax.jit(loglik))(stacked))
+    single = np.array([float(loglik(d)) for d in draws])
+    assert np.all(np.isfinite(single)), f"{name}: a prior draw gives a non-finite likelihood"
+    np.testing.assert_allclose(batched, single, rtol=1e-5)
+
+
+@pytest.mark.parametrize("name", CANDIDATES)
+def test_rollout_shapes_and_prior_draws(cohort, name):
+    model = _extended(name)
+    t = cohort.get("JM-left", 1)
+    eff = model.effect(name)
+    rng = np.random.default_rng(1)
+    for _ in range(3):
+        m = model.with_params({p.name: jnp.asarray(_prior_draw(p, rng), jnp.float32) for p in eff.declared_params()})
+        angle, velocity, acc = simulate_angles(m, jnp.asarray(t.stimulation[:500]))
+        assert angle.shape == velocity.shape == acc.shape == (500,)
+        assert np.all(np.isfinite(np.asarray(angle)))
+
+
+def test_a_broken_effect_fails_the_checks(cohort):
+    """The agreement test can fail: a pulse effect whose likelihood and rollout disagree."""
+
+    @dataclasses.dataclass(frozen=True)
+    class Inconsistent(Effect):
+        kind = "pulse"
+        name = "inconsistent"
+        params = ()
+
+        def pulse_factor(self, pctx):
+            return 1.0 + 0.5 * jnp.sin(pctx.time_s)  # fine in both ...
+
+    jax.tree_util.register_dataclass(Inconsistent, data_fields=[], meta_fields=[])  # a pytree, not in the registry
+    model = paper_model("3s").add(Inconsistent()).with_params(delay=4)
+    data, x = _leg_x(cohort, model)
+    x = dict(x, pulse_time_s=x["pulse_time_s"] + 1.0)  # ... until the likelihood's clock is off by 1 s
+    t = cohort.get("JM-left", 1)
+    stepped = np.asarray(active_output(model, t.angle_deg, t.velocity_deg_s, t.stimulation))
+    sparse = np.asarray(L.leg_active_output(model, x, 4, data.response_length))[: t.n_samples]
+    assert np.abs(sparse - stepped).max() > 0.05 * np.abs(stepped).max()
