@@ -156,6 +156,7 @@ def cmd_fit(args) -> int:
         legs=legs,
         delay_from=args.delay_from or None,
         progress=not args.quiet,
+        data_source=str(Path(args.data).resolve()),
     )
     for leg, s in summary["legs"].items():
         p = s["delay_posterior"]
@@ -204,6 +205,70 @@ def cmd_recovery(args) -> int:
             f"calibrated: {lo:.2f}-{hi:.2f}), delay mode right for {m['delay_mode_right']}/{m['delay_legs']} legs",
         )
     _say(args, f"table: {Path(args.out) / 'coverage.md'}")
+    return 0
+
+
+def _loop_data(args, fit_summary: dict | None = None):
+    from ._interchange import load_cohort
+
+    data = args.data or (fit_summary or {}).get("data")
+    if not data:
+        raise ValueError("no data: give --data (the fit does not record where its data came from)")
+    return load_cohort(Path(data)), data
+
+
+def _say_ranking(args, summary: dict) -> None:
+    for i, r in enumerate(summary["ranking"], 1):
+        mark = "  <- clears the bar" if r["clears_bar"] else ""
+        _say(args, f"{i}. {r['effect']}: dELPD {r['delta_elpd']:.1f} +- {r['delta_elpd_se']:.1f}, "
+                   f"J at 1 s {r['J_1000ms']['before']['median']:.3f} -> {r['J_1000ms']['after']['median']:.3f} deg{mark}")
+    _say(args, f"verdict: {summary['verdict']}. {summary['sentence']}")
+
+
+def cmd_diagnose(args) -> int:
+    from ._diagnose import run_diagnose
+    from ._fitio import load_fit, read_summary
+
+    fit_summary = read_summary(args.fitdir)
+    _, model, desc = load_fit(args.fitdir)
+    cohort, _ = _loop_data(args, fit_summary)
+    command = "quadshank " + " ".join(shlex.quote(a) for a in args.argv)
+    summary = run_diagnose(
+        cohort, model, args.out, trials=tuple(desc["trials"]), legs=desc["legs"],
+        effects=_csv_list(args.effects) if args.effects else None, command=command, progress=not args.quiet,
+    )
+    _say_ranking(args, summary)
+    _say(args, f"report: {Path(args.out) / 'report.md'}")
+    return 0
+
+
+def cmd_discover(args) -> int:
+    from ._diagnose import run_discover
+
+    cohort, _ = _loop_data(args)
+    command = "quadshank " + " ".join(shlex.quote(a) for a in args.argv)
+    summary = run_discover(
+        cohort, args.out, model=args.model, trials=tuple(int(t) for t in _csv_list(args.trials)),
+        legs=_csv_list(args.legs) if args.legs else None, effects=_csv_list(args.effects) if args.effects else None,
+        max_rounds=args.max_rounds, command=command, progress=not args.quiet,
+    )
+    for k, r in enumerate(summary["rounds"], 1):
+        _say(args, f"round {k}: {r['model']}: verdict {r['verdict']}")
+    _say(args, f"final model: {summary['final_model']}; report: {Path(args.out) / 'report.md'}")
+    return 0
+
+
+def cmd_compare(args) -> int:
+    from ._fitio import read_summary
+    from ._posterior_eval import run_posterior_evaluate
+
+    cohort, _ = _loop_data(args, read_summary(args.fit_a))
+    summary = run_posterior_evaluate(cohort, [args.fit_a, args.fit_b], args.out, n_draws=args.draws,
+                                     start_stride=args.start_stride, progress=not args.quiet)
+    for group in summary.get("loo", {}).get("compare", []):
+        for label, row in group["table"].items():
+            _say(args, f"{label}: rank {row['rank']}, elpd difference {row['elpd_diff']:.1f} +- {row['dse']:.1f}")
+    _say(args, f"J bands, PSIS-LOO and figures in {args.out}")
     return 0
 
 
@@ -318,6 +383,32 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True)
     sim_options(r, 5.0)
     r.set_defaults(func=cmd_reproduce)
+
+    dg = sub.add_parser("diagnose", help="which effect is missing from a fitted model: ranking with evidence, residual plots")
+    dg.add_argument("fitdir", help="fit folder of `quadshank fit`")
+    dg.add_argument("--data", default="", help="the fit's data (default: the folder or file the fit records)")
+    dg.add_argument("--effects", default="", help="candidate effects, comma-separated (default: every registered candidate)")
+    dg.add_argument("--out", required=True)
+    dg.set_defaults(func=cmd_diagnose)
+
+    dc = sub.add_parser("discover", help="the modelling loop in one command: diagnose, add the leading effect, repeat")
+    dc.add_argument("data", help="interchange folder or .nc cohort file")
+    dc.add_argument("--model", choices=list(MODELS), default="model3s")
+    dc.add_argument("--trials", default="1", help="identification trials, comma-separated (default 1)")
+    dc.add_argument("--legs", default="", help="legs, comma-separated (default: all in the data)")
+    dc.add_argument("--effects", default="", help="candidate effects, comma-separated (default: every registered candidate)")
+    dc.add_argument("--max-rounds", type=int, default=3)
+    dc.add_argument("--out", required=True)
+    dc.set_defaults(func=cmd_discover)
+
+    cp = sub.add_parser("compare", help="two fits side by side: J bands per horizon, PSIS-LOO, figures")
+    cp.add_argument("fit_a")
+    cp.add_argument("fit_b")
+    cp.add_argument("--data", default="", help="the fits' data (default: what fit A records)")
+    cp.add_argument("--draws", type=int, default=200)
+    cp.add_argument("--start-stride", type=int, default=1)
+    cp.add_argument("--out", required=True)
+    cp.set_defaults(func=cmd_compare)
 
     d = sub.add_parser("demo", help="the main job on the built-in simulated cohort (writes results/demo)")
     d.add_argument("--out", default="results/demo")

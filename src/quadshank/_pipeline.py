@@ -322,8 +322,12 @@ def run_fit(
     *,
     delay_from: str | Path | None = None,
     progress: bool = False,
+    data_source: str | None = None,
 ) -> dict:
     """Hierarchical NUTS fit of one model; writes DIR/fit.nc and DIR/summary.json, returns the summary.
+
+    ``data_source``: where the data came from, recorded as the summary's ``data`` (for
+    ``quadshank diagnose`` and ``compare``).
 
     ``delay_from``: a fit folder whose delay posterior becomes this fit's delay prior
     (see :func:`quadshank._fit.delay_prior_from`).
@@ -346,4 +350,7 @@ def run_fit(
     idata = to_inference_data(
         mcmc, m, data, settings, delay_source=None if delay_from is None else str(delay_from), log_delay_prior=log_prior
     )
-    return save_fit(idata, out, extra={"sampling_seconds": sampling})
+    extra = {"sampling_seconds": sampling}
+    if data_source is not None:
+        extra["data"] = str(data_source)
+    return save_fit(idata, out, extra=extra)
