@@ -70,6 +70,7 @@ def test_candidates_follow_the_registry():
     assert "linear_torque_angle" not in names and "darma" not in names  # in the model / not a candidate
     assert set(HIDDEN) <= set(names) and "cubic_torque_angle" in names  # conftest's user-written effect
     assert "angle_delay" not in candidates(build_model("model3s", ["angle_delay"]))
+    assert "linear_torque_angle" not in candidates(build_model("model3s", ["torque_angle_peak"]))
 
 
 def test_discover_on_the_command_line_with_a_user_effect(tmp_path, capsys):
@@ -90,3 +91,19 @@ def test_discover_on_the_command_line_with_a_user_effect(tmp_path, capsys):
     assert len(s["rounds"]) == 2 and s["rounds"][1]["verdict"] == "none"
     for name in r1["figures"]:
         assert (out / "round-1" / name).stat().st_size > 5000
+
+
+def test_diagnose_a_saved_fit(tmp_path):
+    """`diagnose FITDIR` reads the fit's model, legs, trials and data, and ranks; a bad effect name is an error."""
+    write_interchange(_cohort("potentiation"), tmp_path / "data")
+    fitdir = tmp_path / "fit"
+    rc = main(["--quiet", "fit", str(tmp_path / "data"), "--model", "model3s", "--chains", "1", "--warmup", "20",
+               "--draws", "20", "--out", str(fitdir)])
+    assert rc in (0, 3)  # 20 draws fail the checks, but the fit is saved
+    assert json.loads((fitdir / "summary.json").read_text())["data"] == str((tmp_path / "data").resolve())
+    out = tmp_path / "diag"
+    assert main(["--quiet", "diagnose", str(fitdir), "--effects", "potentiation,fatigue", "--out", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["model"] == "model3s" and s["verdict"] == "potentiation"
+    assert [r["effect"] for r in s["ranking"]] == ["potentiation", "fatigue"]
+    assert main(["--quiet", "diagnose", str(fitdir), "--effects", "telepathy", "--out", str(tmp_path / "x")]) == 2

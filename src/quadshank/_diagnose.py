@@ -49,9 +49,10 @@ J_HORIZONS_MS = (500, 1000)
 def candidates(model: Model) -> list[str]:
     """Registered candidate effects that one-effect extensions of ``model`` can add."""
     have = {e.name for e in model.effects}
+    replaced = {r for e in model.effects for r in e.replaces}  # a generalisation is in the model
     out = []
     for name, cls in sorted(registered_effects().items()):
-        if not cls.candidate or name in have:
+        if not cls.candidate or name in have or name in replaced:
             continue
         if cls.kind == "delay" and model.delay_effect is not None:
             continue
