@@ -24,7 +24,6 @@ missing effect.
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import jax.numpy as jnp
 import numpy as np
@@ -225,10 +224,6 @@ def verdict_sentence(ranking: Ranking) -> str:
         f"{j5['after']['median']:.2f}° [{j5['after']['lo']:.2f}, {j5['after']['hi']:.2f}] and at 1 s from "
         f"{j10['before']['median']:.2f}° to {j10['after']['median']:.2f}°."
     )
-
-
-def _finite(x) -> float:
-    return float(x) if np.isfinite(x) else math.nan
 
 
 # ============================================================================ outputs
