@@ -35,8 +35,10 @@ def rankings():
     out = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        for effect in (*HIDDEN, "none"):
+        for effect in HIDDEN:
             out[effect] = rank_effects(_cohort(effect), "model3s", effects=HIDDEN, n_draws=150, n_j_draws=30)
+        # no hidden effect: every registered candidate is screened, built-in and user-written
+        out["none"] = rank_effects(_cohort("none"), "model3s", n_draws=150, n_j_draws=30)
     return out
 
 
@@ -53,6 +55,7 @@ def test_the_hidden_effect_is_ranked_first_and_clears_the_bar(rankings, effect):
 
 def test_no_hidden_effect_gives_the_verdict_none(rankings):
     r = rankings["none"]
+    assert {x["effect"] for x in r.rows} == set(candidates(build_model("model3s")))
     assert r.verdict == "none", [(x["effect"], round(x["delta_elpd"], 1), x["clears_bar"]) for x in r.rows]
     assert not any(x["clears_bar"] for x in r.rows)
 
@@ -93,17 +96,49 @@ def test_discover_on_the_command_line_with_a_user_effect(tmp_path, capsys):
         assert (out / "round-1" / name).stat().st_size > 5000
 
 
-def test_diagnose_a_saved_fit(tmp_path):
+@pytest.fixture(scope="module")
+def saved_fits(tmp_path_factory):
+    """Data with hidden potentiation and two short NUTS fits of it: model3s, and model3s + potentiation."""
+    root = tmp_path_factory.mktemp("saved")
+    write_interchange(_cohort("potentiation"), root / "data")
+    rcs = {}
+    for name, extra in (("base", []), ("pot", ["--add-effect", "potentiation"])):
+        rcs[name] = main(["--quiet", "fit", str(root / "data"), "--model", "model3s", *extra, "--chains", "1",
+                          "--warmup", "30", "--draws", "30", "--out", str(root / name)])
+    return root, rcs
+
+
+def test_diagnose_a_saved_fit(saved_fits, tmp_path):
     """`diagnose FITDIR` reads the fit's model, legs, trials and data, and ranks; a bad effect name is an error."""
-    write_interchange(_cohort("potentiation"), tmp_path / "data")
-    fitdir = tmp_path / "fit"
-    rc = main(["--quiet", "fit", str(tmp_path / "data"), "--model", "model3s", "--chains", "1", "--warmup", "20",
-               "--draws", "20", "--out", str(fitdir)])
-    assert rc in (0, 3)  # 20 draws fail the checks, but the fit is saved
-    assert json.loads((fitdir / "summary.json").read_text())["data"] == str((tmp_path / "data").resolve())
+    root, rcs = saved_fits
+    fitdir = root / "base"
+    assert rcs["base"] in (0, 3)  # 30 draws may fail the checks, but the fit is saved
+    assert json.loads((fitdir / "summary.json").read_text())["data"] == str((root / "data").resolve())
     out = tmp_path / "diag"
     assert main(["--quiet", "diagnose", str(fitdir), "--effects", "potentiation,fatigue", "--out", str(out)]) == 0
     s = json.loads((out / "summary.json").read_text())
     assert s["model"] == "model3s" and s["verdict"] == "potentiation"
     assert [r["effect"] for r in s["ranking"]] == ["potentiation", "fatigue"]
     assert main(["--quiet", "diagnose", str(fitdir), "--effects", "telepathy", "--out", str(tmp_path / "x")]) == 2
+
+
+def test_compare_before_and_after(saved_fits, tmp_path):
+    """`compare A B`: J bands side by side, ΔELPD in B's favour, and each fit's residual figures;
+    the baseline's residual trend over the preceding interpulse interval is what potentiation removes."""
+    root, rcs = saved_fits
+    assert rcs["pot"] in (0, 3)
+    out = tmp_path / "cmp"
+    assert main(["--quiet", "compare", str(root / "base"), str(root / "pot"), "--draws", "20",
+                 "--start-stride", "20", "--out", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert set(s["J"]) == {"model3s", "model3s+potentiation"}
+    (group,) = s["loo"]["compare"]
+    assert group["table"]["model3s+potentiation"]["rank"] == 0
+    before, after = s["residual_findings"]["model3s"][LEG], s["residual_findings"]["model3s+potentiation"][LEG]
+    assert any("interpulse" in line for line in before), before
+    assert not any("interpulse" in line for line in after), after
+    report = (out / "report.md").read_text()
+    for label in ("model3s", "model3s_potentiation"):
+        for kind in ("residual_trends", "residual_correlation", "twitch_average"):
+            png = out / "figures" / f"{kind}_{label}_{LEG}.png"
+            assert png.stat().st_size > 5000 and png.name in report

@@ -264,11 +264,14 @@ def cmd_compare(args) -> int:
 
     cohort, _ = _loop_data(args, read_summary(args.fit_a))
     summary = run_posterior_evaluate(cohort, [args.fit_a, args.fit_b], args.out, n_draws=args.draws,
-                                     start_stride=args.start_stride, progress=not args.quiet)
+                                     start_stride=args.start_stride, progress=not args.quiet, residuals=True)
     for group in summary.get("loo", {}).get("compare", []):
         for label, row in group["table"].items():
             _say(args, f"{label}: rank {row['rank']}, elpd difference {row['elpd_diff']:.1f} +- {row['dse']:.1f}")
-    _say(args, f"J bands, PSIS-LOO and figures in {args.out}")
+    for label, legs in summary["residual_findings"].items():
+        for leg, lines in legs.items():
+            _say(args, f"{label} {leg} residuals: " + (" ".join(lines) if lines else "nothing stands out."))
+    _say(args, f"J bands, PSIS-LOO, residuals before and after, figures: {Path(args.out) / 'report.md'}")
     return 0
 
 

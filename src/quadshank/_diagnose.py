@@ -15,7 +15,10 @@ with the model on the same data by
 
 An effect *clears the bar* when its ΔELPD exceeds ``ELPD_SE_BAR`` standard
 errors and it lowers J at 500 and 1000 ms beyond the bands (the extension's
-upper 90 % limit below the model's lower one).  The verdict is the highest-
+upper 90 % limit below the model's lower one); an effect on what the
+accelerometer reads alone (``predicts_angle = False``: a skin-motion
+resonance) cannot change an angle prediction, and its bar is ΔELPD alone.
+The verdict is the highest-
 ranked effect that clears the bar, or ``none``: a misfit that some effect
 absorbs a little of (ΔELPD of a few units, within noise on J) is not called a
 missing effect.
@@ -37,7 +40,7 @@ from ._posterior_eval import interval, posterior_prediction_errors
 from ._progress import progress_bar
 from ._screen import LaplaceFit, delta_elpd, laplace_fit, leg_draw_models
 
-__all__ = ["candidates", "rank_effects", "ELPD_SE_BAR", "J_HORIZONS_MS", "leg_residuals"]
+__all__ = ["candidates", "rank_effects", "ELPD_SE_BAR", "J_HORIZONS_MS", "leg_residuals", "fit_residuals", "residual_figures"]
 
 #: ΔELPD must exceed this many standard errors.
 ELPD_SE_BAR = 2.0
@@ -84,17 +87,33 @@ def leg_residuals(fit: LaplaceFit, leg: str) -> dict[str, np.ndarray]:
     gaps, masked): residual, angle, velocity, stimulation, sample_mask, trial_start.
     """
     i = fit.legs.index(leg)
-    data = fit.data
-    x = {k: jnp.asarray(v[i]) for k, v in data.leg_arrays().items()}
     values = {k: v for k, v in fit.values(leg).items() if k not in ("sigma", "nu")}
     d = int(np.argmax(fit.delay_posterior[i]))
-    K = data.max_shift
+    K = fit.data.max_shift
     shift = int(np.bincount(fit.shifts[i], minlength=K + 1).argmax()) if K else 0
-    model = fit.model.with_params(values, delay=d)
+    return point_residuals(fit.model, fit.data, i, values, d, shift)
+
+
+def fit_residuals(idata, model: Model, data, leg: str) -> dict[str, np.ndarray]:
+    """:func:`leg_residuals` for a saved (NUTS) fit: at the posterior medians of ``leg`` and its modal d and shift."""
+    post = idata.posterior
+    i = list(post["leg"].values).index(leg)
+    flat = lambda name: np.asarray(post[name]).reshape(-1, *post[name].shape[2:])[:, i]  # noqa: E731
+    values = {p.name: np.median(flat(p.name), axis=0) for e in model.effects for p in e.declared_params()}
+    d = int(np.bincount(flat("delay").astype(int)).argmax())
+    shift = int(np.bincount(flat("delay_shift").astype(int)).argmax()) if "delay_shift" in post else 0
+    return point_residuals(model, data, data.legs.index(leg), values, d, shift)
+
+
+def point_residuals(model: Model, data, i: int, values: dict, d: int, shift: int) -> dict[str, np.ndarray]:
+    """One-step residual of leg ``i`` of ``data`` (a LikelihoodData) for one parameter point."""
+    x = {k: jnp.asarray(v[i]) for k, v in data.leg_arrays().items()}
+    K = data.max_shift
+    model = model.with_params({k: jnp.asarray(v, jnp.float32) for k, v in values.items()}, delay=d)
     if K:
         model = model.with_delay_shift(shift)
     M = np.asarray(leg_active_output(model, x, d, data.response_length, K, shift))
-    e = np.asarray(equivalent_acceleration(model, x["angle"], x["velocity"], x["acceleration"]))
+    e = np.asarray(equivalent_acceleration(model, x["angle"], x["velocity"], x["acceleration"], mask=x["sample_mask"]))
     mask = np.asarray(data.sample_mask[i])
     starts = np.flatnonzero(mask & ~np.concatenate([[False], mask[:-1]]))  # first sample of each trial
     trial_start = starts[np.clip(np.searchsorted(starts, np.arange(mask.size), side="right") - 1, 0, None)]
@@ -192,7 +211,8 @@ def rank_effects(
             row[f"J_{h}ms"] = {"before": b, "after": x, "change": x["median"] - b["median"]}
             lowered.append(x["hi"] < b["lo"])
         row["J_lowered_beyond_bands"] = bool(all(lowered))
-        row["clears_bar"] = bool(d > ELPD_SE_BAR * se and all(lowered))
+        row["predicts_angle"] = bool(known[name].predicts_angle)
+        row["clears_bar"] = bool(d > ELPD_SE_BAR * se and (all(lowered) or not known[name].predicts_angle))
         row["parameters"] = {
             leg: {p.name: np.asarray(ext.values(leg)[p.name]).round(6).tolist() for e in ext.model.effects if e.name == name for p in e.declared_params()}
             for leg in ext.legs
@@ -218,6 +238,12 @@ def verdict_sentence(ranking: Ranking) -> str:
         )
     r = next(r for r in ranking.rows if r["effect"] == ranking.verdict)
     j5, j10 = r["J_500ms"], r["J_1000ms"]
+    if not r.get("predicts_angle", True):
+        return (
+            f"Adding {r['effect']} improves ELPD by {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f}; it changes what the "
+            f"accelerometer reads, not the angle, so J at 1 s stays near {j10['before']['median']:.2f}° "
+            f"({j10['after']['median']:.2f}° with it)."
+        )
     return (
         f"Adding {r['effect']} improves ELPD by {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f} and lowers J at 0.5 s "
         f"from {j5['before']['median']:.2f}° [{j5['before']['lo']:.2f}, {j5['before']['hi']:.2f}] to "
@@ -238,17 +264,18 @@ def _write_json_atomic(path, obj) -> None:
     os.replace(tmp, path)
 
 
-def residual_figures(fit: LaplaceFit, out, label: str) -> tuple[list, dict]:
-    """Residual diagnostics of ``fit`` per leg (trends, correlations, twitch-triggered average).
+def _screen_residuals(fit: LaplaceFit) -> dict[str, dict]:
+    return {leg: leg_residuals(fit, leg) for leg in fit.legs}
 
-    Returns (figure paths, findings per leg in words).
-    """
+
+def residual_figures(residuals: dict[str, dict], out, label: str, dt: float) -> tuple[list, dict]:
+    """Residual diagnostics per leg (trends, correlations, twitch-triggered average) of
+    ``residuals`` (leg -> :func:`point_residuals`).  Returns (figure paths, findings per leg in words)."""
     from . import _residuals as R
 
     paths, notes = [], {}
-    for leg in fit.legs:
-        r = leg_residuals(fit, leg)
-        feats = R.features(r["angle"], r["velocity"], r["stimulation"], r["sample_mask"], r["trial_start"], fit.model.sampling_period_s)
+    for leg, r in residuals.items():
+        feats = R.features(r["angle"], r["velocity"], r["stimulation"], r["sample_mask"], r["trial_start"], dt)
         trends = {k: R.binned_trend(r["residual"], v, r["sample_mask"]) for k, v in feats.items()}
         ac = R.acf(r["residual"], r["sample_mask"])
         cc = R.ccf(r["residual"], r["stimulation"], r["sample_mask"])
@@ -259,7 +286,7 @@ def residual_figures(fit: LaplaceFit, out, label: str) -> tuple[list, dict]:
         paths.append(R.plot_correlations(ac, cc, out / f"residual_correlation_{stem}.png", notes=found))
         groups = np.where(r["angle"] < -20.0, "pulse below -20°", "pulse above -20°")
         tta = R.twitch_triggered_average(r["residual"], r["stimulation"], r["sample_mask"], groups=groups)
-        paths.append(R.plot_twitch_average(tta, out / f"twitch_average_{stem}.png", fit.model.sampling_period_s, notes=found))
+        paths.append(R.plot_twitch_average(tta, out / f"twitch_average_{stem}.png", dt, notes=found))
     return paths, notes
 
 
@@ -319,10 +346,11 @@ def run_diagnose(
     summary = ranking.to_json()
     summary["sentence"] = verdict_sentence(ranking)
     summary["trials"] = [int(t) for t in trials]
+    dt = ranking.base.model.sampling_period_s
     if figures:
-        paths, notes = residual_figures(ranking.base, out, "baseline")
+        paths, notes = residual_figures(_screen_residuals(ranking.base), out, "baseline", dt)
         if ranking.verdict != "none":
-            more, after = residual_figures(ranking.fits[ranking.verdict], out, "with_" + ranking.verdict)
+            more, after = residual_figures(_screen_residuals(ranking.fits[ranking.verdict]), out, "with_" + ranking.verdict, dt)
             paths += more
             summary["residual_findings_after"] = after
         summary["residual_findings"] = notes

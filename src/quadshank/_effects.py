@@ -24,6 +24,17 @@ depends on its *kind*:
 ``passive``
     ``acceleration(angle, velocity) -> deg/s²``: a term of the passive system,
     eq. (8), added to the angular acceleration.
+``output``
+    ``output_factor(ctx) -> scalar``: a modulation of the active output M_k/I
+    at every sample by the state at that sample (not at a twitch's onset):
+    e.g. passive damping that grows with activation.
+``measurement``
+    how the sensors see the shank: ``true_angle(measured)`` and
+    ``measured_angle(true)`` (a goniometer offset), and/or
+    ``acceleration_response(dt)``, the impulse response (unit sum) through
+    which the accelerometer sees the shank's angular acceleration (a
+    skin-motion resonance).  The model's dynamics run on the true angle;
+    predictions are compared with measurements through these.
 ``delay``
     ``select(d, u_hist, angle_hist) -> u``: how the pulses delivered up to ``d``
     samples ago reach the muscle (default: exactly ``d`` samples; at most one
@@ -38,7 +49,9 @@ Two class attributes serve the modelling loop (:mod:`quadshank._diagnose`):
 ``replaces`` names effects this one generalises (a torque–angle relation with
 a maximum replaces the linear one when it is added to a model), and
 ``signature`` names the residual feature where its absence shows (``angle``,
-``velocity``, ``ipi``, ``pulse_count``, ``time``, ``onset``).
+``velocity``, ``ipi``, ``pulse_count``, ``time``, ``onset``, ``u``,
+``frequency``).  ``predicts_angle = False`` marks an effect that changes only
+what the accelerometer reads, so it cannot change an angle prediction.
 
 Writing a new effect is a few lines::
 
@@ -88,10 +101,14 @@ __all__ = [
     "Fatigue",
     "Potentiation",
     "RecruitmentPower",
+    "FractionalDelay",
+    "ActivationDamping",
+    "GoniometerOffset",
+    "AccelResonance",
 ]
 
 LEVELS = ("population", "subject", "leg")
-KINDS = ("activation", "gain", "pulse", "passive", "delay")
+KINDS = ("activation", "gain", "pulse", "passive", "delay", "output", "measurement")
 SUPPORTS = ("real", "positive", "negative", "unit_interval")
 
 
@@ -169,6 +186,8 @@ class Effect:
     signature: ClassVar[str] = ""
     #: Offered as a candidate by the modelling loop's ranking.
     candidate: ClassVar[bool] = True
+    #: False for an effect on the acceleration channel only: it cannot change an angle prediction.
+    predicts_angle: ClassVar[bool] = True
     #: Activation effects only: "sample" when the effect describes the twitch's
     #: shape, "twitch" when only its integral (see :mod:`quadshank._likelihood`).
     resolution: ClassVar[str] = "sample"
@@ -200,6 +219,20 @@ class Effect:
 
     def pulse_factor(self, pctx: PulseContext):  # pragma: no cover - abstract for pulse effects
         raise NotImplementedError(f"pulse effect {self.name!r} must define pulse_factor()")
+
+    def output_factor(self, ctx: StepContext):  # pragma: no cover - abstract for output effects
+        raise NotImplementedError(f"output effect {self.name!r} must define output_factor()")
+
+    # measurement effects: identity unless overridden
+    def true_angle(self, measured):
+        return measured
+
+    def measured_angle(self, true):
+        return true
+
+    def acceleration_response(self, dt: float):
+        """Impulse response of the accelerometer chain (unit sum), or None for a perfect accelerometer."""
+        return None
 
 
 _REGISTRY: dict[str, type[Effect]] = {}
@@ -446,9 +479,25 @@ class ExponentialElasticity(Effect):
 # ==================================================================== delay
 
 
+class TwoPathDelay(Effect):
+    """A delay effect under which a share ``pulse_weight(angle)`` of each pulse takes
+    delay d − shift and the rest delay d (``shift`` discrete, summed out by the fit)."""
+
+    kind = "delay"
+
+    def pulse_weight(self, angle):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def select(self, d, u_hist, angle_hist):
+        short = jnp.maximum(d - jnp.asarray(self.shift), 0)
+        w_long = 1.0 - self.pulse_weight(angle_hist[d])
+        w_short = self.pulse_weight(angle_hist[short])
+        return jnp.where(short == d, u_hist[d], u_hist[d] * w_long + u_hist[short] * w_short)
+
+
 @register_effect
 @dataclasses.dataclass(frozen=True)
-class AngleDelay(Effect):
+class AngleDelay(TwoPathDelay):
     """A delay ``shift`` samples shorter for pulses delivered below ``threshold`` (section IV-C).
 
     The paper found the delay one sample (10 ms) shorter for knee angles below
@@ -486,11 +535,44 @@ class AngleDelay(Effect):
         """Share of a pulse delivered at ``angle`` that takes the shorter delay."""
         return jax.nn.sigmoid((self.threshold - angle) / self.SOFTNESS_DEG)
 
-    def select(self, d, u_hist, angle_hist):
-        short = jnp.maximum(d - jnp.asarray(self.shift), 0)
-        w_long = 1.0 - self.pulse_weight(angle_hist[d])
-        w_short = self.pulse_weight(angle_hist[short])
-        return jnp.where(short == d, u_hist[d], u_hist[d] * w_long + u_hist[short] * w_short)
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class FractionalDelay(TwoPathDelay):
+    """A delay that need not be a whole number of samples: d − shift·fraction.
+
+    The paper resolves the delay to T_s = 10 ms and names that resolution as a
+    source of error.  The input reaching the muscle is interpolated linearly
+    between u_{k−d} and u_{k−d+1}: a share ``fraction`` of each pulse takes
+    delay d − 1, the rest d, so its twitch starts ``fraction`` of a sample
+    earlier (to first order in the twitch's shape).  The modelling loop does
+    not offer it on model3s, whose DARMA(2,2) numerator already moves a twitch
+    by part of a sample (see ``candidate``).  ``shift`` ∈ {0, 1} is
+    summed out with d: shift 0 is a whole-sample delay, so the posterior of
+    shift says whether the data ask for a fractional part at all.
+    """
+
+    name = "fractional_delay"
+    signature = "onset"
+    #: Not offered by the loop: on a DARMA(2,2) twitch (model 2, model3s) a fraction w of a
+    #: sample is a re-parametrisation of b (numerator b1·w, b1(1 − w) + b2·w, b2(1 − w)), so it
+    #: can only matter with a twitch whose shape cannot shift (e.g. a first-order DARMA).
+    candidate = False
+    max_shift = 1
+    discrete = ("shift",)
+    params = (
+        Param(
+            "fraction",
+            "samples",
+            prior=("normal", 0.5, 0.3),
+            doc="part of a sample by which the delay is shorter than d; used clipped to [0, 1]",
+        ),
+    )
+    fraction: Any = 0.5
+    shift: Any = 1
+
+    def pulse_weight(self, angle):
+        return jnp.broadcast_to(jnp.clip(self.fraction, 0.0, 1.0), jnp.shape(angle))
 
 
 # ==================================================================== the loop's candidates
@@ -619,3 +701,106 @@ class RecruitmentPower(Effect):
     def pulse_factor(self, pctx):
         u = jnp.maximum(pctx.u, 1e-6)
         return jnp.where(pctx.u > 0, jnp.exp((self.kappa - 1.0) * jnp.log(u)), 0.0)
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class ActivationDamping(Effect):
+    """Passive damping that grows with activation: M_k/I·(1 − β·φ̇_k).
+
+    The paper assumes the passive properties do not change when the muscle is
+    active.  An active muscle is stiffer and more viscous; the simplest form
+    adds a damping term −β·(M_k/I)·φ̇_k proportional to the active output, at
+    every sample of a twitch (model 3's torque–velocity factor acts once, at
+    its onset).
+    """
+
+    kind = "output"
+    name = "activation_damping"
+    signature = "velocity"
+    params = (
+        Param(
+            "beta_damping",
+            "s/deg",
+            prior=("normal", 0.0, 1.0e-3),
+            doc="damping per unit of active output; 1e-3: 20 % less output at 200 deg/s",
+        ),
+    )
+    beta_damping: Any = 0.0
+
+    def output_factor(self, ctx):
+        return 1.0 - self.beta_damping * ctx.velocity
+
+
+# ==================================================================== measurement
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class GoniometerOffset(Effect):
+    """The goniometer reads ``angle_offset`` when the shank hangs at rest.
+
+    Angle 0 of the interchange format is the shank at rest; a goniometer
+    zeroed elsewhere puts gravity's sin φ (eq. 8) and every angle-dependent
+    factor at the wrong angle.  The dynamics run on φ = φ_measured − offset;
+    predictions are read as φ + offset.
+    """
+
+    kind = "measurement"
+    name = "goniometer_offset"
+    signature = "angle"
+    params = (
+        Param("angle_offset", "deg", prior=("normal", 0.0, 3.0), doc="goniometer reading at rest; a few degrees"),
+    )
+    angle_offset: Any = 0.0
+
+    def true_angle(self, measured):
+        return measured - self.angle_offset
+
+    def measured_angle(self, true):
+        return true + self.angle_offset
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class AccelResonance(Effect):
+    """The accelerometers sit on soft tissue: a base-excited resonance between shank and sensor.
+
+    The sensor's acceleration follows the shank's through
+    H(s) = (2ζω s + ω²)/(s² + 2ζω s + ω²), ω = 2π f_res, unit gain at low
+    frequencies and a peak near f_res: ripple and overshoot after every twitch
+    (the paper's discussion of Fig. 2(d)).  Discretised at T_s by the bilinear
+    transform prewarped at f_res, its impulse response kept for
+    ``RESPONSE_SAMPLES`` samples and renormalised to unit sum.  It changes only
+    what the accelerometer reads, so it cannot change an angle prediction.
+    """
+
+    kind = "measurement"
+    name = "accel_resonance"
+    signature = "frequency"
+    predicts_angle = False
+    RESPONSE_SAMPLES = 24
+    params = (
+        Param("f_res", "Hz", support="positive", prior=("lognormal", math.log(18.0), 0.3), doc="skin-motion resonance"),
+        Param("zeta_res", "1", support="positive", prior=("lognormal", math.log(0.3), 0.5), doc="its damping ratio"),
+    )
+    f_res: Any = 18.0
+    zeta_res: Any = 0.3
+
+    def acceleration_response(self, dt: float):
+        w = 2.0 * math.pi * self.f_res
+        c = w / jnp.tan(w * dt / 2.0)  # prewarped: the peak stays at f_res
+        zwc = 2.0 * self.zeta_res * w * c
+        b = jnp.stack([zwc + w**2, 2.0 * w**2, w**2 - zwc])
+        a = jnp.stack([c**2 + zwc + w**2, 2.0 * w**2 - 2.0 * c**2, c**2 - zwc + w**2])
+        b, a = b / a[0], a / a[0]
+        x = jnp.zeros(self.RESPONSE_SAMPLES).at[0].set(1.0)
+
+        def body(carry, xk):
+            x1, x2, y1, y2 = carry
+            y = b[0] * xk + b[1] * x1 + b[2] * x2 - a[1] * y1 - a[2] * y2
+            return (xk, x1, y, y1), y
+
+        z = jnp.zeros((), x.dtype)
+        _, g = jax.lax.scan(body, (z, z, z, z), x)
+        return g / jnp.sum(g)

@@ -199,7 +199,7 @@ def numpyro_model(
         nu = numpyro.sample("nu", dist.Gamma(*NU_PRIOR))
     stacked = _with_discrete_axes(model.with_params(values), (n_legs,))
     R, K = data.response_length, data.max_shift
-    ll = jax.vmap(lambda m, s, n, xi: leg_loglik_by_delay(m, {"sigma": s, "nu": n}, xi, R, K))(stacked, sigma, nu, x)
+    ll = cohort_loglik_by_delay(stacked, sigma, nu, x, R, K)
     d_prior = jnp.full((n_legs, N_DELAYS), -math.log(N_DELAYS)) if log_delay_prior is None else jnp.asarray(log_delay_prior)
     logp = ll + d_prior[:, :, None] + jnp.asarray(log_shift_prior(K))[None]  # (L, D, K + 1)
     total = jax.scipy.special.logsumexp(logp, axis=(-2, -1))
@@ -208,6 +208,17 @@ def numpyro_model(
     if K:
         numpyro.deterministic("delay_shift_logp", joint)
     numpyro.factor("likelihood", jnp.sum(total))
+
+
+@functools.partial(jax.jit, static_argnames=("R", "K"))
+def cohort_loglik_by_delay(stacked: Model, sigma, nu, x: dict, R: int, K: int):
+    """log p(y_leg | θ_leg, d, shift) of every leg, (L, D, K + 1).
+
+    Jitted on its own: numpyro runs the model eagerly to initialise (and to find
+    a valid start), where this one call replaces thousands of primitives, each
+    dispatched and compiled one at a time.
+    """
+    return jax.vmap(lambda m, s, n, xi: leg_loglik_by_delay(m, {"sigma": s, "nu": n}, xi, R, K))(stacked, sigma, nu, x)
 
 
 def classical_start(cohort: Cohort, model: Model, data: LikelihoodData, trial: int) -> dict:
@@ -347,6 +358,9 @@ def fit(
         num_chains=settings.chains,
         chain_method="sequential",
         progress_bar=progress,
+        # the data are arguments of the jitted sampler, not constants folded into it:
+        # the chains (and later fits of the same shapes) compile it once
+        jit_model_args=True,
     )
     mcmc.run(jax.random.PRNGKey(settings.seed), arrays, extra_fields=("diverging", "energy", "num_steps"))
     return mcmc, data

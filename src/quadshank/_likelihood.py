@@ -65,7 +65,7 @@ import numpy as np
 
 from ._cohort import Cohort
 from ._effects import FIRST_IPI_S, Effect, PulseContext, StepContext
-from ._model import Model, equivalent_acceleration, pulse_factors
+from ._model import Model, _passive_acc, acceleration_response, causal_fir, measured_acceleration, pulse_factors, true_angle
 from ._paper import MAX_DELAY, TWITCH_SAMPLES
 
 __all__ = [
@@ -78,6 +78,7 @@ __all__ = [
     "leg_active_output",
     "student_t_logpdf",
     "max_shift",
+    "response_length",
     "SEGMENT_SAMPLES",
     "N_DELAYS",
 ]
@@ -144,6 +145,18 @@ class LikelihoodData:
         return {n: jnp.asarray(getattr(self, n)) for n in names}
 
 
+def _bucket(n: int) -> int:
+    """``n`` rounded up to a size of a coarse ladder (steps of 1/16 of the power of two below, at least 16).
+
+    Arrays padded to these sizes (masked) give datasets of similar size the same
+    shapes, so jitted likelihoods compile once for all of them: a screen of many
+    datasets (the modelling loop) pays compilation once per model, not per dataset,
+    for at most ~6 % more work.
+    """
+    step = max(16, 1 << max(0, int(n).bit_length() - 5))
+    return -(-int(n) // step) * step
+
+
 def _windows(stim: np.ndarray, resolution: str) -> np.ndarray:
     """Window start flags for one trial: True where a new window begins."""
     n = stim.size
@@ -174,11 +187,26 @@ def max_shift(model: Model) -> int:
     return int(eff.max_shift)
 
 
+def response_length(model: Model) -> int:
+    """Samples of one pulse's response the likelihood keeps: the activation effect's,
+    lengthened by an accelerometer response."""
+    R = int(getattr(model.activation, "response_length", 40))
+    g = acceleration_response(model)
+    if g is None:
+        return R
+    if model.outputs:
+        raise LikelihoodError(
+            f"model {model.name!r}: output effects ({', '.join(e.name for e in model.outputs)}) "
+            "and an accelerometer response cannot be combined in this likelihood"
+        )
+    return R + int(g.shape[0]) - 1
+
+
 def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodData:
     """Arrange a cohort's chosen trials for the likelihood of ``model``."""
     act = model.activation
     resolution = getattr(act, "resolution", "sample")
-    R = int(getattr(act, "response_length", 40))
+    R = response_length(model)
     K = max_shift(model)
     legs = tuple(legs) if legs is not None else cohort.legs
     trials = tuple(int(t) for t in trials)
@@ -208,7 +236,7 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         per_leg.append({k: np.concatenate(v) for k, v in cols.items()} | {"n_segments": seg0})
         per_leg[-1]["subject"] = chosen[0].subject
 
-    N = max(x["angle"].size for x in per_leg)
+    N = _bucket(max(x["angle"].size for x in per_leg))
     L = len(legs)
 
     def pad(key, fill, dtype):
@@ -226,7 +254,7 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
     sample_segment = pad("segment", -1, np.int64)
 
     window = np.cumsum(starts, axis=1) - 1
-    W = int(window.max()) + 2  # + one spare, masked window
+    W = _bucket(int(window.max()) + 2)  # + at least one spare, masked window
     window_len = np.zeros((L, W), np.float32)
     window_mask = np.zeros((L, W), bool)
     window_segment = np.zeros((L, W), np.int64)
@@ -243,7 +271,7 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         segment_mask[i, : x["n_segments"]] = True
 
     pulses = [np.flatnonzero((stimulation[i] > 0) & sample_mask[i]) for i in range(L)]
-    P = max(1, max(p.size for p in pulses))
+    P = _bucket(max(1, max(p.size for p in pulses)))
     pulse_sample = np.zeros((L, P), np.int64)
     pulse_u = np.zeros((L, P), np.float32)
     pulse_ipi = np.full((L, P), FIRST_IPI_S, np.float32)
@@ -281,7 +309,7 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
             touch_sample[i, d] = s
             touch_valid[i, d] = ok
             found.append((i, d, uniq, inv.reshape(-1)))
-    U = max(1, max(u.size for _, _, u, _ in found))
+    U = _bucket(max(1, max(u.size for _, _, u, _ in found)))
     touch_window = np.full((L, D, U), W - 1, np.int64)
     touch_mask = np.zeros((L, D, U), bool)
     for i, d, uniq, inv in found:
@@ -337,6 +365,18 @@ def student_t_logpdf(x, nu, scale):
     )
 
 
+def _sensed(model: Model, x: dict) -> dict:
+    """The leg's arrays with the goniometer's reading replaced by the true angle."""
+    return dict(x, angle=true_angle(model, x["angle"])) if model.measurements else x
+
+
+def model_response(model: Model, length: int):
+    """The equivalent acceleration the accelerometer reads for a unit pulse at step 0 (no gain factors)."""
+    h = impulse_response(model.activation, length)
+    g = acceleration_response(model)
+    return h if g is None else causal_fir(h, g)
+
+
 def impulse_response(activation: Effect, length: int):
     """The activation effect's output for a unit pulse at step 0, ``length`` samples."""
     u = jnp.zeros(length).at[0].set(1.0)
@@ -368,7 +408,10 @@ def gain_factors(model: Model, angle, velocity, stimulation):
 def _window_terms(model: Model, noise: dict, x: dict):
     """Window sums of the equivalent acceleration, their scales and base log densities."""
     W = x["window_len"].shape[-1]
-    e = jnp.where(x["sample_mask"], equivalent_acceleration(model, x["angle"], x["velocity"], x["acceleration"]), 0.0)
+    # x["angle"] is already the true angle (see _sensed)
+    passive = jnp.where(x["sample_mask"], _passive_acc(model, x["angle"], x["velocity"]), 0.0)
+    e = x["acceleration"] - measured_acceleration(model, passive)
+    e = jnp.where(x["sample_mask"], e, 0.0)
     E = jax.ops.segment_sum(e, x["window"], num_segments=W)
     scale = noise["sigma"] * jnp.sqrt(x["window_len"])
     lp0 = jnp.where(x["window_mask"], student_t_logpdf(E, noise["nu"], scale), 0.0)
@@ -387,15 +430,27 @@ def _pulse_q(model: Model, x: dict):
     return u * pulse_factors(model, pctx)
 
 
-def _contributions(model: Model, x: dict, R: int, K: int, shift, d, F, uq, valid):
+def output_factors(model: Model, angle, velocity, stimulation):
+    """Π of the output effects' factors at every sample's state (None without output effects)."""
+    if not model.outputs:
+        return None
+    ctx = StepContext(angle=angle, velocity=velocity, u=stimulation, u_now=stimulation)
+    G = jnp.ones_like(angle)
+    for o in model.outputs:
+        G = G * o.output_factor(ctx)
+    return G
+
+
+def _contributions(model: Model, x: dict, R: int, K: int, shift, d, F, uq, valid, samples, G=None):
     """M̂ of each (pulse, extended lag) at delay d and one shift, flattened; 0 where it reaches no sample.
 
     Extended lag q is sample p_i + d − K + q.  A pulse takes delay d with weight
     1 − w_i and d − shift with weight w_i (w from the delay effect at the pulse's
     angle), so shift 0 is the plain response; each part is scaled by the gain
-    factors at its own onset.  ``shift`` and ``d`` may be traced.
+    factors at its own onset, and the whole by the output factors ``G`` at the
+    sample it reaches (``samples``).  ``shift`` and ``d`` may be traced.
     """
-    h = impulse_response(model.activation, R)
+    h = model_response(model, R)
     h_pad = jnp.concatenate([jnp.zeros(K, h.dtype), h, jnp.zeros(K, h.dtype)])
     long = h_pad[None, : R + K]
     p = x["pulse_sample"]
@@ -408,7 +463,10 @@ def _contributions(model: Model, x: dict, R: int, K: int, shift, d, F, uq, valid
         short = jax.lax.dynamic_slice_in_dim(h_pad, shift, R + K)[None, :]
         F_short = F[jnp.clip(p + d - shift, 0, last)][:, None]
         amp = uq[:, None] * ((1.0 - w) * F_long * long + w * F_short * short)
-    return jnp.where(valid, amp.reshape(-1), 0.0)
+    amp = amp.reshape(-1)
+    if G is not None:
+        amp = amp * G[samples]
+    return jnp.where(valid, amp, 0.0)
 
 
 def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
@@ -416,38 +474,48 @@ def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
 
     Entries with shift > d are computed but meaningless (the prior excludes them).
     """
+    x = _sensed(model, x)
     E, scale, lp0 = _window_terms(model, noise, x)
     base = jnp.sum(lp0)
     F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
+    G = output_factors(model, x["angle"], x["velocity"], x["stimulation"])
     uq = _pulse_q(model, x)
     U = x["touch_window"].shape[-1]
     delays = jnp.arange(x["touch_sample"].shape[0])
     out = []
     for shift in range(K + 1):
 
-        def one(d, valid, pos, tw, tm, shift=shift):
-            c = _contributions(model, x, R, K, shift, d, F, uq, valid)
+        def one(d, valid, samples, pos, tw, tm, shift=shift):
+            c = _contributions(model, x, R, K, shift, d, F, uq, valid, samples, G)
             M = jax.ops.segment_sum(c, pos, num_segments=U)
             lp = student_t_logpdf(E[tw] - M, noise["nu"], scale[tw]) - lp0[tw]
             return jnp.sum(jnp.where(tm, lp, 0.0))
 
-        out.append(jax.vmap(one)(delays, x["touch_valid"], x["touch_pos"], x["touch_window"], x["touch_mask"]))
+        out.append(jax.vmap(one)(delays, x["touch_valid"], x["touch_sample"], x["touch_pos"], x["touch_window"], x["touch_mask"]))
     return base + jnp.stack(out, axis=-1)
 
 
 def leg_active_output(model: Model, x: dict, d_index, R: int, K: int = 0, shift=0):
-    """M̂_k/I at every sample of one leg at delay ``d_index`` and ``shift``: what the likelihood compares."""
+    """M̂_k/I at every sample of one leg at delay ``d_index`` and ``shift``: what the likelihood
+    compares (through the accelerometer's response, if the model has one)."""
+    return _active_output(model, _sensed(model, x), d_index, R, K, shift)
+
+
+def _active_output(model: Model, x: dict, d_index, R: int, K: int, shift):
     N = x["angle"].shape[-1]
     F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
-    c = _contributions(model, x, R, K, shift, d_index, F, _pulse_q(model, x), x["touch_valid"][d_index])
-    return jax.ops.segment_sum(c, x["touch_sample"][d_index], num_segments=N)
+    G = output_factors(model, x["angle"], x["velocity"], x["stimulation"])
+    samples = x["touch_sample"][d_index]
+    c = _contributions(model, x, R, K, shift, d_index, F, _pulse_q(model, x), x["touch_valid"][d_index], samples, G)
+    return jax.ops.segment_sum(c, samples, num_segments=N)
 
 
 def leg_pointwise(model: Model, noise: dict, x: dict, d_index, R: int, n_segments: int, K: int = 0, shift=0):
     """log p(y_segment | θ, d, shift) per PSIS-LOO segment of one leg."""
+    x = _sensed(model, x)
     E, scale, _ = _window_terms(model, noise, x)
     W = E.shape[-1]
-    M_sample = leg_active_output(model, x, d_index, R, K, shift)
+    M_sample = _active_output(model, x, d_index, R, K, shift)
     M = jax.ops.segment_sum(M_sample, x["window"], num_segments=W)
     lp = jnp.where(x["window_mask"], student_t_logpdf(E - M, noise["nu"], scale), 0.0)
     seg = jnp.where(x["window_mask"], x["window_segment"], n_segments)

@@ -10,9 +10,17 @@ One sample of the discrete-time model (T_s, default 10 ms):
    its onset;
 4. the activation effect turns it into an equivalent acceleration M_k/I
    (for the zero-order activation of models 1 and 3, M_k/I =
-   G'·u_{k-d}·Π f_i(φ_k, φ̇_k), eq. 5 exactly);
+   G'·u_{k-d}·Π f_i(φ_k, φ̇_k), eq. 5 exactly), which output effects
+   modulate by the state at this sample;
 5. the passive system (eq. 8) is integrated over T_s by one RK4 step with
    M_k/I held constant, as in the paper.
+
+The dynamics run on the true angle.  Measurement effects say how the sensors
+see it (:func:`true_angle`, :func:`measured_angle`,
+:func:`measured_acceleration`); the functions that take measured signals
+(:func:`equivalent_acceleration`, :func:`active_output`,
+:func:`predict_ahead`) convert at their entry and exit, and without
+measurement effects the conversions are the identity.
 
 Everything is pure and jit-able; a :class:`Model` is a pytree whose leaves are
 the effects' parameter values and the delay, so it can be vmapped over draws.
@@ -57,6 +65,11 @@ __all__ = [
     "active_carries",
     "active_output",
     "predict_ahead",
+    "true_angle",
+    "measured_angle",
+    "acceleration_response",
+    "measured_acceleration",
+    "measure",
 ]
 
 #: Length of the input and angle history kept by the model (d ≤ MAX_DELAY, +2 spare).
@@ -104,6 +117,14 @@ class Model:
     @property
     def passives(self) -> tuple[Effect, ...]:
         return tuple(e for e in self.effects if e.kind == "passive")
+
+    @property
+    def outputs(self) -> tuple[Effect, ...]:
+        return tuple(e for e in self.effects if e.kind == "output")
+
+    @property
+    def measurements(self) -> tuple[Effect, ...]:
+        return tuple(e for e in self.effects if e.kind == "measurement")
 
     @property
     def delay_effect(self) -> Effect | None:
@@ -303,6 +324,8 @@ def _active_step(model: Model, carry: ActiveCarry, u_now, angle, velocity):
         gain_states.append(s)
         u_del = u_del * f
     act_state, m = model.activation.step(carry.activation, u_del)
+    for o in model.outputs:
+        m = m * o.output_factor(ctx)
     carry = ActiveCarry(u_hist, angle_hist, act_state, tuple(gain_states), **counters)
     return carry, m
 
@@ -323,16 +346,76 @@ def _rk4(model: Model, angle, velocity, m, dt):
 # ====================================================================== whole-trial functions
 
 
-def equivalent_acceleration(model: Model, angle, velocity, acceleration):
-    """M/I by eq. (8): measured acceleration minus the passive system's contribution."""
-    return acceleration - _passive_acc(model, angle, velocity)
+def true_angle(model: Model, measured):
+    """The shank's angle from the goniometer's reading (identity without measurement effects)."""
+    for e in model.measurements:
+        measured = e.true_angle(measured)
+    return measured
+
+
+def measured_angle(model: Model, true):
+    """What the goniometer reads at the true angle ``true``."""
+    for e in reversed(model.measurements):
+        true = e.measured_angle(true)
+    return true
+
+
+def acceleration_response(model: Model):
+    """Impulse response (unit sum) of the accelerometer chain, or None for a perfect one."""
+    g = None
+    for e in model.measurements:
+        h = e.acceleration_response(model.sampling_period_s)
+        if h is not None:
+            g = h if g is None else causal_fir(jnp.concatenate([g, jnp.zeros(h.shape[0] - 1, g.dtype)]), h)
+    return g
+
+
+def measured_acceleration(model: Model, acceleration, axis: int = -1):
+    """The accelerometer's reading of the angular acceleration ``acceleration`` (causal filter along ``axis``)."""
+    g = acceleration_response(model)
+    if g is None:
+        return acceleration
+    return jnp.moveaxis(causal_fir(jnp.moveaxis(jnp.asarray(acceleration), axis, -1), g), -1, axis)
+
+
+def causal_fir(x, g):
+    """y_k = Σ_j g_j x_{k−j} along the last axis (x_{<0} = 0), as a sum of shifted copies:
+    a short filter this way is cheaper to compile and differentiate than a convolution."""
+    n, L = x.shape[-1], g.shape[0]
+    xp = jnp.concatenate([jnp.zeros((*x.shape[:-1], L - 1), x.dtype), x], axis=-1)
+    g = g.astype(x.dtype)
+    return sum(g[j] * xp[..., L - 1 - j : L - 1 - j + n] for j in range(L))
+
+
+def measure(model: Model, angle, velocity, m):
+    """The sensors' view of a simulated trial (:func:`simulate_angles`'s true state and M/I):
+    (measured angle, measured angular acceleration), both noise-free."""
+    acc = m + _passive_acc(model, angle, velocity)
+    return measured_angle(model, angle), measured_acceleration(model, acc)
+
+
+def equivalent_acceleration(model: Model, angle, velocity, acceleration, mask=None):
+    """M/I by eq. (8): measured acceleration minus the passive system's contribution.
+
+    ``angle`` is the goniometer's reading; with an accelerometer response the
+    passive contribution is passed through it (the active output is compared
+    through the same response), and ``mask`` (samples to keep) stops it from
+    leaking out of padding.
+    """
+    passive = _passive_acc(model, true_angle(model, angle), velocity)
+    if acceleration_response(model) is not None:
+        if mask is not None:
+            passive = jnp.where(mask, passive, 0.0)
+        passive = measured_acceleration(model, passive)
+    return acceleration - passive
 
 
 @jax.jit
 def simulate_angles(model: Model, stimulation, angle0=0.0, velocity0=0.0):
     """Free-run simulation of the model driven by ``stimulation``; returns (angle, velocity, M/I).
 
-    Outputs are at samples 0..N-1 (state at the start of each sample; M/I applied over it).
+    Outputs are at samples 0..N-1 (state at the start of each sample; M/I applied over it),
+    the true state: :func:`measure` gives what the sensors read.
     """
     stimulation = jnp.asarray(stimulation)
     dt = model.sampling_period_s
@@ -359,6 +442,11 @@ def active_carries(model: Model, angle, velocity, stimulation) -> ActiveCarry:
     measured state passes its active state on.  Returns an ActiveCarry whose
     leaves have a leading axis of length N (one carry per start sample).
     """
+    return _carries(model, true_angle(model, jnp.asarray(angle)), velocity, stimulation)
+
+
+def _carries(model: Model, angle, velocity, stimulation) -> ActiveCarry:
+    """:func:`active_carries` on the true angle."""
     stimulation = jnp.asarray(stimulation)
     carry0 = init_active(model, stimulation.dtype)
 
@@ -373,8 +461,11 @@ def active_carries(model: Model, angle, velocity, stimulation) -> ActiveCarry:
 
 @jax.jit
 def active_output(model: Model, angle, velocity, stimulation):
-    """M_k/I at every sample with the active part driven by the *measured* state (one step ahead)."""
+    """M_k/I at every sample with the active part driven by the *measured* state (one step ahead).
+
+    The shank's own M/I, before any accelerometer response."""
     stimulation = jnp.asarray(stimulation)
+    angle = true_angle(model, jnp.asarray(angle))
 
     def body(c, x):
         u, a, v = x
@@ -397,10 +488,10 @@ def predict_ahead(model: Model, angle, velocity, stimulation, starts, horizon: i
 
 @functools.partial(jax.jit, static_argnames=("horizon",))
 def _predict_ahead(model, angle, velocity, stimulation, starts, horizon):
-    angle = jnp.asarray(angle)
+    angle = true_angle(model, jnp.asarray(angle))
     velocity = jnp.asarray(velocity)
     stimulation = jnp.asarray(stimulation)
-    carries = active_carries(model, angle, velocity, stimulation)
+    carries = _carries(model, angle, velocity, stimulation)
     dt = model.sampling_period_s
     n = stimulation.shape[0]
     padded = jnp.concatenate([stimulation, jnp.zeros(horizon, stimulation.dtype)])
@@ -417,4 +508,4 @@ def _predict_ahead(model, angle, velocity, stimulation, starts, horizon):
         _, pred = jax.lax.scan(body, (active, a, v), us)
         return pred
 
-    return jax.vmap(one)(carry0, angle[starts], velocity[starts], windows)
+    return measured_angle(model, jax.vmap(one)(carry0, angle[starts], velocity[starts], windows))

@@ -406,6 +406,26 @@ def _prediction_figures(fits, cohort, J_legs, out: Path, *, n_draws: int, seed: 
 # ============================================================================ the command
 
 
+def _residual_section(fits: list[LoadedFit], cohort: Cohort, out: Path, md: list) -> dict:
+    """Residual figures of every fit on its identification trials; appends a report section."""
+    from ._diagnose import fit_residuals, residual_figures
+    from ._likelihood import prepare
+
+    md += ["## Residuals of each fit (posterior medians, modal delay)", ""]
+    findings = {}
+    for f in fits:
+        data = prepare(cohort, f.model, tuple(f.desc["trials"]), f.desc["legs"])
+        res = {leg: fit_residuals(f.idata, f.model, data, leg) for leg in f.desc["legs"]}
+        paths, notes = residual_figures(res, out / "figures", f.label.replace("+", "_"), f.model.sampling_period_s)
+        findings[f.label] = notes
+        md.append(f"### {f.label}")
+        md.append("")
+        for leg, lines in notes.items():
+            md.append(f"- {leg}: " + (" ".join(lines) if lines else "nothing stands out."))
+        md += ["", *[f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in paths], ""]
+    return findings
+
+
 def run_posterior_evaluate(
     cohort: Cohort,
     folders,
@@ -415,8 +435,13 @@ def run_posterior_evaluate(
     start_stride: int = 1,
     seed: int = 0,
     progress: bool = False,
+    residuals: bool = False,
 ) -> dict:
-    """Posterior J (Table V with bands), sign tests, PSIS-LOO, Figs. 5-6 with bands; summary.json last."""
+    """Posterior J (Table V with bands), sign tests, PSIS-LOO, Figs. 5-6 with bands; summary.json last.
+
+    ``residuals``: also each fit's residual diagnostics at its posterior medians
+    (:mod:`quadshank._diagnose`), side by side, what ``quadshank compare`` shows.
+    """
     if n_draws < 1:
         raise ValueError(f"--draws must be at least 1, not {n_draws}")
     if start_stride < 1:
@@ -458,6 +483,7 @@ def run_posterior_evaluate(
             fig = plot_delay_angle(f.summary, f.label)
             figures.append(save_figure(fig, out / "figures" / f"delay_angle_{f.label.replace('+', '_')}.png"))
     md += ["## Figures", "", *[f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in figures], ""]
+    findings = _residual_section(fits, cohort, out, md) if residuals else None
 
     summary = {
         "method": "posterior",
@@ -483,6 +509,8 @@ def run_posterior_evaluate(
         "seed": seed,
         "evaluation_seconds": elapsed,
     }
+    if findings is not None:
+        summary["residual_findings"] = findings
     atomic_write_text(out / "report.md", "\n".join(md))
     write_json(out / "summary.json", summary)
     return summary

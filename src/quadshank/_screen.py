@@ -232,7 +232,9 @@ def laplace_fit(cohort: Cohort, model: Model, trials=(1,), legs=None, **kw) -> L
     Keywords: ``start`` (a screen of a related model on the same data, whose
     modes start the parameters the two share, e.g. the baseline of a one-effect
     extension), ``n_starts`` (prior draws tried for the other parameters),
-    ``n_draws``, ``seed``, ``max_iter``.  Runs in double precision: the log
+    ``n_draws``, ``seed``, ``max_iter``, ``loo`` (False: no pointwise
+    log-likelihood and PSIS-LOO, whose ELPD fields are then NaN; the posterior
+    alone, for a quicker look).  Runs in double precision: the log
     posterior of thousands of samples is ~1e5, and single precision leaves
     L-BFGS and the Hessian with a noise of order one at the mode.
     """
@@ -251,6 +253,7 @@ def _laplace_fit(
     n_draws: int = 200,
     seed: int = 0,
     max_iter: int = 400,
+    loo: bool = True,
 ) -> LaplaceFit:
     import arviz as az
 
@@ -275,6 +278,8 @@ def _laplace_fit(
             log_sigma, log_nu = float(zs["log_sigma"]), float(zs["log_nu"])
         else:
             known = {k[: -len("_s_leg")]: (v[..., i] if np.ndim(v) > 1 else v[i]) for k, v in classical.items()}
+            sizes = {sp.name: sp.size for sp in specs}
+            known = {k: v for k, v in known.items() if np.size(v) == sizes.get(k)}  # e.g. not a DARMA of another order
             log_sigma, log_nu = SIGMA_PRIOR[0], math.log(10.0)
         unknown = [s for s in specs if s.name not in known]
         n_try = 1 + (n_starts if unknown else 0)
@@ -315,6 +320,9 @@ def _laplace_fit(
         delays.append(d)
         shifts.append(k)
         dpost.append(np.exp(np.asarray(jax.scipy.special.logsumexp(logp, axis=-1))).mean(axis=0))
+        if not loo:
+            pointwise.append(np.full((n_draws, data.n_segments), np.nan))
+            continue
         ll = np.asarray(pw(jnp.asarray(draws[i], jnp.float64), jnp.asarray(d), jnp.asarray(k), x), np.float64)
         pointwise.append(np.where(data.segment_mask[i][None], ll, np.nan))
     pointwise = np.stack(pointwise)
@@ -329,7 +337,9 @@ def _laplace_fit(
         weights_ess.append(float(w.sum() ** 2 / np.sum(w**2)))
         u = (rng.random() + np.arange(n_draws)) / n_draws  # systematic resampling
         resampled.append(rng.permutation(np.minimum(np.searchsorted(np.cumsum(w / w.sum()), u), n_draws - 1)))
-        ok = data.segment_mask[i]
+        ok = data.segment_mask[i] if loo else np.zeros_like(data.segment_mask[i])
+        if not ok.any():
+            continue
         ll = pointwise[i][:, ok]  # (S, n)
         log_w = (np.asarray(log_post[i]) - log_q[i])[:, None]  # log p(θ, y) − log q(θ), up to a constant
         with warnings.catch_warnings():

@@ -152,6 +152,9 @@ Hidden effects (off by default, switched on by name)
     of a base-excited second-order system (f_r = 18 Hz, ζ = 0.25) integrated
     with the plant at 1 ms, giving ripple and overshoot after twitches (the
     paper's Fig. 2(d) discussion).
+``goniometer_offset``
+    the goniometer reads 3° when the shank hangs at rest (zeroed with the
+    leg not quite vertical); the movement is unchanged.
 
 Randomness
 ----------
@@ -219,6 +222,7 @@ EFFECTS = (
     "fatigue",
     "potentiation",
     "accel_resonance",
+    "goniometer_offset",
 )
 
 #: Parameters of each hidden effect (the same for every leg).
@@ -229,6 +233,7 @@ EFFECT_PARAMETERS = {
     "fatigue": {"f_min": 0.5, "n_f_pulses": 800.0, "tau_rec_s": 600.0, "rest_s": REST_BETWEEN_TRIALS_S},
     "potentiation": {"P": 0.8, "tau_p_s": 0.06},
     "accel_resonance": {"f_r_hz": 18.0, "zeta": 0.25},
+    "goniometer_offset": {"offset_deg": 3.0},
 }
 
 #: True passive parameters per leg: D' [1/s], G' [deg/s²], k1' [deg/s²], k2 [1/deg].
@@ -678,9 +683,11 @@ def _plan_leg(leg: str, n_samples: int, seed: int, effects: tuple[str, ...]) -> 
     return plans
 
 
-def _record(raw: np.ndarray, rng_angle, rng_acc, noise: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def _record(raw: np.ndarray, rng_angle, rng_acc, noise: bool = True, effects=()) -> tuple[np.ndarray, np.ndarray]:
     """Goniometer and accelerometer readings from the true signals."""
     angle = raw[:, 0].copy()
+    if "goniometer_offset" in effects:
+        angle = angle + EFFECT_PARAMETERS["goniometer_offset"]["offset_deg"]
     acc = raw[:, 3].copy()
     if noise:
         angle = angle + SENSOR["angle_noise_deg"] * rng_angle.standard_normal(angle.size)
@@ -734,7 +741,7 @@ def simulate_cohort(
 
     out_trials = []
     for (leg, trial, plan, _), r in zip(jobs, raw):
-        angle, acc = _record(r, plan["rng_angle"], plan["rng_acc"])
+        angle, acc = _record(r, plan["rng_angle"], plan["rng_acc"], effects=effects)
         stim = np.zeros(n)
         stim[plan["pulses"]] = plan["u"]
         subject, side = leg.split("-")
@@ -803,7 +810,7 @@ def simulate_response(
     raw = _run_plant([_scan_params(leg, effects)], amps[None, :])[0]
     ss = np.random.SeedSequence(int(seed), spawn_key=(LEGS.index(leg), 99))
     rng_angle, rng_acc = (np.random.default_rng(c) for c in ss.spawn(2))
-    angle, acc = _record(raw, rng_angle, rng_acc, noise=noise)
+    angle, acc = _record(raw, rng_angle, rng_acc, noise=noise, effects=effects)
     return {
         "angle_deg": angle,
         "acceleration_deg_s2": acc,
