@@ -17,9 +17,10 @@ install: $(BIN)/.installed
 demo: $(BIN)/.installed
 	$(BIN)/quadshank demo --out results/demo
 
-## the test suite
+## the test suite: two workers, each test file whole on one of them (module fixtures run once);
+## XLA compiles on one thread, so two files compiling at once use both cores
 test: $(BIN)/.installed
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 ## benchmarks (results written to results/)
 bench: $(BIN)/.installed

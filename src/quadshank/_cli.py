@@ -245,15 +245,24 @@ def cmd_diagnose(args) -> int:
 def cmd_discover(args) -> int:
     from ._diagnose import run_discover
 
-    cohort, _ = _loop_data(args)
+    cohort, data = _loop_data(args)
     command = "quadshank " + " ".join(shlex.quote(a) for a in args.argv)
+    trials = tuple(int(t) for t in _csv_list(args.trials))
+    confirm = None
+    if args.confirm:
+        from ._fit import FitSettings
+
+        confirm = FitSettings(chains=args.chains, warmup=args.warmup, draws=args.draws, seed=args.seed, trials=trials)
     summary = run_discover(
-        cohort, args.out, model=args.model, trials=tuple(int(t) for t in _csv_list(args.trials)),
+        cohort, args.out, model=args.model, trials=trials,
         legs=_csv_list(args.legs) if args.legs else None, effects=_csv_list(args.effects) if args.effects else None,
-        max_rounds=args.max_rounds, command=command, progress=not args.quiet,
+        max_rounds=args.max_rounds, command=command, progress=not args.quiet, confirm=confirm,
+        data_source=str(Path(data).resolve()),
     )
     for k, r in enumerate(summary["rounds"], 1):
         _say(args, f"round {k}: {r['model']}: verdict {r['verdict']}")
+    if "confirm" in summary:
+        _say(args, summary["confirm"]["sentence"])
     _say(args, f"final model: {summary['final_model']}; report: {Path(args.out) / 'report.md'}")
     return 0
 
@@ -401,6 +410,12 @@ def build_parser() -> argparse.ArgumentParser:
     dc.add_argument("--legs", default="", help="legs, comma-separated (default: all in the data)")
     dc.add_argument("--effects", default="", help="candidate effects, comma-separated (default: every registered candidate)")
     dc.add_argument("--max-rounds", type=int, default=3)
+    dc.add_argument("--confirm", action="store_true",
+                    help="confirm with hierarchical NUTS: fit the start and final models, compare them (J, PSIS-LOO, residuals)")
+    dc.add_argument("--chains", type=int, default=2, help="with --confirm (default 2)")
+    dc.add_argument("--warmup", type=int, default=300, help="with --confirm (default 300)")
+    dc.add_argument("--draws", type=int, default=300, help="with --confirm (default 300)")
+    dc.add_argument("--seed", type=int, default=0, help="with --confirm")
     dc.add_argument("--out", required=True)
     dc.set_defaults(func=cmd_discover)
 

@@ -361,6 +361,41 @@ def run_diagnose(
     return summary
 
 
+def _confirm(cohort, out, start_name: str, added: list, settings, *, legs, data_source, n_draws, start_stride, progress) -> dict:
+    """NUTS fits of the loop's first and last model on the same data, and their comparison."""
+    from dataclasses import replace
+
+    from ._pipeline import run_fit
+    from ._posterior_eval import run_posterior_evaluate
+
+    base_name = start_name.split("+")[0]
+    start_adds = start_name.split("+")[1:]
+    fits = {}
+    for key, adds in (("start", start_adds), ("final", start_adds + list(added))):
+        folder = out / f"fit-{key}"
+        s = run_fit(cohort, folder, base_name, adds, settings, legs=legs, progress=progress, data_source=data_source)
+        fits[key] = {"folder": f"confirm/fit-{key}", "model": s["model"], "banner": s.get("banner"),
+                     "diagnostics": s["diagnostics"]}
+    if not added:
+        return {**fits, "sentence": "Nothing was added; the start model's fit is in confirm/fit-start."}
+    cmp = run_posterior_evaluate(cohort, [out / "fit-start", out / "fit-final"], out / "compare", n_draws=n_draws,
+                                 start_stride=start_stride, progress=progress, residuals=True)
+    a, b = fits["start"]["model"], fits["final"]["model"]
+    group = (cmp["loo"]["compare"] or [{}])[0].get("table", {})
+    J = cmp["J"]
+    trial = sorted(J[a])[-1]
+    ja, jb = J[a][trial]["1000"], J[b][trial]["1000"]
+    elpd = group.get(a, {})
+    text = (f"NUTS: {b} against {a}: ELPD difference {elpd.get('elpd_diff', float('nan')):.1f} ± {elpd.get('dse', float('nan')):.1f} "
+            f"in favour of {'the final model' if group.get(b, {}).get('rank') == 0 else 'the start model'}; "
+            f"J at 1 s on trial {trial} {ja['median']:.2f}° [{ja['lo']:.2f}, {ja['hi']:.2f}] → {jb['median']:.2f}° [{jb['lo']:.2f}, {jb['hi']:.2f}].")
+    banners = [f"{f['model']}: {f['banner']}" for f in fits.values() if f["banner"]]
+    if banners:
+        text += " Caution, the fits failed their checks: " + "; ".join(banners)
+    return {**fits, "sentence": text, "elpd_diff": elpd.get("elpd_diff"), "elpd_dse": elpd.get("dse"),
+            "J_1000ms": {a: ja, b: jb}, "trial": trial}
+
+
 def run_discover(
     cohort: Cohort,
     out,
@@ -372,8 +407,18 @@ def run_discover(
     max_rounds: int = 3,
     command: str | None = None,
     progress: bool = False,
+    confirm=None,
+    data_source: str | None = None,
+    compare_draws: int = 100,
+    compare_stride: int = 10,
 ) -> dict:
-    """The whole loop: diagnose, add the leading effect, diagnose again, while an effect clears the bar."""
+    """The whole loop: diagnose, add the leading effect, diagnose again, while an effect clears the bar.
+
+    ``confirm`` (a :class:`quadshank._fit.FitSettings`): then confirm the screen with
+    hierarchical NUTS: fit the starting model and the final one (``confirm/fit-start``,
+    ``confirm/fit-final``) and compare them (``confirm/compare``: J bands over
+    ``compare_draws`` posterior draws, PSIS-LOO, residuals before and after).
+    """
     from pathlib import Path
 
     out = Path(out)
@@ -392,6 +437,10 @@ def run_discover(
         current = base.model
     summary = {"model": rounds[0]["model"], "final_model": current.name, "rounds": rounds,
                "added": [r["verdict"] for r in rounds if r["verdict"] != "none"]}
+    if confirm is not None:
+        summary["confirm"] = _confirm(cohort, out / "confirm", rounds[0]["model"], summary["added"], confirm, legs=legs,
+                                      data_source=data_source, n_draws=compare_draws, start_stride=compare_stride,
+                                      progress=progress)
     md = ["# The modelling loop (`quadshank discover`)", ""]
     if command:
         md += [f"Regenerate: `{command}`", ""]
@@ -403,6 +452,11 @@ def run_discover(
             f"Verdict: {r['verdict']}. {r['sentence']} (details: [round-{k}/report.md](round-{k}/report.md))"
         )
     md += ["", f"Final model: **{current.name}**."]
+    if confirm is not None:
+        c = summary["confirm"]
+        md += ["", "## Confirmed with hierarchical NUTS", "", c["sentence"], "",
+               f"Fits: [{c['start']['folder']}]({c['start']['folder']}), [{c['final']['folder']}]({c['final']['folder']}); "
+               f"comparison with residuals before and after: [confirm/compare/report.md](confirm/compare/report.md)."]
     (out / "report.md").write_text("\n".join(md) + "\n")
     _write_json_atomic(out / "summary.json", summary)
     return summary

@@ -1,0 +1,88 @@
+"""The modelling loop on the command line: `discover --confirm`, `diagnose` of a saved fit, `compare`.
+
+Data with hidden potentiation (JM-left, 1 min of trial 1); two short NUTS fits
+made by `discover --confirm` serve `diagnose` and `compare`.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from quadshank._cli import main
+from quadshank._interchange import write_interchange
+from quadshank._simulate import simulate_cohort
+
+LEG = "JM-left"
+
+
+def _cohort(effect):
+    cohort, _ = simulate_cohort(legs=[LEG], minutes=1.0, seed=1, trials=(1,), effects=[effect])
+    return cohort
+
+
+@pytest.fixture(scope="module")
+def discovered(tmp_path_factory):
+    """`discover --confirm` on data with hidden potentiation, screening it and the user-written
+    effect of conftest.py; confirmed by two short NUTS fits (start and final model)."""
+    root = tmp_path_factory.mktemp("discover")
+    write_interchange(_cohort("potentiation"), root / "data")
+    out = root / "discover"
+    rc = main(["--quiet", "discover", str(root / "data"), "--effects", "potentiation,cubic_torque_angle",
+               "--max-rounds", "2", "--confirm", "--chains", "1", "--warmup", "30", "--draws", "30", "--out", str(out)])
+    return root, out, rc
+
+
+def test_discover_on_the_command_line_with_a_user_effect(discovered):
+    """The whole loop in one command; the user-written effect is screened like the others; NUTS confirms."""
+    root, out, rc = discovered
+    assert rc == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["added"] == ["potentiation"]
+    assert s["final_model"] == "model3s+potentiation"
+    r1 = json.loads((out / "round-1" / "summary.json").read_text())
+    cubic = next(r for r in r1["ranking"] if r["effect"] == "cubic_torque_angle")
+    assert np.isfinite(cubic["delta_elpd"]) and not cubic["clears_bar"]
+    assert "Adding potentiation improves ELPD" in (out / "round-1" / "report.md").read_text()
+    assert len(s["rounds"]) == 2 and s["rounds"][1]["verdict"] == "none"
+    for name in r1["figures"]:
+        assert (out / "round-1" / name).stat().st_size > 5000
+    c = s["confirm"]
+    assert c["start"]["model"] == "model3s" and c["final"]["model"] == "model3s+potentiation"
+    assert c["elpd_diff"] > 0  # the final model ranks first under NUTS too
+    assert "NUTS: model3s+potentiation against model3s" in (out / "report.md").read_text()
+    assert (out / "confirm" / "compare" / "summary.json").exists()
+
+
+def test_diagnose_a_saved_fit(discovered, tmp_path):
+    """`diagnose FITDIR` reads the fit's model, legs, trials and data, and ranks; a bad effect name is an error."""
+    root, out, _ = discovered
+    fitdir = out / "confirm" / "fit-start"
+    assert json.loads((fitdir / "summary.json").read_text())["data"] == str((root / "data").resolve())
+    diag = tmp_path / "diag"
+    assert main(["--quiet", "diagnose", str(fitdir), "--effects", "potentiation,fatigue", "--out", str(diag)]) == 0
+    s = json.loads((diag / "summary.json").read_text())
+    assert s["model"] == "model3s" and s["verdict"] == "potentiation"
+    assert [r["effect"] for r in s["ranking"]] == ["potentiation", "fatigue"]
+    assert main(["--quiet", "diagnose", str(fitdir), "--effects", "telepathy", "--out", str(tmp_path / "x")]) == 2
+
+
+def test_compare_before_and_after(discovered, tmp_path):
+    """`compare A B`: J bands side by side, ΔELPD in B's favour, and each fit's residual figures and
+    findings; the baseline's residual trends over the preceding interpulse interval."""
+    _, out, _ = discovered
+    cmp = tmp_path / "cmp"
+    assert main(["--quiet", "compare", str(out / "confirm" / "fit-start"), str(out / "confirm" / "fit-final"),
+                 "--draws", "20", "--start-stride", "20", "--out", str(cmp)]) == 0
+    s = json.loads((cmp / "summary.json").read_text())
+    assert set(s["J"]) == {"model3s", "model3s+potentiation"}
+    (group,) = s["loo"]["compare"]
+    assert group["table"]["model3s+potentiation"]["rank"] == 0
+    before = s["residual_findings"]["model3s"][LEG]
+    assert any("interpulse" in line for line in before), before  # the signature of the missing effect
+    assert set(s["residual_findings"]["model3s+potentiation"]) == {LEG}
+    report = (cmp / "report.md").read_text()
+    for label in ("model3s", "model3s_potentiation"):
+        for kind in ("residual_trends", "residual_correlation", "twitch_average"):
+            png = cmp / "figures" / f"{kind}_{label}_{LEG}.png"
+            assert png.stat().st_size > 5000 and png.name in report
