@@ -1,0 +1,33 @@
+"""The modelling loop finds hidden fatigue and potentiation, and says `none` when nothing is
+hidden (see loop_cases.py; the other hidden effects: test_loop.py)."""
+
+import pytest
+from loop_cases import LEG, check_hidden_first, rankings
+
+from quadshank._diagnose import candidates
+from quadshank._fit import build_model
+
+HERE = ("fatigue", "potentiation")
+
+
+@pytest.fixture(scope="module")
+def ranked():
+    return rankings((*HERE, "none"))
+
+
+@pytest.mark.parametrize("effect", HERE)
+def test_the_hidden_effect_is_ranked_first_and_clears_the_bar(ranked, effect):
+    check_hidden_first(ranked[effect], effect)
+
+
+def test_no_hidden_effect_gives_the_verdict_none(ranked):
+    r = ranked["none"]
+    assert {x["effect"] for x in r.rows} == set(candidates(build_model("model3s")))
+    assert r.verdict == "none", [(x["effect"], round(x["delta_elpd"], 1), x["clears_bar"]) for x in r.rows]
+    assert not any(x["clears_bar"] for x in r.rows)
+
+
+def test_the_ranking_reports_the_recovered_effect(ranked):
+    """The leader's parameters come out near the simulator's (potentiation: P = 0.8, τ = 60 ms)."""
+    p = ranked["potentiation"].rows[0]["parameters"][LEG]
+    assert abs(p["potentiation"] - 0.8) < 0.2 and abs(p["tau_p"] - 0.06) < 0.02
