@@ -118,7 +118,8 @@ class LaplaceFit:
 
     @property
     def elpd(self) -> float:
-        return float(np.nansum(self.elpd_i))
+        """Σ of the pointwise PSIS-LOO ELPD (NaN for a screen run with ``loo=False``)."""
+        return float(np.nansum(self.elpd_i)) if np.isfinite(self.elpd_i).any() else float("nan")
 
     @property
     def elpd_se(self) -> float:
