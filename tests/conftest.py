@@ -20,3 +20,14 @@ class CubicTorqueAngle(Effect):
 
     def factor(self, ctx):
         return 1.0 + self.c3 * ctx.angle**3
+
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture
+def scratch_registry(monkeypatch):
+    """Effects registered inside a test stay inside it (the loop's tests screen every registered candidate)."""
+    from quadshank import _effects
+
+    monkeypatch.setattr(_effects, "_REGISTRY", dict(_effects._REGISTRY))

@@ -136,7 +136,7 @@ def test_impulse_response_of_darma_follows_its_recursion():
     np.testing.assert_allclose(h, ref, rtol=1e-5)
 
 
-def test_stateful_gains_are_refused():
+def test_stateful_gains_are_refused(scratch_registry):
     import dataclasses
 
     from quadshank._effects import Effect, register_effect

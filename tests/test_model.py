@@ -156,7 +156,7 @@ def test_jit_vmap_and_gradients():
     assert len(set(np.round(np.asarray(finals), 4))) == 6
 
 
-def test_user_written_effect_slots_in():
+def test_user_written_effect_slots_in(scratch_registry):
     @register_effect
     @dataclasses.dataclass(frozen=True)
     class CubicTorqueAngle(Effect):
