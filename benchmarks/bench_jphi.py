@@ -95,7 +95,8 @@ def main(argv=None) -> int:
     ]
     block = "\n".join(lines)
     print(block)
-    write_section(args.out, "bench_jphi", block)
+    # one section per backend: a GPU run sits beside the CPU one
+    write_section(args.out, "bench_jphi" if jax.default_backend() == "cpu" else f"bench_jphi_{jax.default_backend()}", block)
     return 0
 
 

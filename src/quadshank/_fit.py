@@ -97,6 +97,9 @@ class FitSettings:
     trials: tuple[int, ...] = (1,)
     #: Start the chains at the classical identification (jittered); False: at the prior median.
     init_classical: bool = True
+    #: numpyro's ``chain_method``: "sequential" (one chain after another; the CPU default),
+    #: "vectorized" (all chains in one batched program; worth it on a GPU) or "parallel".
+    chain_method: str = "sequential"
 
 
 #: Classical models whose estimates start a model's chains (model3s: model 2's twitch, model 3's gains).
@@ -356,7 +359,7 @@ def fit(
         num_warmup=settings.warmup,
         num_samples=settings.draws,
         num_chains=settings.chains,
-        chain_method="sequential",
+        chain_method=settings.chain_method,
         progress_bar=progress,
         # the data are arguments of the jitted sampler, not constants folded into it:
         # the chains (and later fits of the same shapes) compile it once
