@@ -161,6 +161,17 @@ def test_folder_layout(folder):
     ]
 
 
+def test_written_files_are_readable_by_others(folder, cohort, tmp_path):
+    """Atomic writes go through a private temporary file; the result gets the usual permissions (0644 under umask 022)."""
+    import os
+
+    umask = os.umask(0)
+    os.umask(umask)
+    nc = cohort.save_netcdf(tmp_path / "c.nc")
+    for path in [*folder.iterdir(), nc]:
+        assert os.stat(path).st_mode & 0o777 == 0o666 & ~umask, path
+
+
 def test_read_gives_bit_identical_arrays(folder, cohort):
     loaded = read_interchange(folder)
     assert_same_trials(loaded, cohort)

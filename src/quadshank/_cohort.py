@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
+from ._io import FILE_MODE
+
 __all__ = ["Trial", "Cohort", "derive_velocity", "VELOCITY_WINDOW", "leg_key"]
 
 #: Savitzky–Golay window (samples) used to derive velocity from the angle.
@@ -243,6 +245,7 @@ class Cohort:
         os.close(fd)
         try:
             self.to_dataset().to_netcdf(tmp, engine="h5netcdf")
+            os.chmod(tmp, FILE_MODE)
             os.replace(tmp, path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)

@@ -30,7 +30,7 @@ from ._fit import (
     sample_delays,
     to_json,
 )
-from ._io import write_json
+from ._io import FILE_MODE, write_json
 from ._likelihood import N_DELAYS, LikelihoodData
 from ._model import Model
 
@@ -306,6 +306,7 @@ def save_fit(idata, folder: str | os.PathLike, extra: dict | None = None) -> dic
     os.close(fd)
     try:
         idata.to_netcdf(tmp)
+        os.chmod(tmp, FILE_MODE)
         os.replace(tmp, folder / "fit.nc")
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

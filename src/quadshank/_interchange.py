@@ -83,6 +83,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from ._cohort import Cohort, Trial, leg_key
+from ._io import FILE_MODE
 
 __all__ = [
     "Problem",
@@ -764,6 +765,7 @@ def _make_dirs(path: Path, created: list[Path]) -> None:
 def _temp_sibling(path: Path) -> Path:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
+    os.chmod(tmp, FILE_MODE)
     return Path(tmp)
 
 
