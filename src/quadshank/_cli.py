@@ -284,6 +284,21 @@ def cmd_compare(args) -> int:
     return 0
 
 
+def cmd_report(args) -> int:
+    from ._fitio import read_summary
+    from ._report import run_report
+
+    fit_summary = read_summary(args.fitdir)
+    cohort, _ = _loop_data(args, fit_summary)
+    summary = run_report(args.fitdir, args.out, cohort=cohort, evaluation=args.evaluation or None,
+                         diagnosis=args.diagnosis or None, n_draws=args.draws, start_stride=args.start_stride,
+                         progress=not args.quiet)
+    if not summary["diagnostics_ok"]:
+        print(f"quadshank: warning: {args.fitdir}: {fit_summary['banner']}", file=sys.stderr)
+    _say(args, f"{len(summary['pages']) - 1} subject page(s), per-leg CSV and JSON; open {Path(args.out) / 'index.html'}")
+    return 0
+
+
 def cmd_reproduce(args, default_out: str | None = None) -> int:
     from ._pipeline import run_reproduce
 
@@ -427,6 +442,19 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("--start-stride", type=int, default=1)
     cp.add_argument("--out", required=True)
     cp.set_defaults(func=cmd_compare)
+
+    rp = sub.add_parser("report", help="credible-parameter report of a fit: HTML page per subject, cohort index, CSV/JSON per leg")
+    rp.add_argument("fitdir", help="fit folder of `quadshank fit`")
+    rp.add_argument("--data", default="", help="the fit's data (default: the folder or file the fit records)")
+    rp.add_argument("--evaluation", default="", metavar="EVALDIR",
+                    help="output folder of `quadshank evaluate --fit` to take J's bands from (default: compute them)")
+    rp.add_argument("--diagnosis", default="", metavar="DIAGDIR",
+                    help="output folder of `quadshank diagnose` or `discover` whose ranking to show")
+    rp.add_argument("--draws", type=int, default=50, help="posterior draws for J and the prediction bands (default 50)")
+    rp.add_argument("--start-stride", type=int, default=10, metavar="K",
+                    help="J from every K-th start sample when computed here (default 10)")
+    rp.add_argument("--out", required=True)
+    rp.set_defaults(func=cmd_report)
 
     d = sub.add_parser("demo", help="the main job on the built-in simulated cohort (writes results/demo)")
     d.add_argument("--out", default="results/demo")

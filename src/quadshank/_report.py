@@ -1,0 +1,707 @@
+"""Credible-parameter reports of a fit: one self-contained HTML page per subject and a cohort index.
+
+``quadshank report FITDIR --out DIR`` writes
+
+- ``DIR/index.html``: the cohort: one row per leg (delay, J at 1 s, the fit's
+  checks), the population-level parameters with the spreads between subjects
+  and legs, the posterior Table V beside the paper's, the pooled delay–angle
+  curve when the fit has ``angle_delay``, the diagnosis ranking when given;
+- ``DIR/subject-<S>.html`` per subject: for each leg every parameter's posterior
+  median and 90 % interval with units beside its subject's and the population's
+  (shrinkage, also as a forest plot in prior scales), P(d), the delay–angle curve
+  with its band, J_φ,p against horizon with bands beside the paper's Table V,
+  measured and predicted angle with bands at 100 ms and 1 s ahead, the fit's
+  diagnostics, the diagnosis ranking;
+- ``DIR/legs/<leg>.csv`` and ``DIR/legs/<leg>.json``: the credible parameters of
+  each leg at the three levels (the JSON adds P(d), the delay–angle summary and J);
+- ``DIR/summary.json``, removed first and written last.
+
+Each page is one file: figures are PNGs inlined as ``data:`` URIs, the style
+sheet and the one script are inline, nothing is fetched.  The script writes,
+once the page has loaded, the number of ``<img>`` elements and how many of them
+decoded as ``data-figures`` and ``data-figures-loaded`` on ``<body>``, so a
+headless browser's DOM dump shows whether every figure rendered.  When the fit
+failed its checks a red box at the top of every page says so, with the problems
+and the advice.
+
+Levels.  A leg's values are the fit summary's (``summary.json`` of the fit); the
+subject and population values are the posterior draws ``<name>_subject`` and
+``<name>_mu`` (:func:`quadshank._fit.hyper_draws`), summarised the same way
+(median, 5 % and 95 % quantiles).  The noise parameters σ and ν are per leg and
+have no hierarchy.
+"""
+
+from __future__ import annotations
+
+import base64
+import csv
+import html
+import io
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ._fitio import INTERVAL
+from ._io import atomic_write_text, read_json, write_json
+from ._paper import HORIZON_MS, HORIZONS, TABLE_V
+
+__all__ = ["run_report", "leg_parameters"]
+
+#: Prediction figures: (start, length) [s] of the window; on shorter trials the start moves earlier.
+PREDICTION_WINDOW_S = (30.0, 10.0)
+#: Horizons [samples] of the prediction figures: 100 ms and 1 s.
+PREDICTION_HORIZONS = (10, 100)
+#: The z of the 5 % and 95 % quantiles of a normal: the prior's 90 % interval in prior scales.
+_Z90 = 1.6448536269514722
+_TRIAL_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
+
+
+# ============================================================================ numbers
+
+
+def _interval(values) -> dict:
+    v = np.asarray(values, np.float64)
+    lo, hi = np.quantile(v, INTERVAL)
+    return {"median": float(np.median(v)), "lo": float(lo), "hi": float(hi)}
+
+
+def _flat(post, name: str) -> np.ndarray:
+    v = np.asarray(post[name])
+    return v.reshape(-1, *v.shape[2:])
+
+
+def _components(name: str, shape) -> list[tuple[str, tuple]]:
+    """(label, index) of each component: ``a[1]``, ``a[2]`` (the paper's a1, a2) for a vector parameter."""
+    if not shape:
+        return [(name, ())]
+    return [(f"{name}[{k + 1}]", (k,)) for k in range(int(np.prod(shape)))]
+
+
+def leg_parameters(idata, desc: dict, fit_summary: dict) -> dict:
+    """Credible parameters per leg at the leg, subject and population levels.
+
+    Returns ``{leg: {label: {"units", "doc", "prior", "leg", "subject", "population"}}}``
+    with each level ``{"median", "lo", "hi"}`` (None where the parameter has no such
+    level: the noise parameters).  A leg's level is the fit summary's numbers.
+    """
+    post = idata.posterior
+    subjects = list(desc["subjects"])
+    out: dict = {}
+    for i, leg in enumerate(desc["legs"]):
+        s_idx = int(desc["leg_subject"][i])
+        rows: dict = {}
+        for name, info in desc["params"].items():
+            family, loc, scale = info["prior"][:3]
+            shape = tuple(info["shape"])
+            sub = _flat(post, f"{name}_subject")[:, s_idx] if f"{name}_subject" in post else None
+            mu = _flat(post, f"{name}_mu") if f"{name}_mu" in post else None
+            if mu is not None and f"{name}_s_leg" not in post and family == "lognormal":
+                mu = np.exp(mu)  # sampled on the log scale (non-centred form); hyper_draws gives units
+            leg_q = fit_summary["legs"][leg]["params"][name]
+            for label, index in _components(name, info["shape"]):
+                rows[label] = {
+                    "units": info["units"],
+                    "doc": info.get("doc", ""),
+                    "prior": [family, float(np.broadcast_to(np.asarray(loc, float), shape)[index]),
+                              float(np.broadcast_to(np.asarray(scale, float), shape)[index])],
+                    "leg": {k: float(np.asarray(leg_q[k], float)[index]) for k in ("median", "lo", "hi")},
+                    "subject": None if sub is None else _interval(sub[(slice(None), *index)]),
+                    "population": None if mu is None else _interval(mu[(slice(None), *index)]),
+                }
+        for name, info in desc["noise"].items():
+            q = fit_summary["legs"][leg]["params"][name]
+            rows[name] = {"units": info["units"], "doc": info.get("doc", ""), "prior": None,
+                          "leg": {k: float(q[k]) for k in ("median", "lo", "hi")}, "subject": None, "population": None}
+        out[leg] = {"subject": subjects[s_idx], "params": rows}
+    return out
+
+
+def _population_spreads(idata, desc: dict) -> dict:
+    """Spread between subjects and between legs [units of the prior's scale] per parameter component."""
+    post = idata.posterior
+    out = {}
+    for name, info in desc["params"].items():
+        for label, index in _components(name, info["shape"]):
+            row = {}
+            for key, var in (("sd_subject", f"{name}_sd_subject"), ("sd_leg", f"{name}_sd_leg")):
+                if var in post:
+                    row[key] = _interval(_flat(post, var)[(slice(None), *index)])
+            out[label] = row
+    return out
+
+
+def _standardise(x: float, prior) -> float:
+    """(g(x) − loc)/scale, g = log for a log-normal prior: the value in prior scales from the prior's centre."""
+    family, loc, scale = prior
+    if family == "lognormal":
+        x = np.log(x) if x > 0 else -np.inf
+    return float((x - loc) / scale)
+
+
+# ============================================================================ J
+
+
+def _j_from_evaluation(folder, label: str, legs) -> tuple[dict, dict, str]:
+    s = read_json(Path(folder) / "summary.json")
+    if "J_legs" not in s:
+        raise ValueError(f"{folder}: not an output of `quadshank evaluate --fit` (its summary.json has no J_legs)")
+    if label not in s["J_legs"]:
+        raise ValueError(f"{folder}: the evaluation has no fit of {label!r} (it has {', '.join(s['J_legs']) or 'none'})")
+    missing = [leg for leg in legs if leg not in s["J_legs"][label]]
+    if missing:
+        raise ValueError(f"{folder}: the evaluation of {label} lacks leg(s) {', '.join(missing)}")
+    n = s.get("fits", {}).get(label, {}).get("draws_used", s.get("n_draws"))
+    how = (f"from the evaluation in {folder} ({n} posterior draws, one start in every {s.get('start_stride', 1)} samples; "
+           f"fit {s.get('fits', {}).get(label, {}).get('folder', '?')})")
+    return s["J"].get(label, {}), s["J_legs"][label], how
+
+
+# ============================================================================ figures
+
+
+def _data_uri(fig) -> str:
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _plot_shrinkage(subject: str, legs: list[str], params: dict):
+    """Forest plot in prior scales: population, the subject and its legs, per parameter component."""
+    import matplotlib.pyplot as plt
+
+    labels = [k for k, v in params[legs[0]]["params"].items() if v["prior"] is not None]
+    rows = [("population", "population", None), (f"subject {subject}", "subject", None)]
+    rows += [(leg, "leg", leg) for leg in legs]
+    colours = {"population": "0.35", "subject": "tab:purple", "leg": "tab:blue"}
+    n = len(rows)
+    fig, ax = plt.subplots(figsize=(7.5, 0.32 * n * len(labels) + 1.2))
+    ax.axvspan(-_Z90, _Z90, color="0.92", zorder=0, label="prior 90 %")
+    ax.axvline(0.0, color="0.6", lw=0.8)
+    ticks = []
+    for j, label in enumerate(labels):
+        base = j * (n + 1)
+        ticks.append(base + (n - 1) / 2)
+        for k, (name, level, leg) in enumerate(rows):
+            q = params[leg or legs[0]]["params"][label][level]
+            if q is None:
+                continue
+            prior = params[legs[0]]["params"][label]["prior"]
+            lo, med, hi = (_standardise(q[x], prior) for x in ("lo", "median", "hi"))
+            y = base + k
+            ax.plot([lo, hi], [y, y], "-", color=colours[level], lw=2)
+            first = j == 0 and (level != "leg" or k == 2)
+            ax.plot([med], [y], "o", color=colours[level], ms=4,
+                    label=(name if level != "leg" else "legs: " + ", ".join(legs)) if first else None)
+    ax.set_yticks(ticks)
+    ax.set_yticklabels(labels)
+    ax.invert_yaxis()
+    ax.set_xlabel("(value − prior centre) / prior scale   (log value for log-normal priors)")
+    ax.legend(fontsize=7, loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=4, frameon=False)
+    fig.tight_layout()
+    return fig
+
+
+def _plot_delay_posterior(legs: list[str], fit_summary: dict):
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(legs), figsize=(3.6 * len(legs), 2.8), squeeze=False, sharey=True)
+    for ax, leg in zip(axes[0], legs):
+        p = np.asarray(fit_summary["legs"][leg]["delay_posterior"])
+        ax.bar(np.arange(p.size), p, color="tab:blue")
+        ax.set_xticks(np.arange(p.size))
+        ax.set_xlabel("delay d [samples of 10 ms]")
+        ax.set_title(f"{leg}: P(d | data)", fontsize=9)
+    axes[0, 0].set_ylabel("posterior probability")
+    fig.tight_layout()
+    return fig
+
+
+def _paper_table_v(label: str) -> tuple[str, dict]:
+    base = label.split("+")[0]
+    return base, {tr: by_model[base] for tr, by_model in TABLE_V.items() if base in by_model}
+
+
+def _plot_j_legs(legs: list[str], J_legs: dict, label: str):
+    """J against horizon per leg: median and 90 % band per trial, the paper's Table V (mean ± s.d.) beside."""
+    import matplotlib.pyplot as plt
+
+    from ._plots import _horizon_axis
+
+    base, paper = _paper_table_v(label)
+    fig, axes = plt.subplots(1, len(legs), figsize=(4.4 * len(legs), 3.6), squeeze=False, sharey=True)
+    for ax, leg in zip(axes[0], legs):
+        for c, (tr, hv) in enumerate(sorted(J_legs[leg].items(), key=lambda kv: int(kv[0]))):
+            colour = _TRIAL_COLOURS[c % len(_TRIAL_COLOURS)]
+            items = sorted(hv.items(), key=lambda kv: int(kv[0]))
+            hs = [int(h) for h, _ in items]
+            ax.plot(hs, [v["median"] for _, v in items], "o-", color=colour, label=f"trial {tr} (median, 90 %)")
+            ax.fill_between(hs, [v["lo"] for _, v in items], [v["hi"] for _, v in items], color=colour, alpha=0.25)
+            if tr in paper:
+                ph = sorted(paper[tr])
+                ax.errorbar([h * 1.04 for h in ph], [paper[tr][h][0] for h in ph], yerr=[paper[tr][h][1] for h in ph],
+                            fmt=":x", capsize=3, color=colour, label=f"paper {base}, trial {tr} (mean ± s.d.)")
+        _horizon_axis(ax)
+        ax.set_title(leg, fontsize=9)
+    axes[0, 0].set_ylabel("J_φ,p [deg]")
+    axes[0, -1].legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def _prediction_case(cohort, leg: str):
+    numbers = [t.trial for t in cohort.trials_of(leg)]
+    return cohort.get(leg, 2 if 2 in numbers else numbers[0])
+
+
+def _plot_leg_predictions(fit, cohort, leg: str, J_legs: dict, n_draws: int, seed: int):
+    """Measured angle and the angle predicted 100 ms and 1 s ahead: median and 90 % band over draws."""
+    import matplotlib.pyplot as plt
+
+    from ._fitio import posterior_models
+    from ._posterior_eval import posterior_predictions
+
+    trial = _prediction_case(cohort, leg)
+    dt = trial.sampling_period_s
+    start_s = min(PREDICTION_WINDOW_S[0], max(0.0, trial.n_samples * dt - PREDICTION_WINDOW_S[1]))
+    i0 = int(round(start_s / dt))
+    i1 = min(trial.n_samples, i0 + int(round(PREDICTION_WINDOW_S[1] / dt)))
+    models, _ = posterior_models(fit.idata, fit.model, leg, n_draws, seed)
+    fig, axes = plt.subplots(len(PREDICTION_HORIZONS), 1, figsize=(9, 2.5 * len(PREDICTION_HORIZONS)), sharex=True)
+    for ax, p in zip(np.atleast_1d(axes), PREDICTION_HORIZONS):
+        starts = np.arange(max(0, i0 - p), i1 - p)
+        pred = posterior_predictions(models, trial, starts, (p,))[:, :, 0]  # (draws, starts)
+        t = trial.time_s[starts + p]
+        lo, med, hi = np.quantile(pred, (0.05, 0.5, 0.95), axis=0)
+        ax.plot(trial.time_s[i0:i1], trial.angle_deg[i0:i1], "k-", lw=1.1, label="measured")
+        ax.plot(t, med, "--", color="tab:green", lw=1.1, label=f"predicted {HORIZON_MS.get(p, p * 10)} ms ahead (median)")
+        ax.fill_between(t, lo, hi, color="tab:green", alpha=0.3, lw=0, label="90 % band over draws")
+        ax.set_xlim(trial.time_s[i0], trial.time_s[i1 - 1])
+        j = J_legs.get(leg, {}).get(str(trial.trial), {}).get(str(HORIZON_MS.get(p, p * 10)))
+        title = f"{HORIZON_MS.get(p, p * 10)} ms ahead"
+        if j:
+            title += f": J = {j['median']:.2f}° [{j['lo']:.2f}, {j['hi']:.2f}] over the trial"
+        ax.set_title(title, fontsize=9)
+        ax.set_ylabel("angle [deg]")
+        ax.legend(fontsize=7, loc="upper right")
+    np.atleast_1d(axes)[-1].set_xlabel("time [s]")
+    fitted = "fitted on it" if trial.trial in fit.desc["trials"] else "not fitted on it"
+    fig.suptitle(f"{leg}, trial {trial.trial} ({fitted}): measured and predicted knee angle", fontsize=10)
+    fig.tight_layout()
+    return fig, trial.trial
+
+
+# ============================================================================ HTML
+
+_STYLE = """
+body{font-family:system-ui,sans-serif;margin:1.5em auto;max-width:1100px;padding:0 1em;color:#222}
+h1{font-size:1.5em}h2{font-size:1.25em;border-bottom:1px solid #ccc;margin-top:1.6em}h3{font-size:1.05em}
+table{border-collapse:collapse;margin:.6em 0;font-size:.9em}
+th,td{border:1px solid #ccc;padding:.2em .5em;text-align:left;vertical-align:top}
+th{background:#f2f2f2}td.num{text-align:right;font-variant-numeric:tabular-nums}
+.ci{white-space:nowrap;color:#444}.doc{display:inline-block;font-size:.85em;color:#555;max-width:18em}
+img{max-width:100%;display:block;margin:.6em 0}
+.warning{border:3px solid #c00;background:#fee;color:#600;padding:.6em 1em;margin:1em 0}
+.warning strong{color:#c00}.ok{color:#060}.fail{color:#c00;font-weight:bold}
+.note{color:#555;font-size:.9em}nav a{margin-right:1em}
+"""
+
+_SCRIPT = """
+window.addEventListener('load', function () {
+  var imgs = document.getElementsByTagName('img'), ok = 0;
+  for (var i = 0; i < imgs.length; i++) { if (imgs[i].complete && imgs[i].naturalWidth > 0) ok++; }
+  document.body.setAttribute('data-figures', String(imgs.length));
+  document.body.setAttribute('data-figures-loaded', String(ok));
+});
+"""
+
+
+def _e(x) -> str:
+    return html.escape(str(x), quote=True)
+
+
+def _num(x) -> str:
+    if x is None:
+        return "–"
+    x = float(x)
+    if not np.isfinite(x):
+        return "–" if np.isnan(x) else str(x)
+    return f"{x:.4g}"
+
+
+def _q(q: dict | None) -> str:
+    if not q:
+        return "–"
+    return f"{_num(q['median'])} <span class=\"ci\">[{_num(q['lo'])}, {_num(q['hi'])}]</span>"
+
+
+def _table(header: list[str], rows: list[list[str]], num_cols=()) -> str:
+    """Rows of already-escaped cells."""
+    head = "".join(f"<th>{_e(h)}</th>" for h in header)
+    body = "".join(
+        "<tr>" + "".join(f'<td class="num">{c}</td>' if j in num_cols else f"<td>{c}</td>" for j, c in enumerate(r)) + "</tr>"
+        for r in rows
+    )
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def _figure(uri: str, alt: str) -> str:
+    return f'<img src="{uri}" alt="{_e(alt)}">'
+
+
+def _page(title: str, body: list[str]) -> str:
+    return (
+        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+        f"<title>{_e(title)}</title><style>{_STYLE}</style><script>{_SCRIPT}</script></head>\n"
+        "<body>\n" + "\n".join(body) + "\n</body></html>\n"
+    )
+
+
+def _warning_box(fit_summary: dict) -> str:
+    diag = fit_summary["diagnostics"]
+    if diag.get("ok"):
+        return ""
+    items = "".join(f"<li>{_e(p)}</li>" for p in diag.get("problems", []))
+    advice = "".join(f"<li>{_e(a)}</li>" for a in diag.get("advice", []))
+    return (
+        '<div class="warning" id="fit-warning"><strong>This fit failed its convergence checks: '
+        "do not trust these intervals.</strong><ul>" + items + "</ul>"
+        + (f"<p>Advice:</p><ul>{advice}</ul>" if advice else "") + "</div>"
+    )
+
+
+def _diagnostics_section(fit_summary: dict) -> str:
+    d = fit_summary["diagnostics"]
+    th = d.get("thresholds", {})
+
+    def verdict(good: bool) -> str:
+        return '<span class="ok">pass</span>' if good else '<span class="fail">FAIL</span>'
+
+    def finite(x) -> bool:
+        return x is not None and np.isfinite(float(x))
+
+    rows = [
+        ["R-hat, largest", _num(d.get("rhat_max")), f"&lt; {_num(th.get('rhat_max'))}",
+         verdict(finite(d.get("rhat_max")) and d["rhat_max"] < th.get("rhat_max", 1.01))],
+        ["bulk ESS, smallest", _num(d.get("ess_bulk_min")), f"≥ {_num(th.get('ess_min'))}",
+         verdict(finite(d.get("ess_bulk_min")) and d["ess_bulk_min"] >= th.get("ess_min", 0))],
+        ["tail ESS, smallest", _num(d.get("ess_tail_min")), f"≥ {_num(th.get('ess_min'))}",
+         verdict(finite(d.get("ess_tail_min")) and d["ess_tail_min"] >= th.get("ess_min", 0))],
+        ["divergent transitions", _e(d.get("divergences")), f"≤ {_e(th.get('divergences', 0))}",
+         verdict(d.get("divergences", 0) <= th.get("divergences", 0))],
+        ["E-BFMI, smallest", _num(d.get("bfmi_min")), f"&gt; {_num(th.get('bfmi_min'))}",
+         verdict(finite(d.get("bfmi_min")) and d["bfmi_min"] > th.get("bfmi_min", 0.3))],
+    ]
+    head = (f"<p>{_e(d.get('chains'))} chain(s) of {_e(d.get('draws'))} draws. Overall: "
+            + ('<span class="ok">the fit passed its checks.</span>' if d.get("ok")
+               else '<span class="fail">the fit FAILED its checks.</span>') + "</p>")
+    return '<h2 id="diagnostics">Sampling diagnostics</h2>' + head + _table(["check", "value", "needed", ""], rows, (1, 2))
+
+
+def _diagnosis_section(diagnosis: dict | None) -> str:
+    if not diagnosis:
+        return ""
+    parts = ['<h2 id="diagnosis">Which effect is missing: the diagnosis ranking</h2>',
+             f'<p class="note">From {_e(diagnosis["folder"])}.</p>']
+    for block in diagnosis["blocks"]:
+        s = block["summary"]
+        if block.get("title"):
+            parts.append(f"<h3>{_e(block['title'])}</h3>")
+        parts.append(f"<p>Model screened: {_e(s.get('model', '?'))}. <strong>Verdict: {_e(s.get('verdict', '?'))}.</strong> "
+                     f"{_e(s.get('sentence', ''))}</p>")
+        rows = []
+        for k, r in enumerate(s.get("ranking", []), 1):
+            j5, j10 = r.get("J_500ms", {}), r.get("J_1000ms", {})
+            rows.append([
+                str(k), _e(r.get("effect")), f"{_num(r.get('delta_elpd'))} ± {_num(r.get('delta_elpd_se'))}",
+                f"{_q(j5.get('before'))} → {_q(j5.get('after'))}", f"{_q(j10.get('before'))} → {_q(j10.get('after'))}",
+                "<strong>yes</strong>" if r.get("clears_bar") else "no",
+            ])
+        if rows:
+            parts.append(_table(["rank", "effect", "ΔELPD ± SE", "J 500 ms before → after [deg]",
+                                 "J 1000 ms before → after [deg]", "clears the bar"], rows, (2, 3, 4)))
+    if diagnosis.get("final_model"):
+        parts.append(f"<p>Final model of the loop: <strong>{_e(diagnosis['final_model'])}</strong>.</p>")
+    if diagnosis.get("mismatch"):
+        parts.append(f'<p class="note">{_e(diagnosis["mismatch"])}</p>')
+    return "\n".join(parts)
+
+
+def _read_diagnosis(folder, label: str) -> dict:
+    """A ``quadshank diagnose`` summary (one ranking) or a ``discover`` summary (one per round)."""
+    folder = Path(folder)
+    s = read_json(folder / "summary.json")
+    if "ranking" in s:
+        blocks = [{"title": None, "summary": s}]
+        models = [s.get("model")]
+    elif "rounds" in s:
+        blocks = []
+        for k, r in enumerate(s["rounds"], 1):
+            path = folder / f"round-{k}" / "summary.json"
+            rs = read_json(path) if path.exists() else {k2: r.get(k2) for k2 in ("model", "verdict", "sentence")}
+            blocks.append({"title": f"round {k}", "summary": rs})
+        models = [r.get("model") for r in s["rounds"]]
+    else:
+        raise ValueError(f"{folder}: not an output of `quadshank diagnose` or `discover` (summary.json has no ranking)")
+    out = {"folder": str(folder), "blocks": blocks, "final_model": s.get("final_model")}
+    if label.split("+")[0] not in {str(m).split("+")[0] for m in models}:
+        out["mismatch"] = f"The diagnosis screened {', '.join(map(str, models))}; this fit is of {label}."
+    return out
+
+
+def _param_rows(rows: dict) -> list[list[str]]:
+    return [
+        [f"<code>{_e(name)}</code>", _e(r["units"]), _q(r["leg"]), _q(r["subject"]), _q(r["population"]),
+         f'<span class="doc">{_e(r.get("doc") or "")}</span>']
+        for name, r in rows.items()
+    ]
+
+
+def _delay_text(s: dict) -> str:
+    p = s["delay_posterior"]
+    mode = int(np.argmax(p))
+    return f"mode d = {mode} samples ({mode * 10} ms), P = {p[mode]:.2f}"
+
+
+def _j_rows(J_leg: dict, label: str) -> list[list[str]]:
+    base, paper = _paper_table_v(label)
+    rows = []
+    for tr, hv in sorted(J_leg.items(), key=lambda kv: int(kv[0])):
+        for h, v in sorted(hv.items(), key=lambda kv: int(kv[0])):
+            pv = paper.get(tr, {}).get(int(h))
+            rows.append([_e(tr), _e(h), _q(v), f"{pv[0]} ({pv[1]})" if pv else "–"])
+    return rows
+
+
+def _delay_angle_html(da: dict) -> str:
+    thr = da.get("threshold_deg")
+    return (f"P(the delay changes with angle) = {da['change_probability']:.2f}; shift posterior "
+            + ", ".join(f"P({k}) = {p:.2f}" for k, p in enumerate(da.get("shift_posterior", [])))
+            + (f"; threshold {_q(thr)} deg" if thr else "; no draw with a change inside the pulses' angle range"))
+
+
+# ============================================================================ the command
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]", "_", name)
+
+
+def _leg_csv(rows: dict) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    levels = ("leg", "subject", "population")
+    w.writerow(["parameter", "units"] + [f"{lv}_{k}" for lv in levels for k in ("median", "lo", "hi")])
+    for name, r in rows.items():
+        w.writerow([name, r["units"]] + [
+            "" if r[lv] is None else repr(float(r[lv][k])) for lv in levels for k in ("median", "lo", "hi")
+        ])
+    return buf.getvalue()
+
+
+def run_report(
+    fit_dir,
+    out,
+    *,
+    cohort=None,
+    evaluation=None,
+    diagnosis=None,
+    n_draws: int = 50,
+    start_stride: int = 10,
+    seed: int = 0,
+    progress: bool = False,
+) -> dict:
+    """Write the report of the fit in ``fit_dir`` into ``out``; returns its summary.
+
+    ``cohort``: the fit's data, for the prediction figures and, without
+    ``evaluation``, for J (loaded from the folder the fit records when None).
+    ``evaluation``: a ``quadshank evaluate --fit`` folder to take J's bands from;
+    otherwise J is computed here over ``n_draws`` posterior draws from every
+    ``start_stride``-th start.  ``diagnosis``: a ``quadshank diagnose`` or
+    ``discover`` folder whose ranking is shown.
+    """
+    from ._posterior_eval import _check_legs, load_fits, posterior_j, summarise_j
+    from ._plots import plot_delay_angle
+    from ._progress import progress_bar
+
+    if n_draws < 1:
+        raise ValueError(f"--draws must be at least 1, not {n_draws}")
+    if start_stride < 1:
+        raise ValueError(f"--start-stride must be at least 1, not {start_stride}")
+    t0 = time.perf_counter()
+    fit_dir, out = Path(fit_dir), Path(out)
+    fit = load_fits([fit_dir])[0]
+    fs, desc, label = fit.summary, fit.desc, fit.label
+    legs = list(desc["legs"])
+    diag_info = _read_diagnosis(diagnosis, label) if diagnosis else None
+    if cohort is None:
+        from ._interchange import load_cohort
+
+        if not fs.get("data"):
+            raise ValueError(f"{fit_dir}: the fit does not record its data; give the data (--data)")
+        cohort = load_cohort(Path(fs["data"]))
+    _check_legs([fit], cohort)
+    evaluated = _j_from_evaluation(evaluation, label, legs) if evaluation else None
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "summary.json").unlink(missing_ok=True)
+
+    if evaluated:
+        J, J_legs, j_how = evaluated
+    else:
+        draws = posterior_j([fit], cohort, n_draws=n_draws, start_stride=start_stride, seed=seed, progress=progress)
+        Jc, Jl = summarise_j(draws)
+        J, J_legs = Jc[label], Jl[label]
+        used = min(n_draws, fit.idata.posterior.sizes["chain"] * fit.idata.posterior.sizes["draw"])
+        j_how = (f"computed for this report over {used} posterior draws, one start in every {start_stride} samples "
+                 f"(eq. 12 uses every start; `quadshank evaluate --fit` with --start-stride 1 for the full count)")
+    params = leg_parameters(fit.idata, desc, fs)
+    spreads = _population_spreads(fit.idata, desc)
+    subjects = list(dict.fromkeys(params[leg]["subject"] for leg in legs))
+    subject_legs = {s: [leg for leg in legs if params[leg]["subject"] == s] for s in subjects}
+    pages = {s: f"subject-{_safe(s)}.html" for s in subjects}
+    diag_ok = bool(fs["diagnostics"].get("ok"))
+    fitted_trials = ", ".join(map(str, desc["trials"]))
+    base, paper = _paper_table_v(label)
+    header = (f'<p class="note">Model <strong>{_e(label)}</strong> ({_e(", ".join(desc["effects"]))}), fit {_e(fit_dir)}, '
+              f"fitted on trial(s) {_e(fitted_trials)}; intervals are 90 % (5 % to 95 % quantiles) around the posterior "
+              f"median. J_φ,p {_e(j_how)}.</p>")
+    files: list[str] = []
+
+    # ---------------------------------------------------------------- per leg: CSV and JSON
+    for leg in legs:
+        s = fs["legs"][leg]
+        doc = {
+            "leg": leg, "subject": params[leg]["subject"], "model": label, "fit": str(fit_dir),
+            "interval": list(INTERVAL), "diagnostics_ok": diag_ok,
+            "params": {k: {kk: v[kk] for kk in ("units", "leg", "subject", "population")} for k, v in params[leg]["params"].items()},
+            "delay_posterior": s["delay_posterior"], "delay_mode_samples": s["delay_mode_samples"],
+            "J": J_legs.get(leg, {}),
+        }
+        if "delay_angle" in s:
+            doc["delay_angle"] = s["delay_angle"]
+        atomic_write_text(out / "legs" / f"{_safe(leg)}.csv", _leg_csv(params[leg]["params"]))
+        write_json(out / "legs" / f"{_safe(leg)}.json", doc)
+        files += [f"legs/{_safe(leg)}.csv", f"legs/{_safe(leg)}.json"]
+
+    warning = _warning_box(fs)
+    diag_html = _diagnostics_section(fs)
+    diagnosis_html = _diagnosis_section(diag_info)
+    nav = '<nav><a href="index.html">cohort index</a>' + "".join(
+        f'<a href="{_e(p)}">subject {_e(s)}</a>' for s, p in pages.items()) + "</nav>"
+    figures_per_page: dict[str, int] = {}
+
+    # ---------------------------------------------------------------- subject pages
+    for subject in progress_bar(subjects, desc="report pages", enabled=progress):
+        sl = subject_legs[subject]
+        body = [nav, f"<h1>Subject {_e(subject)}: credible parameters of {_e(label)}</h1>", warning, header]
+        figs = 0
+        body.append('<h2 id="shrinkage">Shrinkage: legs, subject and population</h2>')
+        body.append('<p class="note">Each parameter in prior scales from the prior\'s centre (log value for a '
+                    "log-normal prior); grey: the prior's 90 % interval. Legs pulled towards their subject and the "
+                    "population show how much the hierarchy pools.</p>")
+        body.append(_figure(_data_uri(_plot_shrinkage(subject, sl, params)), f"shrinkage of subject {subject}"))
+        body.append('<h2 id="delay">Delay posterior</h2>')
+        body.append(_figure(_data_uri(_plot_delay_posterior(sl, fs)), f"delay posterior of subject {subject}"))
+        figs += 2
+        if any("delay_angle" in fs["legs"][leg] for leg in sl):
+            body.append('<h2 id="delay-angle">Delay against knee angle</h2>')
+            sub = {"legs": {leg: fs["legs"][leg] for leg in sl if "delay_angle" in fs["legs"][leg]}}
+            body.append(_figure(_data_uri(plot_delay_angle(sub, label)), f"delay-angle curve of subject {subject}"))
+            figs += 1
+        body.append('<h2 id="j">Prediction error J_φ,p against horizon</h2>')
+        body.append(f'<p class="note">Per leg and trial, median and 90 % band over posterior draws; dotted: the paper\'s '
+                    f"Table V for {_e(base)}, mean (s.d.) over its five legs"
+                    + ("" if paper else " (the paper reports no such model)") + ".</p>")
+        body.append(_figure(_data_uri(_plot_j_legs(sl, J_legs, label)), f"J against horizon, subject {subject}"))
+        figs += 1
+        for leg in sl:
+            s = fs["legs"][leg]
+            body.append(f'<h2 id="leg-{_e(_safe(leg))}">Leg {_e(leg)}</h2>')
+            body.append(f"<p>Delay: {_e(_delay_text(s))}. Files: "
+                        f'<a href="legs/{_e(_safe(leg))}.csv">CSV</a>, <a href="legs/{_e(_safe(leg))}.json">JSON</a>.</p>')
+            if "delay_angle" in s:
+                body.append(f"<p>{_delay_angle_html(s['delay_angle'])}.</p>")
+            body.append(f"<h3>Credible parameters of {_e(leg)}</h3>")
+            body.append(_table(["parameter", "units", f"leg {leg}", f"subject {subject}", "population", "meaning"],
+                               _param_rows(params[leg]["params"]), (2, 3, 4)))
+            body.append(f"<h3>J_φ,p of {_e(leg)} [deg]</h3>")
+            body.append(_table(["trial", "horizon [ms]", "median [90 %]", f"paper {base}: mean (s.d.)"],
+                               _j_rows(J_legs.get(leg, {}), label), (2, 3)))
+            fig, trial_no = _plot_leg_predictions(fit, cohort, leg, J_legs, n_draws, seed)
+            body.append(f"<h3>Measured and predicted angle, {_e(leg)}, trial {trial_no}</h3>")
+            body.append(_figure(_data_uri(fig), f"predictions of {leg}"))
+            figs += 1
+        body += [diag_html, diagnosis_html]
+        atomic_write_text(out / pages[subject], _page(f"quadshank report: subject {subject}", body))
+        figures_per_page[pages[subject]] = figs
+        files.append(pages[subject])
+
+    # ---------------------------------------------------------------- index
+    body = [nav, f"<h1>Credible parameters of {_e(label)}: cohort</h1>", warning, header]
+    rows = []
+    for leg in legs:
+        s = fs["legs"][leg]
+        subject = params[leg]["subject"]
+        j = J_legs.get(leg, {})
+        tr = sorted(j, key=int)[-1] if j else None
+        rows.append([
+            _e(subject), f'<a href="{_e(pages[subject])}#leg-{_e(_safe(leg))}">{_e(leg)}</a>', _e(_delay_text(s)),
+            (f"trial {_e(tr)}: {_q(j[tr].get('1000'))}" if tr else "–"),
+            '<span class="ok">passed</span>' if diag_ok else '<span class="fail">FAILED</span>',
+        ])
+    body.append('<h2 id="legs">Subjects and legs</h2>')
+    body.append(_table(["subject", "leg", "delay", "J at 1 s [deg]", "fit checks"], rows, (3,)))
+    body.append('<h2 id="population">Population-level parameters</h2>')
+    body.append('<p class="note">Population mean, and the spreads between subjects and between the legs of a subject '
+                "(standard deviations on the prior's scale: log units for a log-normal prior).</p>")
+    any_leg = params[legs[0]]["params"]
+    prow = [[f"<code>{_e(k)}</code>", _e(v["units"]), _q(v["population"]), _q(spreads.get(k, {}).get("sd_subject")),
+             _q(spreads.get(k, {}).get("sd_leg"))] for k, v in any_leg.items() if v["prior"] is not None]
+    body.append(_table(["parameter", "units", "population mean", "between subjects", "between legs"], prow, (2, 3, 4)))
+    index_figs = 0
+    if J:
+        body.append('<h2 id="table-v">Table V (posterior): J_φ,p of the mean over legs</h2>')
+        body.append(f'<p class="note">Median and 90 % band over posterior draws of the mean over the fit\'s legs; dotted: '
+                    f"the paper's Table V for {_e(base)}, mean (s.d.) over its five legs"
+                    + ("" if paper else " (the paper reports no such model)") + ".</p>")
+        body.append(_figure(_data_uri(_plot_j_legs(["mean over legs"], {"mean over legs": J}, label)),
+                            "posterior Table V against the paper's"))
+        index_figs += 1
+        trows = []
+        for tr, hv in sorted(J.items(), key=lambda kv: int(kv[0])):
+            for h, v in sorted(hv.items(), key=lambda kv: int(kv[0])):
+                pv = paper.get(tr, {}).get(int(h))
+                trows.append([_e(tr), _e(h), _q(v), f"{pv[0]} ({pv[1]})" if pv else "–"])
+        body.append(_table(["trial", "horizon [ms]", "median [90 %] [deg]", f"paper {base}: mean (s.d.)"], trows, (2, 3)))
+    if "delay_angle_population" in fs:
+        body.append('<h2 id="delay-angle">Delay against knee angle, legs pooled</h2>')
+        body.append(_figure(_data_uri(plot_delay_angle({"legs": {}, "delay_angle_population": fs["delay_angle_population"]},
+                                                       label)), "population delay-angle curve"))
+        index_figs += 1
+    body += [diag_html, diagnosis_html]
+    atomic_write_text(out / "index.html", _page(f"quadshank report: {label}", body))
+    figures_per_page["index.html"] = index_figs
+    files.insert(0, "index.html")
+
+    summary = {
+        "fit": str(fit_dir),
+        "model": label,
+        "pages": {"index": "index.html", **{f"subject {s}": p for s, p in pages.items()}},
+        "figures": figures_per_page,
+        "legs": {leg: {"subject": params[leg]["subject"], "page": pages[params[leg]["subject"]],
+                       "csv": f"legs/{_safe(leg)}.csv", "json": f"legs/{_safe(leg)}.json"} for leg in legs},
+        "files": files,
+        "diagnostics_ok": diag_ok,
+        "J_source": "evaluation" if evaluation else "computed",
+        "J_how": j_how,
+        "n_draws": n_draws,
+        "start_stride": start_stride,
+        "diagnosis": str(diagnosis) if diagnosis else None,
+        "report_seconds": time.perf_counter() - t0,
+    }
+    write_json(out / "summary.json", summary)
+    return summary

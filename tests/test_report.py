@@ -1,0 +1,283 @@
+"""`quadshank report`: per-subject HTML pages, cohort index, credible parameters as CSV and JSON.
+
+One tiny fit (model 3, two subjects' legs, 30 s of trial 1, one chain) is far
+too short to pass its checks, which is what the warning needs.  A copy of it
+whose summary says it passed, with a delay–angle summary put into it, is
+reported with a hand-made evaluation and diagnosis, so every section of the
+page is drawn.  The pages are opened in headless Chromium (Debian's package,
+installed by ``make test``): every figure must decode.
+"""
+
+import csv
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import quadshank._report as report
+from quadshank._cli import main
+from quadshank._fitio import INTERVAL, load_fit
+
+LEGS = ("TN-left", "JM-left")
+CHROMIUM = Path("/usr/bin/chromium")
+SNEAKY = "<script>alert('x')</script> & more"
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory):
+    root = tmp_path_factory.mktemp("report")
+    data, fit = root / "data", root / "fit"
+    assert main(["-q", "simulate", "--out", str(data), "--minutes", "0.5", "--legs", ",".join(LEGS),
+                 "--trials", "1"]) == 0
+    assert main(["-q", "fit", str(data), "--model", "model3", "--chains", "1", "--warmup", "40", "--draws", "40",
+                 "--out", str(fit)]) == 3  # one chain: the fit fails its checks
+    out = root / "report"
+    assert main(["-q", "report", str(fit), "--out", str(out), "--draws", "10", "--start-stride", "20"]) == 0
+    return {"root": root, "data": data, "fit": fit, "out": out}
+
+
+@pytest.fixture(scope="module")
+def passing(made):
+    """A copy of the fit whose summary passes its checks and has an angle-dependent delay, reported with an
+    evaluation's J and a diagnosis ranking given by hand."""
+    root = made["root"]
+    fit = root / "fit-ok"
+    shutil.copytree(made["fit"], fit)
+    s = json.loads((fit / "summary.json").read_text())
+    s["diagnostics"].update(ok=True, problems=[], advice=[])
+    s["banner"] = None
+    grid = list(range(-40, 61))
+    for k, leg in enumerate(LEGS):
+        curve = [4.0 - (a < -20) for a in grid]
+        s["legs"][leg]["delay_angle"] = {
+            "change_probability": 0.9, "shift_posterior": [0.1, 0.8, 0.1], "pulse_angle_range_deg": [-35.0, 40.0],
+            "threshold_deg": {"median": -20.0, "lo": -22.0, "hi": -18.0}, "angle_deg": grid,
+            "median": curve, "lo": [c - 0.5 for c in curve], "hi": curve,
+        }
+    s["delay_angle_population"] = {"angle_deg": grid, "median": [4.0] * len(grid), "lo": [3.0] * len(grid),
+                                   "hi": [4.0] * len(grid)}
+    (fit / "summary.json").write_text(json.dumps(s))
+
+    evaluation = root / "eval"
+    evaluation.mkdir()
+    band = lambda m: {"median": m, "lo": m - 0.25, "hi": m + 0.5}  # noqa: E731
+    j_legs = {leg: {"1": {h: band(1.0 + k + int(h) / 1000) for h in ("100", "250", "500", "1000")}}
+              for k, leg in enumerate(LEGS)}
+    (evaluation / "summary.json").write_text(json.dumps({
+        "J": {"model3": {"1": {h: band(2.0) for h in ("100", "250", "500", "1000")}}},
+        "J_legs": {"model3": j_legs}, "n_draws": 7, "start_stride": 3,
+        "fits": {"model3": {"folder": str(fit), "draws_used": 7}},
+    }))
+    diagnosis = root / "diag"
+    diagnosis.mkdir()
+    row = lambda effect, d, clears: {  # noqa: E731
+        "effect": effect, "delta_elpd": d, "delta_elpd_se": 2.0, "clears_bar": clears,
+        "J_500ms": {"before": band(5.0), "after": band(4.0)}, "J_1000ms": {"before": band(7.0), "after": band(6.0)},
+    }
+    (diagnosis / "summary.json").write_text(json.dumps({
+        "model": "model3", "verdict": "potentiation", "sentence": SNEAKY,
+        "ranking": [row("potentiation", 41.5, True), row("fatigue_of_sorts", 1.5, False)],
+    }))
+    out = root / "report-ok"
+    out.mkdir()
+    (out / "summary.json").write_text("{}")  # a previous report's: removed first, written anew last
+    assert main(["-q", "report", str(fit), "--out", str(out), "--evaluation", str(evaluation),
+                 "--diagnosis", str(diagnosis), "--draws", "5"]) == 0
+    return {"fit": fit, "out": out, "j_legs": j_legs}
+
+
+def _pages(out: Path) -> list[Path]:
+    s = json.loads((out / "summary.json").read_text())
+    return [out / p for p in s["pages"].values()]
+
+
+def _leg_sections(page: str) -> dict[str, str]:
+    """HTML of each leg's section of a subject page (up to the next h2)."""
+    parts = re.split(r'(?=<h2 id=")', page)
+    return {m.group(1): part for part in parts if (m := re.match(r'<h2 id="leg-([^"]+)">', part))}
+
+
+def test_every_leg_page_lists_every_parameter_with_units(made):
+    out = made["out"]
+    summary = json.loads((out / "summary.json").read_text())
+    _, _, desc = load_fit(made["fit"])
+    expected = {name: info["units"] for name, info in {**desc["params"], **desc["noise"]}.items()}
+    assert len(expected) == 9  # model 3: 7 parameters, sigma and nu
+    assert set(summary["legs"]) == set(LEGS)
+    seen = set()
+    for leg, info in summary["legs"].items():
+        page = (out / info["page"]).read_text()
+        section = _leg_sections(page)[leg]
+        for name, units in expected.items():
+            row = re.search(rf"<tr><td><code>{re.escape(name)}</code></td><td>([^<]*)</td>(.*?)</tr>", section)
+            assert row, (leg, name)
+            assert row.group(1) == units, (leg, name)
+            cells = re.findall(r'<td class="num">(.*?)</td>', row.group(2))
+            assert len(cells) == 3 and re.match(r"-?[0-9]", cells[0]), (leg, name, cells)  # leg, subject, population
+            hierarchical = name in desc["params"]
+            assert all(c != "–" for c in cells) == hierarchical, (leg, name, cells)
+        seen.add(leg)
+    assert seen == set(LEGS)
+    assert summary["pages"] == {"index": "index.html", "subject TN": "subject-TN.html", "subject JM": "subject-JM.html"}
+    for f in summary["files"]:
+        assert (out / f).is_file(), f
+    index = (out / "index.html").read_text()
+    for leg, info in summary["legs"].items():
+        assert f'href="{info["page"]}#leg-{leg}"' in index
+
+
+def test_csv_and_json_hold_the_fit_summary_numbers_and_the_levels(made):
+    out = made["out"]
+    fs = json.loads((made["fit"] / "summary.json").read_text())
+    idata, _, desc = load_fit(made["fit"])
+    post = idata.posterior
+    for i, leg in enumerate(LEGS):
+        rows = {r["parameter"]: r for r in csv.DictReader((out / "legs" / f"{leg}.csv").open())}
+        doc = json.loads((out / "legs" / f"{leg}.json").read_text())
+        assert set(rows) == set(fs["legs"][leg]["params"]) == set(doc["params"])
+        assert doc["delay_posterior"] == fs["legs"][leg]["delay_posterior"]
+        assert doc["subject"] == leg.split("-")[0] and doc["diagnostics_ok"] is False
+        subject = desc["subjects"].index(doc["subject"])
+        for name, q in fs["legs"][leg]["params"].items():
+            for k in ("median", "lo", "hi"):
+                assert float(rows[name][f"leg_{k}"]) == q[k] == doc["params"][name]["leg"][k], (leg, name, k)
+            assert rows[name]["units"] == q["units"] == doc["params"][name]["units"]
+            if name in ("sigma", "nu"):
+                assert rows[name]["subject_median"] == rows[name]["population_median"] == ""
+                assert doc["params"][name]["subject"] is None and doc["params"][name]["population"] is None
+                continue
+            # the subject and population levels, summarised from fit.nc another way
+            for level, draws in (("subject", post[f"{name}_subject"].values[..., subject]),
+                                 ("population", post[f"{name}_mu"].values)):
+                lo, hi = np.quantile(draws.ravel(), INTERVAL)
+                want = {"median": np.median(draws), "lo": lo, "hi": hi}
+                for k in ("median", "lo", "hi"):
+                    assert float(rows[name][f"{level}_{k}"]) == pytest.approx(want[k], rel=1e-9), (leg, name, level)
+                    assert doc["params"][name][level][k] == float(rows[name][f"{level}_{k}"])
+                assert doc["params"][name][level]["lo"] <= doc["params"][name][level]["median"] <= doc["params"][name][level]["hi"]
+        # J computed here, per trial and horizon, with a band
+        assert set(doc["J"]["1"]) == {"100", "250", "500", "1000"}
+        assert all(v["lo"] <= v["median"] <= v["hi"] for v in doc["J"]["1"].values())
+
+
+def test_a_failing_fit_is_flagged_on_every_page_and_a_passing_one_is_not(made, passing):
+    problems = json.loads((made["fit"] / "summary.json").read_text())["diagnostics"]["problems"]
+    assert problems
+    for page in _pages(made["out"]):
+        text = page.read_text()
+        assert 'class="warning" id="fit-warning"' in text, page.name
+        assert text.index('id="fit-warning"') < text.index("<h2"), page.name  # at the top
+        for p in problems:
+            assert report._e(p) in text, (page.name, p)
+        assert "FAIL" in text
+    for page in _pages(passing["out"]):
+        text = page.read_text()
+        assert 'id="fit-warning"' not in text, page.name
+        assert "the fit passed its checks" in text
+
+
+def test_evaluation_diagnosis_and_delay_angle_are_shown(passing):
+    out = passing["out"]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["J_source"] == "evaluation" and summary["diagnostics_ok"] is True
+    for leg in LEGS:
+        doc = json.loads((out / "legs" / f"{leg}.json").read_text())
+        assert doc["J"] == passing["j_legs"][leg]
+        assert doc["delay_angle"]["change_probability"] == 0.9
+    for page in _pages(out):
+        text = page.read_text()
+        assert "7 posterior draws" in text
+        assert "Verdict: potentiation." in text and "fatigue_of_sorts" in text
+        assert "41.5 ± 2" in text
+        assert "&lt;script&gt;alert(&#x27;x&#x27;)&lt;/script&gt; &amp; more" in text
+        assert "<script>alert" not in text
+        assert "&lt;span" not in text  # the page's own markup is not escaped twice
+    tn = (out / "subject-TN.html").read_text()
+    assert "P(the delay changes with angle) = 0.90" in tn and 'id="delay-angle"' in tn
+    assert summary["figures"]["subject-TN.html"] == 5  # shrinkage, P(d), delay-angle, J, predictions
+    assert summary["figures"]["index.html"] == 2  # Table V, pooled delay-angle
+    assert "1.1 <span" in tn  # J of TN-left at 100 ms from the evaluation: 1.0 + 0.1
+
+
+def test_missing_folders_and_unusable_inputs_are_plain_errors(made, capsys):
+    root = made["root"]
+    assert main(["report", str(root / "no-such-fit"), "--out", str(root / "r1")]) == 2
+    assert "no complete fit" in capsys.readouterr().err
+    bad = root / "bad-eval"
+    bad.mkdir()
+    (bad / "summary.json").write_text(json.dumps({"J": {}, "J_legs": {"model1": {}}}))
+    assert main(["report", str(made["fit"]), "--out", str(root / "r2"), "--evaluation", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("quadshank: error:") and "no fit of 'model3'" in err
+    assert main(["report", str(made["fit"]), "--out", str(root / "r3"), "--diagnosis", str(root / "nothing")]) == 2
+    assert "summary.json: file not found" in capsys.readouterr().err
+
+
+def test_an_interrupted_report_leaves_no_summary(made, passing, monkeypatch):
+    out = made["root"] / "interrupted"
+    out.mkdir()
+    (out / "summary.json").write_text("{}")
+
+    def boom(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(report, "_plot_shrinkage", boom)
+    with pytest.raises(KeyboardInterrupt):
+        report.run_report(passing["fit"], out, evaluation=passing["out"].parent / "eval")
+    assert not (out / "summary.json").exists()
+
+
+def _chromium(*args: str, profile: Path) -> subprocess.CompletedProcess:
+    if not CHROMIUM.exists():
+        pytest.fail(f"{CHROMIUM} is missing: the report test opens the pages in headless Chromium; "
+                    "`make test` installs it (Debian package `chromium`)")
+    cmd = [str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+           "--disable-background-networking", "--disable-component-update", "--disable-sync",
+           f"--user-data-dir={profile}", *args]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+
+
+def test_every_page_renders_in_a_headless_browser_with_every_figure(made, passing, tmp_path):
+    for out in (made["out"], passing["out"]):
+        summary = json.loads((out / "summary.json").read_text())
+        for name, page in summary["pages"].items():
+            path = out / page
+            html_text = path.read_text()
+            # self-contained: nothing fetched
+            assert not re.search(r'<link|src="(?!data:image/png;base64,)', html_text), page
+            r = _chromium("--virtual-time-budget=10000", "--dump-dom", path.as_uri(), profile=tmp_path / "profile")
+            body = re.search(r"<body([^>]*)>", r.stdout)
+            assert body, (page, r.stderr[-2000:])
+            total = re.search(r'data-figures="(\d+)"', body.group(1))
+            loaded = re.search(r'data-figures-loaded="(\d+)"', body.group(1))
+            assert total and loaded, (page, body.group(0))
+            assert int(loaded.group(1)) == int(total.group(1)) >= summary["figures"][page] >= 1, (page, body.group(0))
+            shot = tmp_path / f"{out.name}-{path.stem}.png"
+            _chromium(f"--screenshot={shot}", "--window-size=1200,1600", "--hide-scrollbars", path.as_uri(),
+                      profile=tmp_path / "profile")
+            assert shot.exists() and shot.stat().st_size > 40_000, (page, shot.stat().st_size if shot.exists() else None)
+        expected = {"index.html": 1, "subject-TN.html": 4, "subject-JM.html": 4}
+        for page, n in expected.items():
+            assert summary["figures"][page] >= n
+
+
+def test_a_discover_folder_shows_the_ranking_of_each_round(tmp_path):
+    rank = lambda effect: {"effect": effect, "delta_elpd": 30.0, "delta_elpd_se": 3.0, "clears_bar": True}  # noqa: E731
+    rounds = [{"model": "model3s", "verdict": "fatigue", "sentence": "add fatigue"},
+              {"model": "model3s+fatigue", "verdict": "none", "sentence": "nothing more"}]
+    (tmp_path / "summary.json").write_text(json.dumps({"model": "model3s", "final_model": "model3s+fatigue",
+                                                       "rounds": rounds}))
+    for k, (r, effect) in enumerate(zip(rounds, ("fatigue", "hill_velocity")), 1):
+        (tmp_path / f"round-{k}").mkdir()
+        (tmp_path / f"round-{k}" / "summary.json").write_text(json.dumps({**r, "ranking": [rank(effect)]}))
+    section = report._diagnosis_section(report._read_diagnosis(tmp_path, "model3"))
+    assert "<h3>round 1</h3>" in section and "<h3>round 2</h3>" in section
+    assert "fatigue" in section and "hill_velocity" in section and "model3s+fatigue" in section
+    assert "this fit is of model3" in section  # the loop screened another model than this fit's
+    (tmp_path / "summary.json").write_text(json.dumps({"something": "else"}))
+    with pytest.raises(ValueError, match="not an output of `quadshank diagnose`"):
+        report._read_diagnosis(tmp_path, "model3")
