@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test install bench clean
+.PHONY: demo test install bench clean browser
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -17,9 +17,18 @@ install: $(BIN)/.installed
 demo: $(BIN)/.installed
 	$(BIN)/quadshank demo --out results/demo
 
+## the report test opens pages in a real headless browser: Debian's Chromium, installed once
+CHROMIUM := /usr/bin/chromium
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+$(CHROMIUM):
+	$(SUDO) apt-get update -qq
+	$(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium >/dev/null
+
+browser: $(CHROMIUM)
+
 ## the test suite: two workers, each test file whole on one of them (module fixtures run once);
 ## XLA compiles on one thread, so two files compiling at once use both cores
-test: $(BIN)/.installed
+test: $(BIN)/.installed $(CHROMIUM)
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 ## benchmarks (results written to results/)
