@@ -73,9 +73,28 @@ def test_expected_errors_are_one_line_with_exit_code_2(data, tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_reproduce_small(tmp_path):
-    assert main(["--quiet", "reproduce", "--out", str(tmp_path / "r"), "--minutes", "2", "--legs", "TN-left,OT-left"]) == 0
-    s = json.loads((tmp_path / "r" / "summary.json").read_text())
-    assert s["recovery_ok"] is True
-    report = (tmp_path / "r" / "report.md").read_text()
-    assert "Table V" in report and "Recovery" in report
+def test_demo_small(tmp_path, monkeypatch, capsys):
+    """`quadshank demo` at a small size: the reproduction, a fit, its evaluation, a diagnosis and the
+    report, each in its folder, and the command says where the report is."""
+    from quadshank import _demo
+
+    monkeypatch.setattr(_demo, "DEMO_EFFECTS", ("potentiation",))  # one candidate keeps the test short
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--minutes", "1", "--legs", "TN-left,OT-left",
+                 "--chains", "1", "--warmup", "20", "--draws", "20"]) == 0
+    err = capsys.readouterr().err
+    assert f"open the report: {out / 'report' / 'index.html'}" in err
+    assert "did not pass its checks" in err  # 20 draws cannot pass; the demo says so and goes on
+    s = json.loads((out / "summary.json").read_text())
+    assert s["fit_legs"] == ["TN-left", "OT-left"] and s["fit_ok"] is False
+    assert list(s["seconds"]) == ["reproduce", "fit", "evaluate", "diagnose", "report"]
+    rep = json.loads((out / "reproduce" / "summary.json").read_text())
+    assert set(rep["J"]) == {"model1", "model2", "model3"}
+    ev = json.loads((out / "evaluate" / "summary.json").read_text())
+    assert set(ev["J_legs"]["model3s"]) == {"TN-left", "OT-left"}
+    diag = json.loads((out / "diagnose" / "summary.json").read_text())
+    assert [r["effect"] for r in diag["ranking"]] == ["potentiation"] and diag["verdict"] == s["verdict"]
+    index = (out / "report" / "index.html").read_text()
+    assert "TN-left" in index and "OT-left" in index and "potentiation" in index
+    assert 'id="fit-warning"' in index  # the failed checks at the top of the page
+    assert "report/index.html" in (out / "README.md").read_text()
