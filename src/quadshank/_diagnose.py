@@ -161,6 +161,7 @@ def rank_effects(
     n_j_draws: int = 40,
     start_stride: int = 5,
     seed: int = 0,
+    n_starts: int = 3,
     base: LaplaceFit | None = None,
     progress: bool = False,
 ) -> Ranking:
@@ -168,7 +169,8 @@ def rank_effects(
 
     ``eval_trials``: where J is measured (default: every trial of the legs in
     the cohort, the identification trials included: the loop asks where the
-    model fails on the measurements it has).
+    model fails on the measurements it has).  ``n_starts``: prior draws tried, besides the
+    prior median, for the parameters an extension adds (:func:`quadshank._screen.laplace_fit`).
     """
     model = build_model(model) if isinstance(model, str) else model
     legs = tuple(legs) if legs is not None else cohort.legs
@@ -186,7 +188,7 @@ def rank_effects(
         offered = set(candidates(model)) | {e for e in effects if not known[e].candidate and e not in have}
         effects = [e for e in effects if e in offered]  # not those the model has (a later round of discover)
 
-    kw = dict(n_draws=n_draws, seed=seed)
+    kw = dict(n_draws=n_draws, seed=seed, n_starts=n_starts)
     if base is None:
         base = laplace_fit(cohort, model, trials, legs, **kw)
     J0 = j_draws(base, cohort, eval_trials, n_draws=n_j_draws, start_stride=start_stride)
