@@ -26,13 +26,20 @@ def cohort_with(effect):
 
 def rankings(effects) -> dict:
     """The baseline's ranking per dataset; with a hidden effect the five of the issue are
-    screened, with none every registered candidate (built-in and user-written)."""
+    screened, with none every registered candidate (built-in and user-written).
+
+    With a hidden effect each extension's mode is sought from one start only (the
+    baseline's mode, the new parameters at their prior median; ``n_starts=0``): the
+    hidden effect must be found without the prior draws that the default adds, a
+    harder test and a quarter of the work.  The ``none`` verdict is tested with the
+    package's defaults, where more starts give each candidate its best chance to
+    claim the data (a false positive is the failure there)."""
     out = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         for effect in effects:
-            screened = None if effect == "none" else HIDDEN
-            out[effect] = rank_effects(cohort_with(effect), "model3s", effects=screened, n_draws=150, n_j_draws=30)
+            kw = {"effects": None} if effect == "none" else {"effects": HIDDEN, "n_starts": 0}
+            out[effect] = rank_effects(cohort_with(effect), "model3s", n_draws=150, n_j_draws=30, **kw)
     return out
 
 
