@@ -54,16 +54,39 @@ def test_discover_on_the_command_line_with_a_user_effect(discovered):
     assert (out / "confirm" / "compare" / "summary.json").exists()
 
 
-def test_diagnose_a_saved_fit(discovered, tmp_path):
-    """`diagnose FITDIR` reads the fit's model, legs, trials and data, and ranks; a bad effect name is an error."""
+def test_diagnose_a_saved_fit(discovered, tmp_path, scratch_registry):
+    """`diagnose FITDIR` reads the fit's model, legs, trials and data, and ranks; a candidate whose
+    screen fails (a user's effect with a bug) is reported and left out, and the others are ranked;
+    a bad effect name is an error."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    from quadshank import Effect, Param, register_effect
+
+    @register_effect
+    @dataclasses.dataclass(frozen=True)
+    class BrokenGain(Effect):
+        kind = "gain"
+        name = "broken_gain"
+        params = (Param("g", "1", prior=("normal", 0.0, 1.0)),)
+        g: float = 0.0
+
+        def factor(self, ctx):
+            return jnp.log(-1.0 - self.g**2) * ctx.angle  # NaN everywhere: no finite density
+
     root, out, _ = discovered
     fitdir = out / "confirm" / "fit-start"
     assert json.loads((fitdir / "summary.json").read_text())["data"] == str((root / "data").resolve())
     diag = tmp_path / "diag"
-    assert main(["--quiet", "diagnose", str(fitdir), "--effects", "potentiation,fatigue", "--out", str(diag)]) == 0
+    with pytest.warns(RuntimeWarning, match="broken_gain failed"):
+        rc = main(["--quiet", "diagnose", str(fitdir), "--effects", "broken_gain,potentiation", "--out", str(diag)])
+    assert rc == 0
     s = json.loads((diag / "summary.json").read_text())
     assert s["model"] == "model3s" and s["verdict"] == "potentiation"
-    assert [r["effect"] for r in s["ranking"]] == ["potentiation", "fatigue"]
+    assert [r["effect"] for r in s["ranking"]] == ["potentiation"]
+    assert [f["effect"] for f in s["failed"]] == ["broken_gain"] and "finite" in s["failed"][0]["error"]
+    assert "Candidates that could not be screened" in (diag / "report.md").read_text()
     assert main(["--quiet", "diagnose", str(fitdir), "--effects", "telepathy", "--out", str(tmp_path / "x")]) == 2
 
 

@@ -222,6 +222,8 @@ def _say_ranking(args, summary: dict) -> None:
         mark = "  <- clears the bar" if r["clears_bar"] else ""
         _say(args, f"{i}. {r['effect']}: dELPD {r['delta_elpd']:.1f} +- {r['delta_elpd_se']:.1f}, "
                    f"J at 1 s {r['J_1000ms']['before']['median']:.3f} -> {r['J_1000ms']['after']['median']:.3f} deg{mark}")
+    for f in summary.get("failed", []):
+        _say(args, f"not screened: {f['effect']} ({f['error']})")
     _say(args, f"verdict: {summary['verdict']}. {summary['sentence']}")
 
 

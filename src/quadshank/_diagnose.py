@@ -27,6 +27,7 @@ missing effect.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import jax.numpy as jnp
 import numpy as np
@@ -136,6 +137,8 @@ class Ranking:
     rows: list  # best first, JSON-able
     verdict: str
     J_base: dict  # horizon_ms -> interval
+    #: candidates that could not be screened: effect -> why (the ranking goes on without them)
+    failed: dict = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {
@@ -144,6 +147,7 @@ class Ranking:
             "elpd": {"value": self.base.elpd, "se": self.base.elpd_se},
             "J_ms": self.J_base,
             "ranking": self.rows,
+            "failed": [{"effect": k, "error": v} for k, v in self.failed.items()],
             "verdict": self.verdict,
             "bar": {"elpd_se": ELPD_SE_BAR, "J_horizons_ms": list(J_HORIZONS_MS)},
         }
@@ -192,12 +196,18 @@ def rank_effects(
     if base is None:
         base = laplace_fit(cohort, model, trials, legs, **kw)
     J0 = j_draws(base, cohort, eval_trials, n_draws=n_j_draws, start_stride=start_stride)
-    fits, rows = {}, []
+    fits, rows, failed = {}, [], {}
     for name in progress_bar(effects, desc="screening effects", enabled=progress):
-        ext = laplace_fit(cohort, _extend(model, name), trials, legs, start=base, **kw)
+        try:
+            ext = laplace_fit(cohort, _extend(model, name), trials, legs, start=base, **kw)
+            d, se = delta_elpd(base, ext)
+            J1 = j_draws(ext, cohort, eval_trials, n_draws=n_j_draws, start_stride=start_stride)
+        except Exception as err:  # noqa: BLE001 - one candidate (a user's effect, say) must not end the screen
+            failed[name] = f"{type(err).__name__}: {err}"
+            warnings.warn(f"the screen of {model.name} + {name} failed and is left out of the ranking: {failed[name]}",
+                          RuntimeWarning, stacklevel=2)
+            continue
         fits[name] = ext
-        d, se = delta_elpd(base, ext)
-        J1 = j_draws(ext, cohort, eval_trials, n_draws=n_j_draws, start_stride=start_stride)
         row = {
             "effect": name,
             "delta_elpd": d,
@@ -223,7 +233,7 @@ def rank_effects(
     rows.sort(key=lambda r: (-r["clears_bar"], -r["delta_elpd"]))
     verdict = next((r["effect"] for r in rows if r["clears_bar"]), "none")
     J_base = {f"{h}": interval(J0[:, j]) for j, h in enumerate(J_HORIZONS_MS)}
-    return Ranking(base=base, fits=fits, rows=rows, verdict=verdict, J_base=J_base)
+    return Ranking(base=base, fits=fits, rows=rows, verdict=verdict, J_base=J_base, failed=failed)
 
 
 def verdict_sentence(ranking: Ranking) -> str:
@@ -317,6 +327,10 @@ def ranking_markdown(summary: dict, command: str | None = None) -> str:
         "importance-weighted towards the posterior); a Pareto k above 0.7 or a small importance ESS says the Gaussian "
         "stands poorly for that posterior, and a NUTS fit (`quadshank fit … --add-effect NAME`) is the confirmation.",
     ]
+    failed = summary.get("failed", [])
+    if failed:
+        md += ["", "## Candidates that could not be screened", ""]
+        md += [f"- **{f['effect']}**: {f['error']}" for f in failed]
     findings = summary.get("residual_findings", {})
     if findings:
         md += ["", "## Where the model fails (residuals of the baseline)", ""]

@@ -424,6 +424,9 @@ def _diagnosis_section(diagnosis: dict | None) -> str:
         if rows:
             parts.append(_table(["rank", "effect", "ΔELPD ± SE", "J 500 ms before → after [deg]",
                                  "J 1000 ms before → after [deg]", "clears the bar"], rows, (2, 3, 4)))
+        for f in s.get("failed", []):
+            parts.append(f'<p class="warning">Not screened: <strong>{_e(f.get("effect"))}</strong> '
+                         f'({_e(f.get("error"))}).</p>')
     if diagnosis.get("final_model"):
         parts.append(f"<p>Final model of the loop: <strong>{_e(diagnosis['final_model'])}</strong>.</p>")
     if diagnosis.get("mismatch"):
