@@ -51,3 +51,25 @@ def scratch_registry(monkeypatch):
     from quadshank import _effects
 
     monkeypatch.setattr(_effects, "_REGISTRY", dict(_effects._REGISTRY))
+
+
+#: Test files by their time in a profile of the suite (``pytest --durations``), longest first.
+#: ``--dist loadfile`` hands whole files to the two workers in collection order, so the
+#: long ones start at once and the short ones fill in behind them.
+LONGEST_FIRST = (
+    "test_loop_none.py",
+    "test_loop_cli.py",
+    "test_effects.py",
+    "test_notebooks.py",
+    "test_fit.py",
+    "test_cli.py",
+    "test_posterior_eval.py",
+    "test_loop.py",
+    "test_recovery.py",
+    "test_report.py",
+)
+
+
+def pytest_collection_modifyitems(items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: order within a file kept
