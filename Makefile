@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test install bench clean browser
+.PHONY: demo test install bench clean browser notebooks
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -31,9 +31,13 @@ browser: $(CHROMIUM)
 test: $(BIN)/.installed $(CHROMIUM)
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
+## the notebooks executed at full size from their sources (notebooks/*.py), written as .ipynb with outputs
+notebooks: $(BIN)/.installed
+	$(BIN)/python notebooks/execute.py
+
 ## benchmarks (results written to results/)
 bench: $(BIN)/.installed
 	$(BIN)/python benchmarks/bench_jphi.py
 
 clean:
-	rm -rf $(VENV) results/demo
+	rm -rf $(VENV) results/demo notebooks/_work .jax-cache
