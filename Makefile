@@ -29,7 +29,7 @@ browser: $(CHROMIUM)
 ## the test suite: two workers, each test file whole on one of them (module fixtures run once);
 ## XLA compiles on one thread, so two files compiling at once use both cores
 test: $(BIN)/.installed $(CHROMIUM)
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=15
 
 ## the notebooks executed at full size from their sources (notebooks/*.py), written as .ipynb with outputs
 notebooks: $(BIN)/.installed
