@@ -88,6 +88,8 @@ def test_demo_small(tmp_path, monkeypatch, capsys):
     s = json.loads((out / "summary.json").read_text())
     assert s["fit_legs"] == ["TN-left", "OT-left"] and s["fit_ok"] is False
     assert list(s["seconds"]) == ["reproduce", "fit", "evaluate", "diagnose", "report"]
+    fit = json.loads((out / "fit" / "summary.json").read_text())
+    assert fit["settings"]["max_tree_depth"] == 5 == s["fit_settings"]["max_tree_depth"]  # the demo's shallow trees
     rep = json.loads((out / "reproduce" / "summary.json").read_text())
     assert set(rep["J"]) == {"model1", "model2", "model3"}
     ev = json.loads((out / "evaluate" / "summary.json").read_text())

@@ -336,7 +336,7 @@ def cmd_demo(args) -> int:
     summary = run_demo(
         args.out, minutes=args.minutes, seed=args.seed, effects=_csv_list(args.effects) if args.effects else (),
         legs=_csv_list(args.legs) if args.legs else None, chains=args.chains, warmup=args.warmup, draws=args.draws,
-        progress=not args.quiet, command=command,
+        max_tree_depth=args.max_tree_depth, progress=not args.quiet, command=command,
     )
     if not summary["fit_ok"]:
         print(f"quadshank: warning: the demo's short fit did not pass its checks ({summary['fit_banner']}); "
@@ -486,6 +486,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--chains", type=int, default=2)
     d.add_argument("--warmup", type=int, default=150)
     d.add_argument("--draws", type=int, default=150)
+    d.add_argument("--max-tree-depth", type=int, default=5,
+                   help="NUTS tree depth: at most 2^depth - 1 leapfrog steps a draw (quadshank fit: 8)")
     d.set_defaults(func=cmd_demo)
     return p
 

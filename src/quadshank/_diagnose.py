@@ -352,13 +352,17 @@ def run_diagnose(
     progress: bool = False,
     base: LaplaceFit | None = None,
     seed: int = 0,
+    n_starts: int = 3,
 ) -> dict:
-    """Rank the candidate effects for ``model``; writes figures, report.md and summary.json (last)."""
+    """Rank the candidate effects for ``model``; writes figures, report.md and summary.json (last).
+
+    ``n_starts``: see :func:`rank_effects`."""
     from pathlib import Path
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    ranking = rank_effects(cohort, model, trials=trials, legs=legs, effects=effects, base=base, seed=seed, progress=progress)
+    ranking = rank_effects(cohort, model, trials=trials, legs=legs, effects=effects, base=base, seed=seed,
+                           n_starts=n_starts, progress=progress)
     summary = ranking.to_json()
     summary["sentence"] = verdict_sentence(ranking)
     summary["trials"] = [int(t) for t in trials]
