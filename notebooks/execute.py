@@ -48,7 +48,6 @@ def execute(source: str | Path, *, small: bool, cwd: str | Path, timeout: int = 
     from nbclient import NotebookClient
 
     nb = jupytext.read(source)
-    nb.metadata["kernelspec"] = {"display_name": "Python 3", "language": "python", "name": "python3"}
     saved = {k: os.environ.get(k) for k in ("QUADSHANK_NOTEBOOK_SMALL", "JUPYTER_PATH", "MPLBACKEND")}
     with tempfile.TemporaryDirectory() as tmp:
         _kernelspec(Path(tmp))
@@ -64,6 +63,7 @@ def execute(source: str | Path, *, small: bool, cwd: str | Path, timeout: int = 
                     os.environ.pop(k, None)
                 else:
                     os.environ[k] = v
+    # saved with the usual kernel's name, not the temporary one that ran it
     nb.metadata["kernelspec"] = {"display_name": "Python 3", "language": "python", "name": "python3"}
     return nb
 
