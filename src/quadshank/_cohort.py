@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 import xarray as xr
 
-from ._io import FILE_MODE
+from ._io import atomic_path
 
 __all__ = ["Trial", "Cohort", "derive_velocity", "VELOCITY_WINDOW", "leg_key"]
 
@@ -239,18 +238,9 @@ class Cohort:
 
     def save_netcdf(self, path: str | os.PathLike) -> Path:
         """Write the cohort to ``path`` atomically (temporary file, then rename)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        os.close(fd)
-        try:
+        with atomic_path(path) as tmp:
             self.to_dataset().to_netcdf(tmp, engine="h5netcdf")
-            os.chmod(tmp, FILE_MODE)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        return path
+        return Path(path)
 
     @classmethod
     def load_netcdf(cls, path: str | os.PathLike) -> Cohort:

@@ -14,7 +14,6 @@ so a folder whose fit was interrupted never looks complete.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +29,7 @@ from ._fit import (
     sample_delays,
     to_json,
 )
-from ._io import FILE_MODE, write_json
+from ._io import atomic_path, write_json
 from ._likelihood import N_DELAYS, LikelihoodData
 from ._model import Model
 
@@ -302,15 +301,8 @@ def save_fit(idata, folder: str | os.PathLike, extra: dict | None = None) -> dic
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     summary = {**fit_summary(idata), **(extra or {})}
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".fit.nc.", suffix=".tmp")
-    os.close(fd)
-    try:
+    with atomic_path(folder / "fit.nc") as tmp:
         idata.to_netcdf(tmp)
-        os.chmod(tmp, FILE_MODE)
-        os.replace(tmp, folder / "fit.nc")
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     write_json(folder / "summary.json", summary)
     return summary
 

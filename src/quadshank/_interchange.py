@@ -76,14 +76,13 @@ import difflib
 import math
 import os
 import re
-import tempfile
 from collections.abc import Iterable, Sequence
 from pathlib import Path, PurePosixPath
 
 import numpy as np
 
 from ._cohort import Cohort, Trial, leg_key
-from ._io import FILE_MODE
+from ._io import temp_sibling
 
 __all__ = [
     "Problem",
@@ -762,13 +761,6 @@ def _make_dirs(path: Path, created: list[Path]) -> None:
         created.append(d)
 
 
-def _temp_sibling(path: Path) -> Path:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    os.chmod(tmp, FILE_MODE)
-    return Path(tmp)
-
-
 def write_interchange(cohort: Cohort, folder: str | os.PathLike) -> Path:
     """Write ``cohort`` as an interchange folder; returns the folder.
 
@@ -803,11 +795,11 @@ def write_interchange(cohort: Cohort, folder: str | os.PathLike) -> Path:
         for t, name in zip(cohort.trials, names):
             final = folder.joinpath(*PurePosixPath(name).parts)
             _make_dirs(final.parent, created)
-            tmp = _temp_sibling(final)
+            tmp = temp_sibling(final)
             staged.append((tmp, final))
             _write_trial_csv(t, tmp)
         manifest = folder / MANIFEST_NAME
-        tmp = _temp_sibling(manifest)
+        tmp = temp_sibling(manifest)
         staged.append((tmp, manifest))
         _write_manifest(cohort, names, tmp)
         for tmp, final in staged:  # the manifest is last

@@ -45,7 +45,8 @@ import numpy as np
 
 from ._fitio import INTERVAL
 from ._io import atomic_write_text, read_json, write_json
-from ._paper import HORIZON_MS, HORIZONS, TABLE_V
+from ._paper import HORIZON_MS, TABLE_V
+from ._posterior_eval import interval
 
 __all__ = ["run_report", "leg_parameters"]
 
@@ -61,14 +62,9 @@ _TRIAL_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple"
 # ============================================================================ numbers
 
 
-def _interval(values) -> dict:
-    v = np.asarray(values, np.float64)
-    lo, hi = np.quantile(v, INTERVAL)
-    return {"median": float(np.median(v)), "lo": float(lo), "hi": float(hi)}
-
-
 def _flat(post, name: str) -> np.ndarray:
-    v = np.asarray(post[name])
+    """A posterior variable's draws, chains pooled, in double precision."""
+    v = np.asarray(post[name], np.float64)
     return v.reshape(-1, *v.shape[2:])
 
 
@@ -107,8 +103,8 @@ def leg_parameters(idata, desc: dict, fit_summary: dict) -> dict:
                     "prior": [family, float(np.broadcast_to(np.asarray(loc, float), shape)[index]),
                               float(np.broadcast_to(np.asarray(scale, float), shape)[index])],
                     "leg": {k: float(np.asarray(leg_q[k], float)[index]) for k in ("median", "lo", "hi")},
-                    "subject": None if sub is None else _interval(sub[(slice(None), *index)]),
-                    "population": None if mu is None else _interval(mu[(slice(None), *index)]),
+                    "subject": None if sub is None else interval(sub[(slice(None), *index)]),
+                    "population": None if mu is None else interval(mu[(slice(None), *index)]),
                 }
         for name, info in desc["noise"].items():
             q = fit_summary["legs"][leg]["params"][name]
@@ -127,7 +123,7 @@ def _population_spreads(idata, desc: dict) -> dict:
             row = {}
             for key, var in (("sd_subject", f"{name}_sd_subject"), ("sd_leg", f"{name}_sd_leg")):
                 if var in post:
-                    row[key] = _interval(_flat(post, var)[(slice(None), *index)])
+                    row[key] = interval(_flat(post, var)[(slice(None), *index)])
             out[label] = row
     return out
 
