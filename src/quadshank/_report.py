@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from ._fitio import INTERVAL
-from ._io import atomic_write_text, read_json, write_json
+from ._io import atomic_write_text, figure_bytes, read_json, write_json
 from ._paper import HORIZON_MS, TABLE_V
 from ._posterior_eval import interval
 
@@ -158,12 +158,7 @@ def _j_from_evaluation(folder, label: str, legs) -> tuple[dict, dict, str]:
 
 
 def _data_uri(fig) -> str:
-    import matplotlib.pyplot as plt
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    plt.close(fig)
-    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+    return "data:image/png;base64," + base64.b64encode(figure_bytes(fig, "png", dpi=90)).decode("ascii")
 
 
 def _plot_shrinkage(subject: str, legs: list[str], params: dict):
