@@ -1,33 +1,13 @@
-"""Shared test set-up: a persistent XLA compilation cache, and a user-written effect, written
-exactly as the documentation shows.
+"""Shared test set-up: a user-written effect, written exactly as the documentation shows.
 
-The suite's time is mostly XLA compiling, and many tests compile the same programs
-(the loop's screens of one-minute datasets, fits of the same shapes) in different
-test files and worker processes.  A compilation cache on disk, shared by the workers
-(``.jax-cache/`` at the top of the repository, not committed; ``JAX_COMPILATION_CACHE_DIR``
-overrides it), compiles each once.  It holds compiled code only, keyed by the program,
-the JAX version and the machine: results are the same with or without it.
-
-Registering the effect here puts it in the registry before the tests are collected,
-so the registry-driven checks of ``test_effects.py`` apply to it as to every
+Registering it here puts it in the registry before the tests are collected, so
+the registry-driven checks of ``test_effects.py`` apply to it as to every
 built-in effect.
 """
 
 import dataclasses
-import os
-from pathlib import Path
 
-os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".jax-cache"))
-os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
-os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
-
-import jax  # noqa: E402
-
-jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
-jax.config.update("jax_persistent_cache_min_compile_time_secs", float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"]))
-jax.config.update("jax_persistent_cache_min_entry_size_bytes", int(os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"]))
-
-from quadshank import Effect, Param, register_effect  # noqa: E402
+from quadshank import Effect, Param, register_effect
 
 
 @register_effect
