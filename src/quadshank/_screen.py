@@ -206,13 +206,30 @@ def _compiled(model: Model, specs: list[_Spec], R: int, K: int, n_segments: int)
     out = (
         joint,
         jax.jit(jax.value_and_grad(neg_logpost)),
-        jax.jit(jax.hessian(neg_logpost)),
         jax.jit(jax.vmap(lambda v, x: joint(v, x)[0], in_axes=(0, None))),
         jax.jit(jax.vmap(lambda v: _log_prior(specs, v))),
         jax.jit(jax.vmap(pointwise_one, in_axes=(0, 0, 0, None))),
     )
     _COMPILED[key] = out
     return out
+
+
+def _hessian(value_and_grad, mode: np.ndarray, x: dict, step: float = 1e-5) -> np.ndarray:
+    """The Hessian of the negative log posterior at ``mode`` by central differences of its
+    exact gradient, symmetrised.  The gradient is already compiled for L-BFGS; a second
+    compiled function (``jax.hessian``) cost each screened model about as much compilation
+    as the gradient itself, while 2·dim gradient calls take a fraction of a second.  On the
+    standardised scale (prior sd 1) a step of 1e-5 leaves a relative error of order
+    (step / posterior sd)² in the curvature, below 1e-4 for posterior sds down to 1e-3."""
+    n = mode.size
+    H = np.empty((n, n))
+    for j in range(n):
+        e = np.zeros(n)
+        e[j] = step
+        g_hi = np.asarray(value_and_grad(jnp.asarray(mode + e, jnp.float64), x)[1], np.float64)
+        g_lo = np.asarray(value_and_grad(jnp.asarray(mode - e, jnp.float64), x)[1], np.float64)
+        H[:, j] = (g_hi - g_lo) / (2.0 * step)
+    return 0.5 * (H + H.T)
 
 
 def _start_vector(specs, known: dict, log_sigma: float, log_nu: float, rng, draw_unknown: bool) -> np.ndarray:
@@ -261,7 +278,7 @@ def _laplace_fit(
     data = prepare(cohort, model, trials=trials, legs=legs)
     specs = _specs(model)
     R, K = data.response_length, data.max_shift
-    joint, value_and_grad, hessian, joint_b, prior_b, pw = _compiled(model, specs, R, K, data.n_segments)
+    joint, value_and_grad, joint_b, prior_b, pw = _compiled(model, specs, R, K, data.n_segments)
     arrays = {k: jnp.asarray(v, jnp.float64) if np.issubdtype(v.dtype, np.floating) else v for k, v in data.leg_arrays().items()}
     dim = sum(s.size for s in specs) + 2
     rng = np.random.default_rng(seed)
@@ -298,8 +315,7 @@ def _laplace_fit(
         if best is None:
             raise FloatingPointError(f"{leg}: the screen of {model.name} found no finite posterior density")
         mode = np.asarray(best.x, np.float64)
-        H = np.asarray(hessian(jnp.asarray(mode, jnp.float64), x), np.float64)
-        H = 0.5 * (H + H.T)
+        H = _hessian(value_and_grad, mode, x)
         w, V = np.linalg.eigh(np.where(np.isfinite(H), H, 0.0))
         w = np.maximum(w, 1.0)  # never wider than the prior (unit precision on the standardised scale)
         eps = rng.standard_normal((n_draws, dim))
