@@ -211,3 +211,48 @@ def test_chains_start_at_the_classical_estimate_of_the_leading_delay_mode():
     v2 = np.asarray(init({**site, "kwargs": {"rng_key": jax.random.PRNGKey(2)}}))
     assert 0 < np.abs(v1 - start["a_s_leg"]).max() < 5 * INIT_JITTER and not np.allclose(v1, v2)
     assert init({**site, "name": "sigma"}) == 0.0  # other sites: the fallback
+
+
+def test_screen_start_puts_each_chain_at_a_laplace_draw_with_the_laplace_metric():
+    """screen_start maps each leg's screen vector (z per parameter, log σ, log ν) onto numpyro's
+    sites: chain c of leg i starts at the leg's c-th Laplace draw, and the metric's block of the
+    leg is the Laplace covariance.  model3s has vector parameters (a, b), whose site is (C, L)."""
+    from numpyro.infer.util import constrain_fn
+
+    from quadshank._fit import HYPER_METRIC_VARIANCE, numpyro_model, screen_start
+    from quadshank._likelihood import prepare
+    from quadshank._screen import _values_np, laplace_fit
+
+    cohort, _ = simulate_cohort(legs=["TN-left", "JM-left"], minutes=0.3, seed=4, trials=(1,))
+    model = build_model("model3s")
+    settings = FitSettings(chains=3, seed=2)
+    data = prepare(cohort, model)
+    arrays = data.leg_arrays()
+
+    def conditioned(arrays):
+        return numpyro_model(model, data, arrays)
+
+    init, imm = screen_start(cohort, model, data, settings, conditioned, arrays)
+    scr = laplace_fit(cohort, model, legs=data.legs, n_starts=3, n_draws=3, seed=2, loo=False)
+    (names, metric), = imm.items()
+    metric = np.asarray(metric, np.float64)
+    assert list(names) == sorted(init) and np.allclose(metric, metric.T)
+    assert np.all(np.linalg.eigvalsh(metric) > 0)
+    for c in range(3):
+        values = constrain_fn(conditioned, (arrays,), {}, {k: v[c] for k, v in init.items()}, return_deterministic=True)
+        for i in range(2):
+            want = _values_np(scr.specs, scr.draws[i, c])
+            for name, v in want.items():
+                np.testing.assert_allclose(np.asarray(values[name][i]), v, rtol=2e-5, atol=1e-6, err_msg=(c, name))
+            np.testing.assert_allclose(float(values["sigma"][i]), np.exp(scr.draws[i, c, -2]), rtol=1e-5)
+            np.testing.assert_allclose(float(values["nu"][i]), np.exp(scr.draws[i, c, -1]), rtol=1e-5)
+    # the metric: a's second component of leg 1 against b's first of leg 0 (no coupling across
+    # legs), and the same pair within leg 1 carries its Laplace covariance
+    offsets = np.cumsum([0] + [int(np.size(init[k][0])) for k in names])
+    at = dict(zip(names, offsets[:-1]))
+    j_a1, j_b0 = 1, 2  # positions in a leg's screen vector: a (2 components), then b
+    assert [s.name for s in scr.specs][:2] == ["a", "b"]
+    a1_leg1, b0_leg1, b0_leg0 = at["a_s_leg"] + 1 * 2 + 1, at["b_s_leg"] + 0 * 2 + 1, at["b_s_leg"] + 0 * 2 + 0
+    assert metric[a1_leg1, b0_leg1] == pytest.approx(scr.covariance[1, j_a1, j_b0], rel=1e-5)
+    assert metric[a1_leg1, b0_leg0] == 0.0
+    assert metric[at["k1_sd_leg_rel"], at["k1_sd_leg_rel"]] == pytest.approx(HYPER_METRIC_VARIANCE)

@@ -87,7 +87,7 @@ def test_recovery_command_writes_the_coverage_table(tmp_path):
                  "--out", str(out)])  # fmt: skip
     assert code == 0
     result = json.loads((out / "coverage.json").read_text())
-    assert result["settings"]["init_classical"] is False
+    assert result["settings"]["start"] == "prior"
     m = result["models"]["model1"]
     # per leg: gain and four passive parameters, and the delay row
     assert m["n_intervals"] == 2 * 5 and m["delay_legs"] == 2

@@ -144,7 +144,8 @@ def cmd_fit(args) -> int:
         draws=args.draws,
         seed=args.seed,
         trials=tuple(int(t) for t in _csv_list(args.trials)),
-        init_classical=args.start == "classical",
+        start=args.start,
+        adapt_metric=args.adapt_metric,
     )
     legs = _csv_list(args.legs) if args.legs else None
     summary = run_fit(
@@ -183,7 +184,7 @@ def cmd_recovery(args) -> int:
 
     command = "quadshank " + " ".join(shlex.quote(a) for a in args.argv)
     settings = FitSettings(
-        chains=args.chains, warmup=args.warmup, draws=args.draws, init_classical=args.start == "classical"
+        chains=args.chains, warmup=args.warmup, draws=args.draws, start=args.start, adapt_metric=args.adapt_metric
     )
     result = run_recovery(
         args.out,
@@ -357,6 +358,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars or messages (for scripts)")
     sub = p.add_subparsers(dest="command", required=True)
 
+    def start_options(sp):
+        sp.add_argument("--start", choices=["screen", "classical", "prior"], default="screen",
+                        help="where the chains start: each leg's mode from the screen, whose Laplace covariance is "
+                             "also the metric (default); the classical least-squares identification; the prior median")
+        sp.add_argument("--adapt-metric", action="store_true",
+                        help="with --start screen, adapt the metric in warm-up too (by default the screen's is kept)")
+
     def sim_options(sp, minutes_default):
         sp.add_argument("--minutes", type=float, default=minutes_default, help="length of each trial [min]")
         sp.add_argument("--seed", type=int, default=0)
@@ -408,8 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FITDIR",
         help="take the delay prior from another fit's delay posterior (the paper took d from model 2)",
     )
-    f.add_argument("--start", choices=["classical", "prior"], default="classical",
-                   help="where the chains start: the classical least-squares identification (default) or the prior median")
+    start_options(f)
     f.add_argument("--out", required=True)
     f.set_defaults(func=cmd_fit)
 
@@ -424,8 +431,7 @@ def build_parser() -> argparse.ArgumentParser:
     rc.add_argument("--chains", type=int, default=2)
     rc.add_argument("--warmup", type=int, default=500)
     rc.add_argument("--draws", type=int, default=500)
-    rc.add_argument("--start", choices=["classical", "prior"], default="classical",
-                    help="where the chains start: the classical least-squares identification (default) or the prior median")
+    start_options(rc)
     rc.add_argument("--out", required=True)
     rc.set_defaults(func=cmd_recovery)
 

@@ -44,6 +44,7 @@ import dataclasses
 import functools
 import json
 import math
+import sys
 import warnings
 
 import jax
@@ -84,6 +85,10 @@ DELAY_PRIOR_FLOOR = 1e-3
 NU_PRIOR = (2.0, 0.1)
 
 
+#: Where chains can start (:attr:`FitSettings.start`).
+STARTS = ("screen", "classical", "prior")
+
+
 @dataclasses.dataclass(frozen=True)
 class FitSettings:
     chains: int = 4
@@ -95,11 +100,20 @@ class FitSettings:
     centred: bool = True
     dense_mass: bool = True
     trials: tuple[int, ...] = (1,)
-    #: Start the chains at the classical identification (jittered); False: at the prior median.
-    init_classical: bool = True
     #: numpyro's ``chain_method``: "sequential" (one chain after another; the CPU default),
     #: "vectorized" (all chains in one batched program; worth it on a GPU) or "parallel".
     chain_method: str = "sequential"
+    #: Where the chains start: "screen" (each leg's mode and Laplace covariance from the
+    #: screen, which also give the metric; see :func:`screen_start`), "classical" (the
+    #: classical least-squares estimate, jittered) or "prior" (the prior median).
+    start: str = "screen"
+    #: With ``start="screen"``, adapt the metric in warm-up as well (by default the screen's
+    #: is kept and only the step size adapts); the other starts always adapt it.
+    adapt_metric: bool = False
+
+    def __post_init__(self):
+        if self.start not in STARTS:
+            raise ValueError(f"start must be one of {', '.join(STARTS)}, not {self.start!r}")
 
 
 #: Classical models whose estimates start a model's chains (model3s: model 2's twitch, model 3's gains).
@@ -276,6 +290,70 @@ def classical_start(cohort: Cohort, model: Model, data: LikelihoodData, trial: i
     return out
 
 
+#: Inverse-metric entry of a hyperparameter (log of a relative spread) in the screen's metric.
+HYPER_METRIC_VARIANCE = 0.5
+
+
+def screen_start(cohort: Cohort, model: Model, data: LikelihoodData, settings: FitSettings, conditioned, arrays, n_starts: int = 3):
+    """Starting points and a metric for NUTS from the per-leg screen (:mod:`quadshank._screen`).
+
+    Returns ``(init_params, inverse_mass_matrix)``: unconstrained values per chain
+    (chain c of leg i starts at the c-th Laplace draw of that leg) and a dense inverse
+    metric holding each leg's Laplace covariance.  Each leg's thousands of samples
+    make its block nearly Gaussian and very narrow (posterior sds down to 1e-3 prior
+    scales, correlated k1–k2, a–b, gain–gain factors), while the hyperparameters are
+    loosely held by a handful of legs; a metric estimated from a short warm-up misses
+    one scale or the other, and chains that start at different points settle at
+    different delays.  The screen's multi-start optimisation of the marginal
+    posterior finds the leading mode, the Laplace covariance is the metric for it, and
+    the hyperparameters (log r) get ``HYPER_METRIC_VARIANCE``.
+    """
+    from numpyro import handlers
+    from numpyro.distributions.transforms import biject_to
+
+    from ._screen import laplace_fit
+
+    chains = settings.chains
+    scr = laplace_fit(cohort, model, trials=settings.trials, legs=data.legs, n_starts=n_starts,
+                      n_draws=max(chains, 2), seed=settings.seed, loo=False)
+    trace = handlers.trace(handlers.seed(conditioned, settings.seed)).get_trace(arrays)
+    sites = {k: v for k, v in trace.items() if v["type"] == "sample" and not v["is_observed"]}
+    names = sorted(sites)  # numpyro's order of the flattened latent vector
+    offsets, n = {}, 0
+    for k in names:
+        offsets[k] = n
+        n += int(np.size(sites[k]["value"]))
+    L = data.n_legs
+
+    def positions(i):
+        """Where leg i's screen vector (z per parameter, log σ, log ν) sits in the latent vector."""
+        out = []
+        for s in scr.specs:
+            site = f"{s.name}_s_leg"
+            out += [offsets[site] + (c * L + i if s.shape else i) for c in range(s.size)]
+        return np.asarray(out + [offsets["sigma"] + i, offsets["nu"] + i])
+
+    base = np.zeros(n)
+    rng = jax.random.PRNGKey(settings.seed)
+    for k in names:  # sites the screen does not cover (relative spreads): the prior median
+        fn = sites[k]["fn"]
+        median = jnp.median(fn.sample(rng, (101,)), axis=0)
+        base[offsets[k] : offsets[k] + np.size(sites[k]["value"])] = np.ravel(biject_to(fn.support).inv(median))
+    inits = np.tile(base, (chains, 1))
+    imm = np.eye(n) * HYPER_METRIC_VARIANCE
+    for i in range(L):
+        idx = positions(i)
+        imm[np.ix_(idx, idx)] = scr.covariance[i]
+        for c in range(chains):
+            inits[c, idx] = scr.draws[i, c % scr.draws.shape[1]]
+    init_params = {}
+    for k in names:
+        shape = np.shape(sites[k]["value"])
+        v = inits[:, offsets[k] : offsets[k] + int(np.prod(shape, dtype=int))].reshape((chains, *shape))
+        init_params[k] = jnp.asarray(v if chains > 1 else v[0], jnp.float32)
+    return init_params, {tuple(names): jnp.asarray(imm, jnp.float32)}
+
+
 def _init_near(site=None, values=None, jitter=INIT_JITTER, fallback=None):
     """numpyro init strategy: ``values[name]`` plus N(0, jitter²) per chain; others from ``fallback``."""
     if site["name"] in values and site["type"] == "sample" and not site["is_observed"]:
@@ -344,7 +422,14 @@ def fit(
         return numpyro_model(model, data, arrays, settings.centred, log_delay_prior)
 
     init = init_to_median(num_samples=15)
-    if settings.init_classical and settings.centred:
+    init_params, imm = None, None
+    if settings.start == "screen" and settings.centred:
+        if progress:
+            print("fit: each leg's mode and Laplace covariance (the screen) for the chains' start and metric", file=sys.stderr, flush=True)
+        init_params, imm = screen_start(cohort, model, data, settings, conditioned, arrays)
+        if not settings.dense_mass:
+            imm = {k: jnp.diagonal(v) for k, v in imm.items()}
+    elif settings.start == "classical" and settings.centred:
         start = classical_start(cohort, model, data, settings.trials[0])
         init = functools.partial(_init_near, values=start, fallback=init)
     kernel = NUTS(
@@ -353,6 +438,8 @@ def fit(
         max_tree_depth=settings.max_tree_depth,
         init_strategy=init,
         dense_mass=settings.dense_mass,
+        inverse_mass_matrix=imm,
+        adapt_mass_matrix=settings.adapt_metric or imm is None,
     )
     mcmc = MCMC(
         kernel,
@@ -365,7 +452,7 @@ def fit(
         # the chains (and later fits of the same shapes) compile it once
         jit_model_args=True,
     )
-    mcmc.run(jax.random.PRNGKey(settings.seed), arrays, extra_fields=("diverging", "energy", "num_steps"))
+    mcmc.run(jax.random.PRNGKey(settings.seed), arrays, extra_fields=("diverging", "energy", "num_steps"), init_params=init_params)
     return mcmc, data
 
 

@@ -102,6 +102,7 @@ class LaplaceFit:
     specs: tuple
     mode: np.ndarray  # (L, dim) unconstrained mode per leg
     neg_logpost: np.ndarray  # (L,) at the mode
+    covariance: np.ndarray  # (L, dim, dim) the Laplace covariance (eigenvalues capped at the prior's)
     draws: np.ndarray  # (L, S, dim) unconstrained Laplace draws
     delays: np.ndarray  # (L, S) d per draw
     shifts: np.ndarray  # (L, S)
@@ -287,7 +288,7 @@ def _laplace_fit(
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             classical = classical_start(cohort, model, data, tuple(trials)[0])
-    modes, nlp, all_draws, log_q = [], [], [], []
+    modes, nlp, all_draws, log_q, covs = [], [], [], [], []
     for i, leg in enumerate(data.legs):
         x = {k: v[i] for k, v in arrays.items()}
         if start is not None and leg in start.legs:
@@ -320,6 +321,7 @@ def _laplace_fit(
         w = np.maximum(w, 1.0)  # never wider than the prior (unit precision on the standardised scale)
         eps = rng.standard_normal((n_draws, dim))
         all_draws.append(mode[None, :] + (eps / np.sqrt(w)[None, :]) @ V.T)
+        covs.append((V / w[None, :]) @ V.T)
         modes.append(mode)
         nlp.append(float(best.fun))
 
@@ -370,6 +372,7 @@ def _laplace_fit(
         specs=tuple(specs),
         mode=np.stack(modes),
         neg_logpost=np.asarray(nlp),
+        covariance=np.stack(covs),
         draws=draws,
         delays=np.stack(delays),
         shifts=np.stack(shifts),
