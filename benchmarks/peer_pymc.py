@@ -46,7 +46,7 @@ def build_pymc_model(model, data: LikelihoodData):
         raise ValueError(f"the PyMC peer covers {sorted(SUPPORTED)}, not {sorted(names - SUPPORTED)}")
     if model.activation.name != "zero_order":
         raise ValueError("the PyMC peer is written for the zero-order activation (models 1 and 3)")
-    L, S = data.n_legs, len(data.subjects)
+    L = data.n_legs
     R, K = data.response_length, data.max_shift
     ls = np.asarray(data.leg_subject)
     same = (ls[:, None] == ls[None, :]).astype(float)

@@ -37,6 +37,7 @@ from ._effects import registered_effects
 from ._fit import build_model
 from ._likelihood import leg_active_output
 from ._model import Model, equivalent_acceleration
+from ._io import write_json
 from ._posterior_eval import interval, posterior_prediction_errors
 from ._progress import progress_bar
 from ._screen import LaplaceFit, delta_elpd, laplace_fit, leg_draw_models
@@ -267,15 +268,6 @@ def verdict_sentence(ranking: Ranking) -> str:
 # ============================================================================ outputs
 
 
-def _write_json_atomic(path, obj) -> None:
-    import json
-    import os
-
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(json.dumps(obj, indent=2, default=float))
-    os.replace(tmp, path)
-
-
 def _screen_residuals(fit: LaplaceFit) -> dict[str, dict]:
     return {leg: leg_residuals(fit, leg) for leg in fit.legs}
 
@@ -376,15 +368,13 @@ def run_diagnose(
         summary["residual_findings"] = notes
         summary["figures"] = [p.name for p in paths]
     (out / "report.md").write_text(ranking_markdown(summary, command))
-    _write_json_atomic(out / "summary.json", summary)
+    write_json(out / "summary.json", summary)
     summary["_ranking"] = ranking
     return summary
 
 
 def _confirm(cohort, out, start_name: str, added: list, settings, *, legs, data_source, n_draws, start_stride, progress) -> dict:
     """NUTS fits of the loop's first and last model on the same data, and their comparison."""
-    from dataclasses import replace
-
     from ._pipeline import run_fit
     from ._posterior_eval import run_posterior_evaluate
 
@@ -478,5 +468,5 @@ def run_discover(
                f"Fits: [{c['start']['folder']}]({c['start']['folder']}), [{c['final']['folder']}]({c['final']['folder']}); "
                f"comparison with residuals before and after: [confirm/compare/report.md](confirm/compare/report.md)."]
     (out / "report.md").write_text("\n".join(md) + "\n")
-    _write_json_atomic(out / "summary.json", summary)
+    write_json(out / "summary.json", summary)
     return summary

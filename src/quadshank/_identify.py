@@ -30,7 +30,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ._cohort import Cohort, Trial
-from ._model import Model, equivalent_acceleration, paper_model, passive_effects
+from ._model import equivalent_acceleration, paper_model, passive_effects
 from ._paper import MAX_DELAY, TWITCH_SAMPLES
 
 __all__ = [

@@ -55,6 +55,8 @@ def _json_default(o):
         return o.item()
     if isinstance(o, np.ndarray):
         return o.tolist()
+    if hasattr(o, "__array__"):  # a JAX array
+        return _json_default(np.asarray(o))
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 

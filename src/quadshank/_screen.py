@@ -152,7 +152,6 @@ def leg_draw_models(fit: LaplaceFit, leg: str, n: int | None = None) -> Model:
     idx = fit.resampled[i] if n is None else fit.resampled[i, :n]
     draws = fit.draws[i, idx]
     values = {k: jnp.asarray(v, jnp.float32) for k, v in _values_np(fit.specs, draws).items()}
-    S = draws.shape[0]
     m = fit.model.with_params(values, delay=jnp.asarray(fit.delays[i, idx], jnp.int32))
     if fit.model.delay_effect is not None:
         m = m.with_delay_shift(jnp.asarray(fit.shifts[i, idx], jnp.int32))
