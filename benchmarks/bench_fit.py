@@ -37,7 +37,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from quadshank._fit import FitSettings
+from quadshank._fit import STARTS, FitSettings
 from quadshank._io import write_json
 from quadshank._paper import LEGS
 from quadshank._pipeline import run_fit
@@ -142,6 +142,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--j-draws", type=int, default=200, help="posterior draws for the J bands (0: skip)")
     ap.add_argument("--no-peer", action="store_true", help="skip the PyMC + nutpie peer")
+    ap.add_argument("--start", default="screen", choices=STARTS,
+                    help="where the chains start (quadshank fit --start); each start has its own section")
     ap.add_argument("--chain-method", default="sequential", choices=("sequential", "vectorized", "parallel"))
     ap.add_argument("--out", default="results/benchmarks.md")
     args = ap.parse_args(argv)
@@ -152,7 +154,8 @@ def main(argv=None) -> int:
     clock = CompileClock()
     cohort, _ = simulate_cohort(legs=legs, minutes=args.minutes, seed=args.seed, effects=effects, trials=(1, 2, 3))
     settings = FitSettings(
-        chains=args.chains, warmup=args.warmup, draws=args.draws, seed=args.seed, chain_method=args.chain_method
+        chains=args.chains, warmup=args.warmup, draws=args.draws, seed=args.seed, chain_method=args.chain_method,
+        start=args.start,
     )
     with tempfile.TemporaryDirectory() as tmp:
         fit_dir = Path(tmp) / "fit"
@@ -176,6 +179,7 @@ def main(argv=None) -> int:
         "minutes": args.minutes,
         "chains": args.chains,
         "chain_method": args.chain_method,
+        "start": args.start,
         "warmup": args.warmup,
         "draws": args.draws,
         "fit_wall_s": wall,
@@ -193,8 +197,10 @@ def main(argv=None) -> int:
         "j_compile_s": j_compile,
         "peer": peer,
     }
-    # one section (and JSON record) per backend: a GPU run sits beside the CPU one
+    # one section (and JSON record) per backend and start: a GPU run sits beside the CPU one
     section = "bench_fit" if jax.default_backend() == "cpu" else f"bench_fit_{jax.default_backend()}"
+    if args.start != "classical":
+        section += f"_{args.start}"
     write_json(Path(args.out).with_name(f"{section}.json"), record)
 
     full = (len(legs), args.minutes, args.chains, args.warmup, args.draws) == (5, 5.0, 4, 1000, 1000)
@@ -207,7 +213,8 @@ def main(argv=None) -> int:
         "",
         f"{args.model} + {', '.join(effects) or 'nothing'} on the simulated cohort ({len(legs)} legs, trial 1 of "
         f"{args.minutes:g} min, data simulated with {', '.join(effects) or 'no hidden effect'}), "
-        f"{args.chains} chains ({args.chain_method}) × {args.draws} draws after {args.warmup} warm-up"
+        f"{args.chains} chains ({args.chain_method}) × {args.draws} draws after {args.warmup} warm-up, "
+        f"chains started from the {args.start} (`--start {args.start}`)"
         + ("" if full else " — **smaller than the issue's configuration (5 legs × 5 min, 4 × 1000 + 1000)**")
         + ".",
         "",

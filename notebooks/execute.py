@@ -82,7 +82,10 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     import nbformat
 
-    chosen = [HERE / n for n in args.names] if args.names else sources()
+    chosen = [HERE / Path(n).with_suffix(".py").name for n in args.names] if args.names else sources()
+    missing = [p.name for p in chosen if not p.exists()]
+    if missing:
+        ap.error(f"no notebook source {', '.join(missing)} in {HERE} (there are: {', '.join(p.stem for p in sources())})")
     for src in chosen:
         t0 = time.perf_counter()
         print(f"{src.name}: running ({'small' if args.small else 'full'} size) ...", flush=True)

@@ -31,7 +31,7 @@ def data_dir(tmp_path_factory):
 @pytest.fixture(scope="module")
 def fitted(data_dir):
     out = data_dir / "fit3"
-    code = main(["-q", "fit", str(data_dir / "data"), "--model", "model3", *TINY, "--out", str(out)])
+    code = main(["-q", "fit", str(data_dir / "data"), "--model", "model3", *TINY, "--max-tree-depth", "6", "--out", str(out)])
     return out, code
 
 
@@ -50,6 +50,8 @@ def test_fit_folder_holds_a_complete_reloadable_fit(fitted):
         assert key in summary["diagnostics"]
     idata, model, desc = load_fit(out)
     assert desc["model"] == "model3" and desc["trials"] == [1]
+    assert desc["settings"]["max_tree_depth"] == 6 and desc["settings"]["start"] == "screen"
+    assert np.asarray(idata.sample_stats["n_steps"]).max() <= 2**6 - 1
     for group in ("posterior", "log_likelihood", "observed_data", "constant_data", "sample_stats"):
         assert hasattr(idata, group), group
     ll = idata.log_likelihood["acceleration_segment"]

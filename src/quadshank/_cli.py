@@ -146,6 +146,7 @@ def cmd_fit(args) -> int:
         trials=tuple(int(t) for t in _csv_list(args.trials)),
         start=args.start,
         adapt_metric=args.adapt_metric,
+        max_tree_depth=args.max_tree_depth,
     )
     legs = _csv_list(args.legs) if args.legs else None
     summary = run_fit(
@@ -417,6 +418,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="take the delay prior from another fit's delay posterior (the paper took d from model 2)",
     )
     start_options(f)
+    f.add_argument("--max-tree-depth", type=int, default=8, help="NUTS tree depth limit (at most 2^depth - 1 leapfrog steps a draw)")
     f.add_argument("--out", required=True)
     f.set_defaults(func=cmd_fit)
 

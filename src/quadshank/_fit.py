@@ -33,9 +33,13 @@ samples (or another fit's posterior, :func:`delay_prior_from`) and is summed
 out exactly, jointly with a delay effect's shift; P(d | data) is the posterior mean of the
 per-draw conditional P(d | θ, data), and one d per draw is drawn from that
 conditional for the pointwise log-likelihood (so PSIS-LOO is over (θ, d)).
-Chains start at the classical least-squares identification, jittered
-(:func:`classical_start`): each d has its own mode in θ, and the paper's
-identification finds the leading one.
+Chains start at each leg's mode from the screen (:func:`screen_start`,
+:mod:`quadshank._screen`), whose Laplace covariances are also the metric:
+each d has its own mode in θ, the screen's multi-start optimisation of the
+marginal posterior finds the leading one, and each leg's block is narrow and
+correlated in a way a short warm-up cannot estimate.  The classical
+least-squares start (:func:`classical_start`) and the prior median remain
+as options.
 """
 
 from __future__ import annotations
