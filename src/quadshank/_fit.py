@@ -427,13 +427,16 @@ def fit(
 
     init = init_to_median(num_samples=15)
     init_params, imm = None, None
-    if settings.start == "screen" and settings.centred:
+    # the screen's vector maps onto the standardised leg sites; a parameter declared at the
+    # subject or population level has none, and such a model starts as "classical" does
+    screenable = all(p.level == "leg" for p in model_params(model))
+    if settings.start == "screen" and settings.centred and screenable:
         if progress:
             print("fit: each leg's mode and Laplace covariance (the screen) for the chains' start and metric", file=sys.stderr, flush=True)
         init_params, imm = screen_start(cohort, model, data, settings, conditioned, arrays)
         if not settings.dense_mass:
             imm = {k: jnp.diagonal(v) for k, v in imm.items()}
-    elif settings.start == "classical" and settings.centred:
+    elif settings.start in ("screen", "classical") and settings.centred:
         start = classical_start(cohort, model, data, settings.trials[0])
         init = functools.partial(_init_near, values=start, fallback=init)
     kernel = NUTS(
