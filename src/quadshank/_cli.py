@@ -360,7 +360,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     def start_options(sp):
-        sp.add_argument("--start", choices=["screen", "classical", "prior"], default="screen",
+        from ._fit import STARTS
+
+        sp.add_argument("--start", choices=STARTS, default="screen",
                         help="where the chains start: each leg's mode from the screen, whose Laplace covariance is "
                              "also the metric (default); the classical least-squares identification; the prior median")
         sp.add_argument("--adapt-metric", action="store_true",

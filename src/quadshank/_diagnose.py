@@ -35,9 +35,9 @@ import numpy as np
 from ._cohort import Cohort
 from ._effects import registered_effects
 from ._fit import build_model
+from ._io import write_json
 from ._likelihood import leg_active_output
 from ._model import Model, equivalent_acceleration
-from ._io import write_json
 from ._posterior_eval import interval, posterior_prediction_errors
 from ._progress import progress_bar
 from ._screen import LaplaceFit, delta_elpd, laplace_fit, leg_draw_models

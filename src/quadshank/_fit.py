@@ -348,8 +348,7 @@ def screen_start(cohort: Cohort, model: Model, data: LikelihoodData, settings: F
     for i in range(L):
         idx = positions(i)
         imm[np.ix_(idx, idx)] = scr.covariance[i]
-        for c in range(chains):
-            inits[c, idx] = scr.draws[i, c % scr.draws.shape[1]]
+        inits[:, idx] = scr.draws[i, :chains]
     init_params = {}
     for k in names:
         shape = np.shape(sites[k]["value"])
