@@ -6,18 +6,8 @@ built-in effect.
 """
 
 import dataclasses
-import os
 
-# XLA's CPU compiler splits a module across threads for LLVM code generation.  Two CI
-# runs with that on saw a worker segfault inside compilation and, in another, one test's
-# first-compiled program return garbage (the same test passed when its program was
-# rerun 15 times); one code-generation thread per compile is the suspected remedy, set
-# before JAX starts (notebook kernels started by the tests inherit it).
-os.environ["XLA_FLAGS"] = " ".join(
-    f for f in (os.environ.get("XLA_FLAGS", ""), "--xla_cpu_parallel_codegen_split_count=1") if f
-)
-
-from quadshank import Effect, Param, register_effect  # noqa: E402
+from quadshank import Effect, Param, register_effect
 
 
 @register_effect
