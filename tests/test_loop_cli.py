@@ -1,7 +1,8 @@
 """The modelling loop on the command line: `discover --confirm`, `diagnose` of a saved fit, `compare`.
 
-Data with hidden potentiation (JM-left, 1 min of trial 1); two short NUTS fits
-made by `discover --confirm` serve `diagnose` and `compare`.
+Data with hidden potentiation (JM-left, 1 min of trial 1); the two short NUTS fits
+made by `discover --confirm` (the start model, and round 1's leader confirmed
+against it) serve `diagnose` and `compare`.
 """
 
 import json
@@ -24,7 +25,7 @@ def _cohort(effect):
 @pytest.fixture(scope="module")
 def discovered(tmp_path_factory):
     """`discover --confirm` on data with hidden potentiation, screening it and the user-written
-    effect of conftest.py; confirmed by two short NUTS fits (start and final model)."""
+    effect of conftest.py; round 1's leader confirmed by NUTS against a NUTS fit of the start model."""
     root = tmp_path_factory.mktemp("discover")
     write_interchange(_cohort("potentiation"), root / "data")
     out = root / "discover"
@@ -47,8 +48,18 @@ def test_discover_on_the_command_line_with_a_user_effect(discovered):
     assert len(s["rounds"]) == 2 and s["rounds"][1]["verdict"] == "none"
     for name in r1["figures"]:
         assert (out / "round-1" / name).stat().st_size > 5000
+    # round 1's leader is refitted with NUTS against the start model's fit before it is added
+    assert r1["screen_verdict"] == r1["verdict"] == "potentiation"
+    nuts = next(r for r in r1["ranking"] if r["effect"] == "potentiation")["nuts"]
+    assert nuts["clears_bar"] and nuts["delta_elpd"] > 2 * nuts["delta_elpd_se"] > 0
+    assert nuts["J_1000ms"]["after"]["hi"] < nuts["J_1000ms"]["before"]["lo"]
+    assert "nuts" not in cubic  # only leaders that clear the screen's bar are refitted
+    assert "NUTS confirms potentiation" in r1["sentence"]
+    assert "Confirmed with hierarchical NUTS" in (out / "round-1" / "report.md").read_text()
     c = s["confirm"]
     assert c["start"]["model"] == "model3s" and c["final"]["model"] == "model3s+potentiation"
+    assert c["final"]["folder"] == "round-1/confirm/fit-potentiation"
+    assert s["rounds"][0]["screen_verdict"] == "potentiation"
     assert c["elpd_diff"] > 0  # the final model ranks first under NUTS too
     assert "NUTS: model3s+potentiation against model3s" in (out / "report.md").read_text()
     assert (out / "confirm" / "compare" / "summary.json").exists()
@@ -57,7 +68,9 @@ def test_discover_on_the_command_line_with_a_user_effect(discovered):
 def test_diagnose_a_saved_fit(discovered, tmp_path, scratch_registry):
     """`diagnose FITDIR` reads the fit's model, legs, trials and data, and ranks; a candidate whose
     screen fails (a user's effect with a bug) is reported and left out, and the others are ranked;
-    a bad effect name is an error."""
+    with `--confirm` the leader is refitted with NUTS with the saved fit's settings and judged there
+    (the same data, settings and seed give what discover's round 1 found); a bad effect name or
+    number of leaders is an error."""
     import dataclasses
 
     import jax.numpy as jnp
@@ -80,14 +93,27 @@ def test_diagnose_a_saved_fit(discovered, tmp_path, scratch_registry):
     assert json.loads((fitdir / "summary.json").read_text())["data"] == str((root / "data").resolve())
     diag = tmp_path / "diag"
     with pytest.warns(RuntimeWarning, match="broken_gain failed"):
-        rc = main(["--quiet", "diagnose", str(fitdir), "--effects", "broken_gain,potentiation", "--out", str(diag)])
+        rc = main(["--quiet", "diagnose", str(fitdir), "--effects", "broken_gain,potentiation", "--confirm",
+                   "--out", str(diag)])
     assert rc == 0
     s = json.loads((diag / "summary.json").read_text())
-    assert s["model"] == "model3s" and s["verdict"] == "potentiation"
+    assert s["model"] == "model3s" and s["verdict"] == s["screen_verdict"] == "potentiation"
     assert [r["effect"] for r in s["ranking"]] == ["potentiation"]
     assert [f["effect"] for f in s["failed"]] == ["broken_gain"] and "finite" in s["failed"][0]["error"]
     assert "Candidates that could not be screened" in (diag / "report.md").read_text()
+
+    nuts = s["ranking"][0]["nuts"]
+    fit = json.loads((diag / "confirm" / "fit-potentiation" / "summary.json").read_text())
+    start = json.loads((fitdir / "summary.json").read_text())
+    assert fit["model"] == "model3s+potentiation" and fit["settings"] == start["settings"]
+    assert fit["data"] == start["data"]
+    r1 = json.loads((out / "round-1" / "summary.json").read_text())
+    in_discover = next(r for r in r1["ranking"] if r["effect"] == "potentiation")["nuts"]
+    np.testing.assert_allclose(nuts["delta_elpd"], in_discover["delta_elpd"], rtol=1e-6)
+    assert nuts["clears_bar"] and "NUTS confirms potentiation" in s["sentence"]
+
     assert main(["--quiet", "diagnose", str(fitdir), "--effects", "telepathy", "--out", str(tmp_path / "x")]) == 2
+    assert main(["--quiet", "diagnose", str(fitdir), "--confirm", "-1", "--out", str(tmp_path / "y")]) == 2
 
 
 def test_compare_before_and_after(discovered, tmp_path):
@@ -95,7 +121,8 @@ def test_compare_before_and_after(discovered, tmp_path):
     findings; the baseline's residual trends over the preceding interpulse interval."""
     _, out, _ = discovered
     cmp = tmp_path / "cmp"
-    assert main(["--quiet", "compare", str(out / "confirm" / "fit-start"), str(out / "confirm" / "fit-final"),
+    final = out / json.loads((out / "summary.json").read_text())["confirm"]["final"]["folder"]
+    assert main(["--quiet", "compare", str(out / "confirm" / "fit-start"), str(final),
                  "--draws", "20", "--start-stride", "20", "--out", str(cmp)]) == 0
     s = json.loads((cmp / "summary.json").read_text())
     assert set(s["J"]) == {"model3s", "model3s+potentiation"}

@@ -237,9 +237,12 @@ def cmd_diagnose(args) -> int:
     _, model, desc = load_fit(args.fitdir)
     cohort, _ = _loop_data(args, fit_summary)
     command = "quadshank " + " ".join(shlex.quote(a) for a in args.argv)
+    if args.confirm < 0:
+        raise ValueError(f"--confirm must be a number of leaders, at least 0, not {args.confirm}")
     summary = run_diagnose(
         cohort, model, args.out, trials=tuple(desc["trials"]), legs=desc["legs"],
         effects=_csv_list(args.effects) if args.effects else None, command=command, progress=not args.quiet,
+        confirm_from=args.fitdir if args.confirm else None, n_confirm=args.confirm,
     )
     _say_ranking(args, summary)
     _say(args, f"report: {Path(args.out) / 'report.md'}")
@@ -448,6 +451,9 @@ def build_parser() -> argparse.ArgumentParser:
     dg.add_argument("fitdir", help="fit folder of `quadshank fit`")
     dg.add_argument("--data", default="", help="the fit's data (default: the folder or file the fit records)")
     dg.add_argument("--effects", default="", help="candidate effects, comma-separated (default: every registered candidate)")
+    dg.add_argument("--confirm", type=int, nargs="?", const=1, default=0, metavar="N",
+                    help="refit the N best candidates that clear the screen's bar (default 1) with NUTS, with the fit's "
+                         "settings, and give the verdict under NUTS")
     dg.add_argument("--out", required=True)
     dg.set_defaults(func=cmd_diagnose)
 
@@ -459,7 +465,8 @@ def build_parser() -> argparse.ArgumentParser:
     dc.add_argument("--effects", default="", help="candidate effects, comma-separated (default: every registered candidate)")
     dc.add_argument("--max-rounds", type=int, default=3)
     dc.add_argument("--confirm", action="store_true",
-                    help="confirm with hierarchical NUTS: fit the start and final models, compare them (J, PSIS-LOO, residuals)")
+                    help="confirm with hierarchical NUTS: fit the start model, refit each round's leader before adding it "
+                         "(the loop goes on only while NUTS agrees), compare the first and last fits (J, PSIS-LOO, residuals)")
     dc.add_argument("--chains", type=int, default=2, help="with --confirm (default 2)")
     dc.add_argument("--warmup", type=int, default=300, help="with --confirm (default 300)")
     dc.add_argument("--draws", type=int, default=300, help="with --confirm (default 300)")

@@ -40,7 +40,7 @@ from ._likelihood import leg_active_output
 from ._model import Model, equivalent_acceleration
 from ._posterior_eval import interval, posterior_prediction_errors
 from ._progress import progress_bar
-from ._screen import LaplaceFit, delta_elpd, laplace_fit, leg_draw_models
+from ._screen import LaplaceFit, delta_elpd, laplace_fit, leg_draw_models, paired_difference
 
 __all__ = ["candidates", "rank_effects", "ELPD_SE_BAR", "J_HORIZONS_MS", "leg_residuals", "fit_residuals", "residual_figures"]
 
@@ -48,6 +48,8 @@ __all__ = ["candidates", "rank_effects", "ELPD_SE_BAR", "J_HORIZONS_MS", "leg_re
 ELPD_SE_BAR = 2.0
 #: Horizons [ms] at which the extension must lower J beyond the bands.
 J_HORIZONS_MS = (500, 1000)
+#: Posterior draws, and the stride between prediction starts, of the J bands behind the bar.
+J_DRAWS, J_START_STRIDE = 40, 5
 
 
 def candidates(model: Model) -> list[str]:
@@ -70,15 +72,30 @@ def _extend(model: Model, name: str) -> Model:
 
 def j_draws(fit: LaplaceFit, cohort: Cohort, trials, *, n_draws: int, start_stride: int) -> np.ndarray:
     """J_φ,p [deg] per draw at J_HORIZONS_MS, averaged over legs and ``trials``: (draws, horizons)."""
-    horizons = tuple(int(round(h / 1000 / fit.model.sampling_period_s)) for h in J_HORIZONS_MS)
+    return _mean_j(lambda leg: leg_draw_models(fit, leg, n_draws), fit.legs, fit.model, cohort, trials, start_stride)
+
+
+def nuts_j_draws(fit, cohort: Cohort, trials, *, n_draws: int, start_stride: int, seed: int = 0) -> np.ndarray:
+    """:func:`j_draws` for a saved NUTS fit (a :class:`quadshank._posterior_eval.LoadedFit`)."""
+    from ._fitio import posterior_models
+
+    def models(leg):
+        return posterior_models(fit.idata, fit.model, leg, n_draws, seed)[0]
+
+    return _mean_j(models, fit.desc["legs"], fit.model, cohort, trials, start_stride)
+
+
+def _mean_j(leg_models, legs, model: Model, cohort: Cohort, trials, start_stride: int) -> np.ndarray:
+    """J per draw at J_HORIZONS_MS of the draws ``leg_models(leg)``, averaged over ``legs`` and ``trials``."""
+    horizons = tuple(int(round(h / 1000 / model.sampling_period_s)) for h in J_HORIZONS_MS)
     per = []
-    for leg in fit.legs:
-        models = leg_draw_models(fit, leg, n_draws)
+    for leg in legs:
+        models = leg_models(leg)
         for t in cohort.trials_of(leg):
             if t.trial in trials:
                 per.append(posterior_prediction_errors(models, t, horizons, start_stride))
     if not per:
-        raise KeyError(f"no evaluation trial {sorted(trials)} for legs {list(fit.legs)}")
+        raise KeyError(f"no evaluation trial {sorted(trials)} for legs {list(legs)}")
     return np.mean(per, axis=0)
 
 
@@ -163,8 +180,8 @@ def rank_effects(
     legs=None,
     effects=None,
     n_draws: int = 200,
-    n_j_draws: int = 40,
-    start_stride: int = 5,
+    n_j_draws: int = J_DRAWS,
+    start_stride: int = J_START_STRIDE,
     seed: int = 0,
     n_starts: int = 3,
     base: LaplaceFit | None = None,
@@ -211,21 +228,12 @@ def rank_effects(
         fits[name] = ext
         row = {
             "effect": name,
-            "delta_elpd": d,
-            "delta_elpd_se": se,
+            **_bar(d, se, J0, J1, known[name].predicts_angle),
             "pareto_k_max": float(np.nanmax(ext.pareto_k)),
             # how well the Laplace Gaussian stands for the posterior (n_draws: exactly)
             "importance_ess_min": float(np.min(ext.weights_ess)),
             "signature": known[name].signature,
         }
-        lowered = []
-        for j, h in enumerate(J_HORIZONS_MS):
-            b, x = interval(J0[:, j]), interval(J1[:, j])
-            row[f"J_{h}ms"] = {"before": b, "after": x, "change": x["median"] - b["median"]}
-            lowered.append(x["hi"] < b["lo"])
-        row["J_lowered_beyond_bands"] = bool(all(lowered))
-        row["predicts_angle"] = bool(known[name].predicts_angle)
-        row["clears_bar"] = bool(d > ELPD_SE_BAR * se and (all(lowered) or not known[name].predicts_angle))
         row["parameters"] = {
             leg: {p.name: np.asarray(ext.values(leg)[p.name]).round(6).tolist() for e in ext.model.effects if e.name == name for p in e.declared_params()}
             for leg in ext.legs
@@ -235,6 +243,21 @@ def rank_effects(
     verdict = next((r["effect"] for r in rows if r["clears_bar"]), "none")
     J_base = {f"{h}": interval(J0[:, j]) for j, h in enumerate(J_HORIZONS_MS)}
     return Ranking(base=base, fits=fits, rows=rows, verdict=verdict, J_base=J_base, failed=failed)
+
+
+def _bar(d: float, se: float, J0: np.ndarray, J1: np.ndarray, predicts_angle: bool) -> dict:
+    """The evidence for one extension against its model, and whether it clears the bar (module docs):
+    ΔELPD ± SE, J at J_HORIZONS_MS before and after (from per-draw J, (draws, horizons))."""
+    out = {"delta_elpd": d, "delta_elpd_se": se}
+    lowered = []
+    for j, h in enumerate(J_HORIZONS_MS):
+        b, x = interval(J0[:, j]), interval(J1[:, j])
+        out[f"J_{h}ms"] = {"before": b, "after": x, "change": x["median"] - b["median"]}
+        lowered.append(x["hi"] < b["lo"])
+    out["J_lowered_beyond_bands"] = bool(all(lowered))
+    out["predicts_angle"] = bool(predicts_angle)
+    out["clears_bar"] = bool(d > ELPD_SE_BAR * se and (all(lowered) or not predicts_angle))
+    return out
 
 
 def verdict_sentence(ranking: Ranking) -> str:
@@ -263,6 +286,101 @@ def verdict_sentence(ranking: Ranking) -> str:
         f"{j5['after']['median']:.2f}° [{j5['after']['lo']:.2f}, {j5['after']['hi']:.2f}] and at 1 s from "
         f"{j10['before']['median']:.2f}° to {j10['after']['median']:.2f}°."
     )
+
+
+# ============================================================================ NUTS confirmation
+
+
+def confirm_with_nuts(
+    cohort: Cohort,
+    base_folder,
+    effect: str,
+    out,
+    *,
+    eval_trials=None,
+    n_j_draws: int = J_DRAWS,
+    start_stride: int = J_START_STRIDE,
+    J_base: np.ndarray | None = None,
+    progress: bool = False,
+) -> dict:
+    """Confirm a screened extension with hierarchical NUTS.
+
+    Fits ``base_folder``'s model plus ``effect`` to the same data, legs and
+    trials with the same settings (``out``, a fit folder), and measures the
+    evidence as the screen does: ΔELPD by PSIS-LOO over the same 1-s segments,
+    paired, and J at J_HORIZONS_MS as bands over posterior draws, against the
+    same bar.  ``J_base``: the base fit's J draws, if already computed
+    (:func:`nuts_j_draws`).  Returns the JSON-able evidence, with the fit's
+    folder, model, diagnostics and failure banner (a fit that fails its checks
+    is reported, not hidden).
+    """
+    from pathlib import Path
+
+    from ._fit import FitSettings
+    from ._pipeline import run_fit
+    from ._posterior_eval import load_fits, psis_loo
+
+    (base,) = load_fits([base_folder])
+    desc = base.desc
+    settings = FitSettings(**{**desc["settings"], "trials": tuple(desc["trials"])})
+    trials = tuple(eval_trials) if eval_trials is not None else tuple(sorted({t.trial for leg in desc["legs"] for t in cohort.trials_of(leg)}))
+    base_name, *adds = desc["model"].split("+")
+    s = run_fit(cohort, out, base_name, [*adds, effect], settings, legs=desc["legs"], progress=progress,
+                data_source=base.summary.get("data"))
+    (ext,) = load_fits([out])
+    loo_a, loo_b = psis_loo(base.idata, str(base.folder)), psis_loo(ext.idata, str(ext.folder))
+    if list(loo_a.loo_i["observation"].values) != list(loo_b.loo_i["observation"].values):
+        raise ValueError(f"{base.folder} and {out}: the fits' PSIS-LOO segments differ; they are not of the same data")
+    d, se = paired_difference(loo_a.loo_i.values, loo_b.loo_i.values)
+    if J_base is None:
+        J_base = nuts_j_draws(base, cohort, trials, n_draws=n_j_draws, start_stride=start_stride)
+    J_ext = nuts_j_draws(ext, cohort, trials, n_draws=n_j_draws, start_stride=start_stride)
+    return {
+        "effect": effect,
+        "model": s["model"],
+        "folder": str(Path(out)),
+        **_bar(d, se, J_base, J_ext, registered_effects()[effect].predicts_angle),
+        "pareto_k_max": float(np.max(np.asarray(loo_b.pareto_k))),
+        "diagnostics": s["diagnostics"],
+        "banner": s.get("banner"),
+    }
+
+
+def confirm_leaders(cohort: Cohort, ranking: Ranking, base_folder, out, *, n_confirm: int = 1, progress: bool = False) -> str:
+    """Confirm the ``n_confirm`` best candidates that clear the screen's bar with NUTS (each
+    row gets ``nuts``: :func:`confirm_with_nuts`, its fit in ``out/fit-EFFECT``); returns the
+    verdict under NUTS: the best of them that clears the bar there too, or ``none``."""
+    from pathlib import Path
+
+    from ._posterior_eval import load_fits
+
+    leaders = [r for r in ranking.rows if r["clears_bar"]][:n_confirm]
+    if not leaders:
+        return "none"
+    (base,) = load_fits([base_folder])
+    trials = tuple(sorted({t.trial for leg in base.desc["legs"] for t in cohort.trials_of(leg)}))
+    J0 = nuts_j_draws(base, cohort, trials, n_draws=J_DRAWS, start_stride=J_START_STRIDE)
+    for r in progress_bar(leaders, desc="confirming with NUTS", enabled=progress):
+        r["nuts"] = confirm_with_nuts(cohort, base_folder, r["effect"], Path(out) / f"fit-{r['effect']}",
+                                      eval_trials=trials, J_base=J0, progress=progress)
+    return next((r["effect"] for r in leaders if r["nuts"]["clears_bar"]), "none")
+
+
+def nuts_sentence(summary: dict) -> str:
+    """What NUTS said of the screen's leaders, in words."""
+    parts = []
+    for r in summary["ranking"]:
+        n = r.get("nuts")
+        if n is None:
+            continue
+        j10 = n["J_1000ms"]
+        parts.append(
+            f"NUTS {'confirms' if n['clears_bar'] else 'does not confirm'} {r['effect']}: ΔELPD "
+            f"{n['delta_elpd']:.0f} ± {n['delta_elpd_se']:.0f}, J at 1 s {j10['before']['median']:.2f}° → "
+            f"{j10['after']['median']:.2f}° [{j10['after']['lo']:.2f}, {j10['after']['hi']:.2f}]"
+            + (f" (caution: {n['banner']})" if n.get("banner") else "") + "."
+        )
+    return " ".join(parts)
 
 
 # ============================================================================ outputs
@@ -319,6 +437,25 @@ def ranking_markdown(summary: dict, command: str | None = None) -> str:
         "importance-weighted towards the posterior); a Pareto k above 0.7 or a small importance ESS says the Gaussian "
         "stands poorly for that posterior, and a NUTS fit (`quadshank fit … --add-effect NAME`) is the confirmation.",
     ]
+    confirmed = [r for r in rows if "nuts" in r]
+    if confirmed:
+        md += [
+            "",
+            f"## Confirmed with hierarchical NUTS (against the fit in `{summary.get('confirmed_from', '')}`)",
+            "",
+            "| effect | ΔELPD ± SE (PSIS-LOO) | J 500 ms before → after [deg] | J 1000 ms before → after [deg] | clears the bar | fit |",
+            "|---|---|---|---|---|---|",
+        ]
+        for r in confirmed:
+            n = r["nuts"]
+            j5, j10 = n["J_500ms"], n["J_1000ms"]
+            md.append(
+                f"| {r['effect']} | {n['delta_elpd']:.1f} ± {n['delta_elpd_se']:.1f} | "
+                f"{j5['before']['median']:.3f} → {j5['after']['median']:.3f} [{j5['after']['lo']:.3f}, {j5['after']['hi']:.3f}] | "
+                f"{j10['before']['median']:.3f} → {j10['after']['median']:.3f} [{j10['after']['lo']:.3f}, {j10['after']['hi']:.3f}] | "
+                f"{'yes' if n['clears_bar'] else 'no'} | `{n['folder']}`{' — ' + n['banner'] if n.get('banner') else ''} |"
+            )
+        md += ["", f"The screen's verdict: {summary.get('screen_verdict')}; under NUTS: {summary['verdict']}."]
     failed = summary.get("failed", [])
     if failed:
         md += ["", "## Candidates that could not be screened", ""]
@@ -345,18 +482,36 @@ def run_diagnose(
     base: LaplaceFit | None = None,
     seed: int = 0,
     n_starts: int = 3,
+    confirm_from=None,
+    n_confirm: int = 1,
 ) -> dict:
     """Rank the candidate effects for ``model``; writes figures, report.md and summary.json (last).
 
-    ``n_starts``: see :func:`rank_effects`."""
+    ``n_starts``: see :func:`rank_effects`.  ``confirm_from``: a NUTS fit folder of
+    ``model`` on the same data; then the ``n_confirm`` best candidates that clear
+    the screen's bar are refitted with NUTS (``out/confirm/fit-EFFECT``, the same
+    settings) and the verdict is the best that clears the bar under NUTS too
+    (:func:`confirm_leaders`); the screen's own is kept as ``screen_verdict``."""
     from pathlib import Path
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     ranking = rank_effects(cohort, model, trials=trials, legs=legs, effects=effects, base=base, seed=seed,
                            n_starts=n_starts, progress=progress)
+    screen_verdict = ranking.verdict
+    if confirm_from is not None:
+        ranking.verdict = confirm_leaders(cohort, ranking, confirm_from, out / "confirm", n_confirm=n_confirm,
+                                          progress=progress)
     summary = ranking.to_json()
     summary["sentence"] = verdict_sentence(ranking)
+    if confirm_from is not None:
+        summary["screen_verdict"] = screen_verdict
+        summary["confirmed_from"] = str(confirm_from)
+        said = nuts_sentence(summary)
+        if ranking.verdict == "none" and screen_verdict != "none":
+            summary["sentence"] = f"The screen's leader, {screen_verdict}, is not confirmed by NUTS. {said}"
+        elif said:
+            summary["sentence"] += " " + said
     summary["trials"] = [int(t) for t in trials]
     dt = ranking.base.model.sampling_period_s
     if figures:
@@ -373,23 +528,17 @@ def run_diagnose(
     return summary
 
 
-def _confirm(cohort, out, start_name: str, added: list, settings, *, legs, data_source, n_draws, start_stride, progress) -> dict:
-    """NUTS fits of the loop's first and last model on the same data, and their comparison."""
-    from ._pipeline import run_fit
+def _fit_entry(summary: dict, folder: str) -> dict:
+    return {"folder": folder, "model": summary["model"], "banner": summary.get("banner"), "diagnostics": summary["diagnostics"]}
+
+
+def _compare_start_final(cohort, out, fits: dict, *, n_draws, start_stride, progress) -> dict:
+    """The loop's first and last NUTS fits (folders relative to ``out``) compared in
+    ``out/confirm/compare``: J bands, PSIS-LOO, residuals before and after."""
     from ._posterior_eval import run_posterior_evaluate
 
-    base_name = start_name.split("+")[0]
-    start_adds = start_name.split("+")[1:]
-    fits = {}
-    for key, adds in (("start", start_adds), ("final", start_adds + list(added))):
-        folder = out / f"fit-{key}"
-        s = run_fit(cohort, folder, base_name, adds, settings, legs=legs, progress=progress, data_source=data_source)
-        fits[key] = {"folder": f"confirm/fit-{key}", "model": s["model"], "banner": s.get("banner"),
-                     "diagnostics": s["diagnostics"]}
-    if not added:
-        return {**fits, "sentence": "Nothing was added; the start model's fit is in confirm/fit-start."}
-    cmp = run_posterior_evaluate(cohort, [out / "fit-start", out / "fit-final"], out / "compare", n_draws=n_draws,
-                                 start_stride=start_stride, progress=progress, residuals=True)
+    cmp = run_posterior_evaluate(cohort, [out / fits["start"]["folder"], out / fits["final"]["folder"]], out / "confirm" / "compare",
+                                 n_draws=n_draws, start_stride=start_stride, progress=progress, residuals=True)
     a, b = fits["start"]["model"], fits["final"]["model"]
     group = (cmp["loo"]["compare"] or [{}])[0].get("table", {})
     J = cmp["J"]
@@ -402,7 +551,7 @@ def _confirm(cohort, out, start_name: str, added: list, settings, *, legs, data_
     banners = [f"{f['model']}: {f['banner']}" for f in fits.values() if f["banner"]]
     if banners:
         text += " Caution, the fits failed their checks: " + "; ".join(banners)
-    return {**fits, "sentence": text, "elpd_diff": elpd.get("elpd_diff"), "elpd_dse": elpd.get("dse"),
+    return {"sentence": text, "elpd_diff": elpd.get("elpd_diff"), "elpd_dse": elpd.get("dse"),
             "J_1000ms": {a: ja, b: jb}, "trial": trial}
 
 
@@ -424,33 +573,54 @@ def run_discover(
 ) -> dict:
     """The whole loop: diagnose, add the leading effect, diagnose again, while an effect clears the bar.
 
-    ``confirm`` (a :class:`quadshank._fit.FitSettings`): then confirm the screen with
-    hierarchical NUTS: fit the starting model and the final one (``confirm/fit-start``,
-    ``confirm/fit-final``) and compare them (``confirm/compare``: J bands over
-    ``compare_draws`` posterior draws, PSIS-LOO, residuals before and after).
+    ``confirm`` (a :class:`quadshank._fit.FitSettings`): then every round's leader
+    is confirmed with hierarchical NUTS before it is added: the starting model is
+    fitted (``confirm/fit-start``), each round refits its leader against the
+    previous round's fit (``round-K/confirm/fit-EFFECT``, see :func:`run_diagnose`)
+    and the loop goes on only while NUTS agrees; the first and last fits are then
+    compared (``confirm/compare``: J bands over ``compare_draws`` posterior draws,
+    PSIS-LOO, residuals before and after).
     """
     from pathlib import Path
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     current = build_model(model) if isinstance(model, str) else model
+    fits, nuts_folder = {}, None
+    if confirm is not None:
+        from ._pipeline import run_fit
+
+        base_name, *adds = current.name.split("+")
+        nuts_folder = out / "confirm" / "fit-start"
+        s = run_fit(cohort, nuts_folder, base_name, adds, confirm, legs=legs, progress=progress, data_source=data_source)
+        fits["start"] = fits["final"] = _fit_entry(s, "confirm/fit-start")
     rounds, base = [], None
     for k in range(1, max_rounds + 1):
         s = run_diagnose(
-            cohort, current, out / f"round-{k}", trials=trials, legs=legs, effects=effects, base=base, progress=progress
+            cohort, current, out / f"round-{k}", trials=trials, legs=legs, effects=effects, base=base, progress=progress,
+            confirm_from=nuts_folder,
         )
         ranking = s.pop("_ranking")
         rounds.append({"model": current.name, "verdict": s["verdict"], "sentence": s["sentence"], "J_ms": s["J_ms"], "elpd": s["elpd"]})
+        if "screen_verdict" in s:
+            rounds[-1]["screen_verdict"] = s["screen_verdict"]
         if s["verdict"] == "none":
             break
         base = ranking.fits[s["verdict"]]
         current = base.model
+        if confirm is not None:
+            row = next(r for r in s["ranking"] if r["effect"] == s["verdict"])
+            nuts_folder = Path(row["nuts"]["folder"])
+            fits["final"] = _fit_entry(row["nuts"], nuts_folder.relative_to(out).as_posix())
     summary = {"model": rounds[0]["model"], "final_model": current.name, "rounds": rounds,
                "added": [r["verdict"] for r in rounds if r["verdict"] != "none"]}
     if confirm is not None:
-        summary["confirm"] = _confirm(cohort, out / "confirm", rounds[0]["model"], summary["added"], confirm, legs=legs,
-                                      data_source=data_source, n_draws=compare_draws, start_stride=compare_stride,
-                                      progress=progress)
+        summary["confirm"] = dict(fits)
+        if summary["added"]:
+            summary["confirm"].update(_compare_start_final(cohort, out, fits, n_draws=compare_draws,
+                                                           start_stride=compare_stride, progress=progress))
+        else:
+            summary["confirm"]["sentence"] = "Nothing was added; the start model's fit is in confirm/fit-start."
     md = ["# The modelling loop (`quadshank discover`)", ""]
     if command:
         md += [f"Regenerate: `{command}`", ""]

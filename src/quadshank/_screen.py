@@ -386,5 +386,11 @@ def _laplace_fit(
 
 def delta_elpd(a: LaplaceFit, b: LaplaceFit) -> tuple[float, float]:
     """ELPD(b) − ELPD(a) and its standard error, paired over the same segments."""
-    diff = (b.elpd_i - a.elpd_i)[np.isfinite(a.elpd_i) & np.isfinite(b.elpd_i)]
+    return paired_difference(a.elpd_i, b.elpd_i)
+
+
+def paired_difference(a_i, b_i) -> tuple[float, float]:
+    """Σ(b_i − a_i) over the segments where both pointwise ELPDs are finite, and its standard error."""
+    a_i, b_i = np.asarray(a_i, float), np.asarray(b_i, float)
+    diff = (b_i - a_i)[np.isfinite(a_i) & np.isfinite(b_i)]
     return float(diff.sum()), float(math.sqrt(diff.size * np.var(diff)))
