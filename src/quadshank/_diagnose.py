@@ -22,6 +22,11 @@ The verdict is the highest-
 ranked effect that clears the bar, or ``none``: a misfit that some effect
 absorbs a little of (ΔELPD of a few units, within noise on J) is not called a
 missing effect.
+
+The ranking screens (per-leg MAP and Laplace draws); the leaders that clear
+the bar are then confirmed with hierarchical NUTS (:func:`confirm_leaders`):
+refitted with a saved fit's settings and judged against the same bar by
+PSIS-LOO and J bands over posterior draws.
 """
 
 from __future__ import annotations
