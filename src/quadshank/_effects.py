@@ -253,9 +253,35 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
         raise TypeError(f"{cls.__name__}: declared parameters {missing} are not dataclass fields")
     discrete = list(getattr(cls, "discrete", ()))
     meta = [n for n in fields if n not in param_names and n not in discrete]
-    jax.tree_util.register_dataclass(cls, data_fields=param_names + discrete, meta_fields=meta)
+    register_pytree(cls, param_names + discrete, meta)
     _REGISTRY[cls.name] = cls
     return cls
+
+
+def register_pytree(cls: type, data: list[str], meta: list[str]) -> None:
+    """Make the frozen dataclass ``cls`` a JAX pytree: leaves ``data``, static ``meta``.
+
+    A custom node, not ``jax.tree_util.register_dataclass``: with that, the tree
+    structures of two dataclasses with the same number of leaves compare equal
+    while their hashes differ, so jit's cache could (by chance of the hash, once
+    in a few processes) run the program compiled for another effect.
+    """
+
+    def flatten(obj):
+        return [getattr(obj, n) for n in data], tuple(getattr(obj, n) for n in meta)
+
+    def flatten_with_keys(obj):
+        return [(jax.tree_util.GetAttrKey(n), getattr(obj, n)) for n in data], tuple(getattr(obj, n) for n in meta)
+
+    def unflatten(aux, children):
+        obj = object.__new__(cls)  # leaves may be tracers or None: no __init__ checks
+        for n, v in zip(data, children):
+            object.__setattr__(obj, n, v)
+        for n, v in zip(meta, aux):
+            object.__setattr__(obj, n, v)
+        return obj
+
+    jax.tree_util.register_pytree_with_keys(cls, flatten_with_keys, unflatten, flatten)
 
 
 def registered_effects() -> dict[str, type[Effect]]:

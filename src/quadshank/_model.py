@@ -50,6 +50,7 @@ from ._effects import (
     StepContext,
     ZeroOrderActivation,
     get_effect,
+    register_pytree,
 )
 from ._paper import MAX_DELAY, SAMPLING_PERIOD_S
 
@@ -221,7 +222,7 @@ def _to_py(v):
     return arr.item() if arr.ndim == 0 else arr.tolist()
 
 
-jax.tree_util.register_dataclass(Model, data_fields=["effects", "delay"], meta_fields=["name", "sampling_period_s"])
+register_pytree(Model, ["effects", "delay"], ["name", "sampling_period_s"])
 
 
 # ====================================================================== the paper's models
