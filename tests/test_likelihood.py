@@ -191,3 +191,9 @@ def test_pointwise_segments_with_an_angle_delay_sum_to_its_loglik(cohort_truth):
     ll = L.leg_loglik_by_delay(model, noise, x, data.response_length, data.max_shift)
     seg = L.leg_pointwise(model, noise, x, 5, data.response_length, data.n_segments, data.max_shift, 1)
     assert float(jnp.sum(seg)) == pytest.approx(float(ll[5, 1]), rel=1e-5)
+
+
+def test_student_t_cdf_matches_scipy():
+    z = np.linspace(-8.0, 8.0, 41)
+    for nu in (1.2, 4.0, 30.0):
+        np.testing.assert_allclose(np.asarray(L.student_t_cdf(jnp.asarray(z), nu)), stats.t.cdf(z, nu), atol=2e-6)

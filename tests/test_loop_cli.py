@@ -48,6 +48,15 @@ def test_discover_on_the_command_line_with_a_user_effect(discovered):
     assert len(s["rounds"]) == 2 and s["rounds"][1]["verdict"] == "none"
     for name in r1["figures"]:
         assert (out / "round-1" / name).stat().st_size > 5000
+    for name in ("predictions_one_step_baseline_JM-left.png", "predictions_1s_baseline_JM-left.png", "loo_pit_baseline.png",
+                 "elpd_in_time_baseline.png", "residual_spectrum_baseline_JM-left.png"):
+        assert name in r1["figures"]
+    checks = r1["predictive_checks"]
+    assert checks["loo_pit"][LEG]["n"] > 1000  # one PIT per likelihood window
+    np.testing.assert_allclose(checks["elpd_total"][LEG], r1["elpd"]["value"], rtol=1e-9)
+    worst = checks["worst_seconds"][LEG]
+    assert [r["elpd"] for r in worst] == sorted(r["elpd"] for r in worst) and all(0 <= r["start_s"] < 60 for r in worst)
+    assert "Predictive checks of the baseline" in (out / "round-1" / "report.md").read_text()
     # round 1's leader is refitted with NUTS against the start model's fit before it is added
     assert r1["screen_verdict"] == r1["verdict"] == "potentiation"
     nuts = next(r for r in r1["ranking"] if r["effect"] == "potentiation")["nuts"]

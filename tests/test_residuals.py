@@ -287,3 +287,29 @@ def test_plots_write_pngs(tmp_path):
     ]
     for p in paths:
         assert _is_png(p), p
+
+
+def test_spectrum_finding_names_a_resonance_and_stays_quiet_on_white_noise():
+    rng = np.random.default_rng(4)
+    n, dt = 6000, 0.01
+    mask = np.ones(n, bool)
+    white = rng.standard_normal(n)
+    assert rd.spectrum_finding(rd.spectrum(white, mask, dt)) == []
+    ringing = white + 2.0 * np.sin(2 * np.pi * 12.0 * dt * np.arange(n))
+    (line,) = rd.spectrum_finding(rd.spectrum(ringing, mask, dt))
+    assert "peaks at 12." in line
+
+
+def test_loo_pit_summary_reads_the_shape_of_a_miscalibrated_predictive():
+    rng = np.random.default_rng(5)
+    n = 4000
+    calibrated = rd.loo_pit_summary(rng.uniform(size=n), 100)
+    assert calibrated["notes"] == [] and calibrated["distance"] < calibrated["band"]
+    assert 0.08 < calibrated["tail_share"] < 0.12
+    z = rng.standard_normal(n)
+    narrow = rd.loo_pit_summary(stats.norm.cdf(2.0 * z), 100)  # the predictive's sd is half the truth's
+    assert "too narrow" in narrow["notes"][0] and narrow["tail_share"] > 0.3
+    wide = rd.loo_pit_summary(stats.norm.cdf(0.4 * z), 100)
+    assert "too wide" in wide["notes"][0]
+    high = rd.loo_pit_summary(stats.norm.cdf(z + 0.6), 100)  # the data lie above the predictions
+    assert "under-predicts" in high["notes"][0]

@@ -414,7 +414,113 @@ def residual_figures(residuals: dict[str, dict], out, label: str, dt: float) -> 
         groups = np.where(r["angle"] < -20.0, "pulse below -20°", "pulse above -20°")
         tta = R.twitch_triggered_average(r["residual"], r["stimulation"], r["sample_mask"], groups=groups)
         paths.append(R.plot_twitch_average(tta, out / f"twitch_average_{stem}.png", dt, notes=found))
+        spec = R.spectrum(r["residual"], r["sample_mask"], dt)
+        peak = R.spectrum_finding(spec)
+        found.extend(peak)
+        paths.append(R.plot_spectrum(spec, out / f"residual_spectrum_{stem}.png", notes=peak))
     return paths, notes
+
+
+def loo_pit(fit: LaplaceFit, leg: str, n_draws: int = 100) -> np.ndarray:
+    """LOO-PIT of every likelihood window of ``leg`` (twitch windows or samples) under the screen's posterior.
+
+    For each draw s (Laplace draws resampled towards the posterior) the predictive
+    CDF of the window's measured equivalent acceleration is exact (Student-t); the
+    draws are weighted by their Pareto-smoothed leave-one-segment-out weights
+    ∝ 1/p(y_segment | θ_s), so each PIT leaves its own 1-s segment out.
+    """
+    import arviz as az
+    import jax
+
+    from ._likelihood import leg_window_cdf
+
+    i = fit.legs.index(leg)
+    idx = fit.resampled[i, :n_draws]
+    x = {k: v[i] for k, v in fit.data.leg_arrays().items()}
+    R, K = fit.data.response_length, fit.data.max_shift
+
+    def one(m, d, shift, log_sigma, log_nu):
+        return leg_window_cdf(m, {"sigma": jnp.exp(log_sigma), "nu": jnp.exp(log_nu)}, x, d, R, K, shift)
+
+    f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    cdf = np.asarray(jax.jit(jax.vmap(one))(
+        leg_draw_models(fit, leg, n_draws), jnp.asarray(fit.delays[i, idx], jnp.int32),
+        jnp.asarray(fit.shifts[i, idx], jnp.int32), f32(fit.draws[i, idx, -2]), f32(fit.draws[i, idx, -1]),
+    ))  # (draws, windows)
+    valid = fit.data.segment_mask[i]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a high Pareto k is a property of the segment, not an error here
+        lw, _ = az.psislw(-fit.pointwise[i, idx][:, valid].T)  # (segments, draws), normalised
+    weights = np.zeros((valid.size, idx.size))
+    weights[valid] = np.exp(lw)
+    keep = fit.data.window_mask[i]
+    seg = fit.data.window_segment[i][keep]
+    return np.sum(weights[seg].T * cdf[:, keep], axis=0)
+
+
+def elpd_in_time(fit: LaplaceFit, cohort: Cohort, leg: str) -> list[dict]:
+    """The pointwise PSIS-LOO ELPD of ``leg``'s 1-s segments, each located in its trial:
+    a list of {trial, start_s, elpd}, in the likelihood's segment order."""
+    from ._likelihood import SEGMENT_SAMPLES
+
+    i = fit.legs.index(leg)
+    rows = []
+    for t in cohort.trials_of(leg):
+        if t.trial in fit.data.trials:
+            n_seg = -(-t.n_samples // SEGMENT_SAMPLES)
+            rows += [{"trial": t.trial, "start_s": k * SEGMENT_SAMPLES * t.sampling_period_s} for k in range(n_seg)]
+    for r, e in zip(rows, fit.elpd_i[i]):
+        r["elpd"] = float(e)
+    return [r for r in rows if np.isfinite(r["elpd"])]
+
+
+def worst_seconds_sentence(leg: str, rows: list[dict], n: int = 3) -> str:
+    """Where ``leg``'s worst-predicted seconds are, against the median second, in words."""
+    med = float(np.median([r["elpd"] for r in rows]))
+    worst = sorted(rows, key=lambda r: r["elpd"])[:n]
+    where = ", ".join(f"trial {r['trial']} at {r['start_s']:.0f}–{r['start_s'] + 1:.0f} s (ELPD {r['elpd']:.0f})" for r in worst)
+    return f"{leg}: the worst-predicted seconds are {where}, against {med:.0f} for the median second."
+
+
+def screen_figures(fit: LaplaceFit, cohort: Cohort, out, label: str) -> tuple[list, dict]:
+    """The model's predictive checks from its screen: measured against predicted angle one step
+    (10 ms) and 1 s ahead with 90 % bands over posterior draws, LOO-PIT, and the pointwise ELPD in
+    time.  Returns (figure paths, JSON-able results with their findings in words)."""
+    from . import _residuals as R
+    from ._io import save_figure
+    from ._plots import plot_posterior_predictions
+    from ._posterior_eval import FIGURE_WINDOW_S, posterior_predictions
+
+    paths, result = [], {"loo_pit": {}, "worst_seconds": {}, "notes": []}
+    leg = "JM-left" if "JM-left" in fit.legs else fit.legs[0]
+    trial = [t for t in cohort.trials_of(leg) if t.trial in fit.data.trials][-1]
+    dt = trial.sampling_period_s
+    start_s = min(FIGURE_WINDOW_S[0], max(0.0, trial.n_samples * dt - FIGURE_WINDOW_S[1]))
+    i0 = int(round(start_s / dt))
+    i1 = min(trial.n_samples, i0 + int(round(FIGURE_WINDOW_S[1] / dt)))
+    models = leg_draw_models(fit, leg, J_DRAWS)
+    for p, name in ((1, "one_step"), (100, "1s")):
+        starts = np.arange(max(0, i0 - p), i1 - p)
+        predicted = {fit.model.name: (starts, posterior_predictions(models, trial, starts, (p,))[:, :, 0])}
+        fig = plot_posterior_predictions(trial, predicted, p, start_s=start_s, length_s=FIGURE_WINDOW_S[1])
+        paths.append(save_figure(fig, out / f"predictions_{name}_{label}_{leg}.png"))
+    pits, seconds = {}, {}
+    for leg in fit.legs:
+        values = loo_pit(fit, leg)
+        summ = R.loo_pit_summary(values, int(fit.data.segment_mask[fit.legs.index(leg)].sum()))
+        pits[leg] = (values, summ)
+        result["loo_pit"][leg] = summ
+        result["notes"] += [f"{leg}: {n}" for n in summ["notes"]] or [
+            f"{leg}: LOO-PIT is uniform within its band (ECDF distance {summ['distance']:.3f} ≤ {summ['band']:.3f})."
+        ]
+        seconds[leg] = elpd_in_time(fit, cohort, leg)
+        result["worst_seconds"][leg] = sorted(seconds[leg], key=lambda r: r["elpd"])[:3]
+        result.setdefault("elpd_total", {})[leg] = float(sum(r["elpd"] for r in seconds[leg]))
+    worst = [worst_seconds_sentence(leg, rows) for leg, rows in seconds.items()]
+    paths.append(R.plot_loo_pit(pits, out / f"loo_pit_{label}.png", notes=list(result["notes"])))
+    paths.append(R.plot_elpd_in_time(seconds, out / f"elpd_in_time_{label}.png", notes=worst))
+    result["notes"] += worst
+    return paths, result
 
 
 def ranking_markdown(summary: dict, command: str | None = None) -> str:
@@ -465,6 +571,10 @@ def ranking_markdown(summary: dict, command: str | None = None) -> str:
     if failed:
         md += ["", "## Candidates that could not be screened", ""]
         md += [f"- **{f['effect']}**: {f['error']}" for f in failed]
+    checks = summary.get("predictive_checks")
+    if checks:
+        md += ["", "## Predictive checks of the baseline (LOO-PIT, pointwise ELPD in time)", ""]
+        md += [f"- {n}" for n in checks["notes"]]
     findings = summary.get("residual_findings", {})
     if findings:
         md += ["", "## Where the model fails (residuals of the baseline)", ""]
@@ -520,7 +630,10 @@ def run_diagnose(
     summary["trials"] = [int(t) for t in trials]
     dt = ranking.base.model.sampling_period_s
     if figures:
-        paths, notes = residual_figures(_screen_residuals(ranking.base), out, "baseline", dt)
+        paths, checks = screen_figures(ranking.base, cohort, out, "baseline")
+        summary["predictive_checks"] = checks
+        more, notes = residual_figures(_screen_residuals(ranking.base), out, "baseline", dt)
+        paths += more
         if ranking.verdict != "none":
             more, after = residual_figures(_screen_residuals(ranking.fits[ranking.verdict]), out, "with_" + ranking.verdict, dt)
             paths += more

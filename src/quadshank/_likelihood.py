@@ -510,6 +510,21 @@ def _active_output(model: Model, x: dict, d_index, R: int, K: int, shift):
     return jax.ops.segment_sum(c, samples, num_segments=N)
 
 
+def student_t_cdf(z, nu):
+    """CDF of a standard Student-t with ``nu`` degrees of freedom at ``z``."""
+    tail = 0.5 * jax.scipy.special.betainc(0.5 * nu, 0.5, nu / (nu + z * z))
+    return jnp.where(z < 0, tail, 1.0 - tail)
+
+
+def leg_window_cdf(model: Model, noise: dict, x: dict, d_index, R: int, K: int = 0, shift=0):
+    """The predictive CDF of each likelihood window's measured equivalent acceleration at
+    (θ, d, shift): P(E_rep ≤ E | θ) under the Student-t noise model (the LOO-PIT's ingredient)."""
+    x = _sensed(model, x)
+    E, scale, _ = _window_terms(model, noise, x)
+    M = jax.ops.segment_sum(_active_output(model, x, d_index, R, K, shift), x["window"], num_segments=E.shape[-1])
+    return student_t_cdf((E - M) / scale, noise["nu"])
+
+
 def leg_pointwise(model: Model, noise: dict, x: dict, d_index, R: int, n_segments: int, K: int = 0, shift=0):
     """log p(y_segment | θ, d, shift) per PSIS-LOO segment of one leg."""
     x = _sensed(model, x)

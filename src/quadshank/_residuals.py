@@ -25,7 +25,8 @@ from scipy import signal, stats
 
 __all__ = [
     "FEATURE_LABELS", "features", "binned_trend", "acf", "ccf", "twitch_triggered_average", "spectrum",
-    "findings", "plot_trends", "plot_correlations", "plot_twitch_average", "plot_spectrum",
+    "findings", "spectrum_finding", "loo_pit_summary", "plot_trends", "plot_correlations", "plot_twitch_average",
+    "plot_spectrum", "plot_loo_pit", "plot_elpd_in_time",
 ]  # fmt: skip
 
 FEATURE_LABELS = {
@@ -329,6 +330,55 @@ def spectrum(residual, sample_mask, dt: float = 0.01, nperseg: int = 256) -> dic
     return {"freq_hz": freq, "psd": psd, "peak_hz": peak}
 
 
+#: A spectral peak above 1 Hz stands out when it exceeds the median PSD over 1-20 Hz this many times.
+PEAK_RATIO = 5.0
+
+
+def spectrum_finding(spec: dict) -> list[str]:
+    """A sentence if the residual's spectrum has a peak above 1 Hz that stands out (:data:`PEAK_RATIO`)."""
+    f, psd = spec["freq_hz"], spec["psd"]
+    band = (f > 1.0) & (f <= 20.0)
+    if not np.isfinite(spec["peak_hz"]) or not band.any():
+        return []
+    ratio = float(psd[np.argmin(np.abs(f - spec["peak_hz"]))] / np.median(psd[band]))
+    if ratio < PEAK_RATIO:
+        return []
+    return [f"The residual's spectrum peaks at {spec['peak_hz']:.1f} Hz, {ratio:.0f}× its median over 1-20 Hz: "
+            "an oscillation the model lacks (the accelerometer's skin-motion resonance rings like this)."]
+
+
+def loo_pit_summary(pit, n_independent: int) -> dict:
+    """Calibration of LOO-PIT values ``pit`` (uniform for a calibrated predictive).
+
+    ``n_independent``: how many of them are close to independent (the 1-s
+    segments; the windows within one are not), which sets the 95 % band of the
+    ECDF's distance from uniform (Kolmogorov: 1.36/√n).  Returns the ECDF
+    distance, the band, the share in the outer 5 % tails (10 % expected), the
+    mean (0.5 expected) and ``notes``: what stands out, in words.
+    """
+    pit = np.sort(np.asarray(pit, float)[np.isfinite(pit)])
+    n = pit.size
+    if n == 0:
+        raise ValueError("no LOO-PIT values")
+    ecdf_hi = np.arange(1, n + 1) / n
+    distance = float(max(np.max(ecdf_hi - pit), np.max(pit - (ecdf_hi - 1.0 / n))))
+    band = 1.36 / math.sqrt(max(1, min(n, n_independent)))
+    tails = float(np.mean((pit < 0.05) | (pit > 0.95)))
+    mean = float(pit.mean())
+    notes = []
+    if distance > band:
+        shape = []
+        if abs(mean - 0.5) > band / 2:
+            shape.append(f"the mean PIT is {mean:.2f} (0.5 expected): the model {'under' if mean > 0.5 else 'over'}-predicts")
+        if tails > 0.15:
+            shape.append(f"{100 * tails:.0f} % of the windows lie in the outer 5 % tails (10 % expected): the predictive "
+                         "distribution is too narrow, or misses a systematic error")
+        elif tails < 0.05:
+            shape.append(f"only {100 * tails:.0f} % lie in the outer 5 % tails (10 % expected): the predictive is too wide")
+        notes.append(f"LOO-PIT departs from uniform (ECDF distance {distance:.3f} > band {band:.3f}); " + "; ".join(shape or ["its shape is irregular"]) + ".")
+    return {"distance": distance, "band": band, "tail_share": tails, "mean": mean, "n": n, "notes": notes}
+
+
 def findings(trends: dict[str, dict], acf_result: dict, ccf_result: dict, alpha: float = 0.01) -> list[str]:
     """Plain sentences for what stands out; ``[]`` when nothing does.
 
@@ -459,4 +509,48 @@ def plot_spectrum(spec: dict, path, notes: list[str] | None = None):
     ax.set_xlabel("frequency [Hz]")
     ax.set_ylabel("PSD [(deg/s²)²/Hz]")
     ax.set_title("power spectral density of the residual (Welch)", fontsize=10)
+    return _save(fig, path, notes)
+
+
+def plot_loo_pit(pits: dict, path, notes: list[str] | None = None):
+    """LOO-PIT per leg as the ECDF's difference from uniform, with the 95 % band (``pits[leg] =
+    (values, summary)``, the summary from :func:`loo_pit_summary`)."""
+    fig, axes = _figure(1, 1, 7.0, 4.0, notes)
+    ax = axes[0, 0]
+    u = np.linspace(0.0, 1.0, 201)
+    for leg, (values, summ) in pits.items():
+        v = np.sort(np.asarray(values, float)[np.isfinite(values)])
+        (line,) = ax.plot(u, np.searchsorted(v, u, side="right") / v.size - u, label=f"{leg} (distance {summ['distance']:.3f})")
+        ax.axhline(summ["band"], color=line.get_color(), ls=":", lw=1)
+        ax.axhline(-summ["band"], color=line.get_color(), ls=":", lw=1)
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.set_xlabel("PIT value")
+    ax.set_ylabel("ECDF − uniform")
+    ax.set_title("LOO-PIT of the equivalent acceleration (dotted: 95 % band over 1-s segments)", fontsize=10)
+    ax.legend(fontsize=8)
+    return _save(fig, path, notes)
+
+
+def plot_elpd_in_time(segments: dict, path, notes: list[str] | None = None, n_worst: int = 3):
+    """Pointwise ELPD per 1-s segment against time, a panel per leg, trials side by side, the
+    ``n_worst`` segments marked (``segments[leg]`` = list of {trial, start_s, elpd})."""
+    fig, axes = _figure(len(segments), 1, 9.0, 2.6, notes)
+    for ax, (leg, rows) in zip(axes[:, 0], segments.items()):
+        offset, ticks = 0.0, []
+        for trial in sorted({r["trial"] for r in rows}):
+            these = [r for r in rows if r["trial"] == trial]
+            t = np.array([r["start_s"] for r in these]) + offset
+            ax.plot(t, [r["elpd"] for r in these], lw=0.9, color="tab:blue")
+            ticks.append((offset, f"trial {trial}"))
+            offset = t[-1] + 5.0
+        worst = sorted(rows, key=lambda r: r["elpd"])[:n_worst]
+        for r in worst:
+            o = next(o for o, label in ticks if label == f"trial {r['trial']}")
+            ax.plot(r["start_s"] + o, r["elpd"], "o", color="tab:red", ms=5)
+        for o, label in ticks:
+            ax.axvline(o, color="0.7", lw=0.8)
+            ax.text(o, 1.0, f" {label}", transform=ax.get_xaxis_transform(), va="top", fontsize=8)
+        ax.set_ylabel("ELPD per second")
+        ax.set_title(f"{leg}: pointwise PSIS-LOO ELPD in time (red: the {n_worst} worst seconds)", fontsize=10)
+    axes[-1, 0].set_xlabel("time in trial [s] (trials side by side)")
     return _save(fig, path, notes)
