@@ -71,6 +71,11 @@ def candidates(model: Model) -> list[str]:
     return out
 
 
+def _trials_of(cohort: Cohort, legs) -> tuple[int, ...]:
+    """Every trial number that some leg of ``legs`` has in ``cohort``."""
+    return tuple(sorted({t.trial for leg in legs for t in cohort.trials_of(leg)}))
+
+
 def _extend(model: Model, name: str) -> Model:
     return model.add(name, name=f"{model.name}+{name}")
 
@@ -202,8 +207,7 @@ def rank_effects(
     model = build_model(model) if isinstance(model, str) else model
     legs = tuple(legs) if legs is not None else cohort.legs
     if eval_trials is None:
-        have = {t.trial for leg in legs for t in cohort.trials_of(leg)}
-        eval_trials = tuple(sorted(have))
+        eval_trials = _trials_of(cohort, legs)
     known = registered_effects()
     if effects is None:
         effects = candidates(model)
@@ -328,7 +332,7 @@ def confirm_with_nuts(
     (base,) = load_fits([base_folder])
     desc = base.desc
     settings = FitSettings(**{**desc["settings"], "trials": tuple(desc["trials"])})
-    trials = tuple(eval_trials) if eval_trials is not None else tuple(sorted({t.trial for leg in desc["legs"] for t in cohort.trials_of(leg)}))
+    trials = tuple(eval_trials) if eval_trials is not None else _trials_of(cohort, desc["legs"])
     base_name, *adds = desc["model"].split("+")
     s = run_fit(cohort, out, base_name, [*adds, effect], settings, legs=desc["legs"], progress=progress,
                 data_source=base.summary.get("data"))
@@ -363,7 +367,7 @@ def confirm_leaders(cohort: Cohort, ranking: Ranking, base_folder, out, *, n_con
     if not leaders:
         return "none"
     (base,) = load_fits([base_folder])
-    trials = tuple(sorted({t.trial for leg in base.desc["legs"] for t in cohort.trials_of(leg)}))
+    trials = _trials_of(cohort, base.desc["legs"])
     J0 = nuts_j_draws(base, cohort, trials, n_draws=J_DRAWS, start_stride=J_START_STRIDE)
     for r in progress_bar(leaders, desc="confirming with NUTS", enabled=progress):
         r["nuts"] = confirm_with_nuts(cohort, base_folder, r["effect"], Path(out) / f"fit-{r['effect']}",
@@ -482,7 +486,7 @@ def worst_seconds_sentence(leg: str, rows: list[dict], n: int = 3) -> str:
     return f"{leg}: the worst-predicted seconds are {where}, against {med:.0f} for the median second."
 
 
-def screen_figures(fit: LaplaceFit, cohort: Cohort, out, label: str) -> tuple[list, dict]:
+def predictive_checks(fit: LaplaceFit, cohort: Cohort, out, label: str) -> tuple[list, dict]:
     """The model's predictive checks from its screen: measured against predicted angle one step
     (10 ms) and 1 s ahead with 90 % bands over posterior draws, LOO-PIT, and the pointwise ELPD in
     time.  Returns (figure paths, JSON-able results with their findings in words)."""
@@ -492,18 +496,18 @@ def screen_figures(fit: LaplaceFit, cohort: Cohort, out, label: str) -> tuple[li
     from ._posterior_eval import FIGURE_WINDOW_S, posterior_predictions
 
     paths, result = [], {"loo_pit": {}, "worst_seconds": {}, "notes": []}
-    leg = "JM-left" if "JM-left" in fit.legs else fit.legs[0]
-    trial = [t for t in cohort.trials_of(leg) if t.trial in fit.data.trials][-1]
+    shown = "JM-left" if "JM-left" in fit.legs else fit.legs[0]
+    trial = [t for t in cohort.trials_of(shown) if t.trial in fit.data.trials][-1]
     dt = trial.sampling_period_s
     start_s = min(FIGURE_WINDOW_S[0], max(0.0, trial.n_samples * dt - FIGURE_WINDOW_S[1]))
     i0 = int(round(start_s / dt))
     i1 = min(trial.n_samples, i0 + int(round(FIGURE_WINDOW_S[1] / dt)))
-    models = leg_draw_models(fit, leg, J_DRAWS)
+    models = leg_draw_models(fit, shown, J_DRAWS)
     for p, name in ((1, "one_step"), (100, "1s")):
         starts = np.arange(max(0, i0 - p), i1 - p)
         predicted = {fit.model.name: (starts, posterior_predictions(models, trial, starts, (p,))[:, :, 0])}
         fig = plot_posterior_predictions(trial, predicted, p, start_s=start_s, length_s=FIGURE_WINDOW_S[1])
-        paths.append(save_figure(fig, out / f"predictions_{name}_{label}_{leg}.png"))
+        paths.append(save_figure(fig, out / f"predictions_{name}_{label}_{shown}.png"))
     pits, seconds = {}, {}
     for leg in fit.legs:
         values = loo_pit(fit, leg)
@@ -546,7 +550,7 @@ def ranking_markdown(summary: dict, command: str | None = None) -> str:
         f"The bar: ΔELPD above {ELPD_SE_BAR:g} standard errors (PSIS-LOO over 1-s segments, paired) and J lowered "
         "beyond the 90 % bands at 500 and 1000 ms.  ELPD and bands come from the screen (per-leg MAP, Laplace draws "
         "importance-weighted towards the posterior); a Pareto k above 0.7 or a small importance ESS says the Gaussian "
-        "stands poorly for that posterior, and a NUTS fit (`quadshank fit … --add-effect NAME`) is the confirmation.",
+        "stands poorly for that posterior, and NUTS is the confirmation (`quadshank diagnose FITDIR --confirm`).",
     ]
     confirmed = [r for r in rows if "nuts" in r]
     if confirmed:
@@ -630,7 +634,7 @@ def run_diagnose(
     summary["trials"] = [int(t) for t in trials]
     dt = ranking.base.model.sampling_period_s
     if figures:
-        paths, checks = screen_figures(ranking.base, cohort, out, "baseline")
+        paths, checks = predictive_checks(ranking.base, cohort, out, "baseline")
         summary["predictive_checks"] = checks
         more, notes = residual_figures(_screen_residuals(ranking.base), out, "baseline", dt)
         paths += more
