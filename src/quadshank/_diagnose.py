@@ -32,8 +32,10 @@ PSIS-LOO and J bands over posterior draws.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import warnings
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -41,7 +43,7 @@ from ._cohort import Cohort
 from ._effects import registered_effects
 from ._fit import build_model
 from ._io import write_json
-from ._likelihood import leg_active_output
+from ._likelihood import leg_active_output, leg_window_cdf
 from ._model import Model, equivalent_acceleration
 from ._posterior_eval import interval, posterior_prediction_errors
 from ._progress import progress_bar
@@ -302,7 +304,7 @@ def verdict_sentence(ranking: Ranking) -> str:
 
 def confirm_with_nuts(
     cohort: Cohort,
-    base_folder,
+    base,
     effect: str,
     out,
     *,
@@ -314,7 +316,8 @@ def confirm_with_nuts(
 ) -> dict:
     """Confirm a screened extension with hierarchical NUTS.
 
-    Fits ``base_folder``'s model plus ``effect`` to the same data, legs and
+    Fits the model of ``base`` (a saved NUTS fit: its folder, or the
+    :class:`quadshank._posterior_eval.LoadedFit`) plus ``effect`` to the same data, legs and
     trials with the same settings (``out``, a fit folder), and measures the
     evidence as the screen does: ΔELPD by PSIS-LOO over the same 1-s segments,
     paired, and J at J_HORIZONS_MS as bands over posterior draws, against the
@@ -327,9 +330,10 @@ def confirm_with_nuts(
 
     from ._fit import FitSettings
     from ._pipeline import run_fit
-    from ._posterior_eval import load_fits, psis_loo
+    from ._posterior_eval import LoadedFit, load_fits, psis_loo
 
-    (base,) = load_fits([base_folder])
+    if not isinstance(base, LoadedFit):
+        (base,) = load_fits([base])
     desc = base.desc
     settings = FitSettings(**{**desc["settings"], "trials": tuple(desc["trials"])})
     trials = tuple(eval_trials) if eval_trials is not None else _trials_of(cohort, desc["legs"])
@@ -370,7 +374,7 @@ def confirm_leaders(cohort: Cohort, ranking: Ranking, base_folder, out, *, n_con
     trials = _trials_of(cohort, base.desc["legs"])
     J0 = nuts_j_draws(base, cohort, trials, n_draws=J_DRAWS, start_stride=J_START_STRIDE)
     for r in progress_bar(leaders, desc="confirming with NUTS", enabled=progress):
-        r["nuts"] = confirm_with_nuts(cohort, base_folder, r["effect"], Path(out) / f"fit-{r['effect']}",
+        r["nuts"] = confirm_with_nuts(cohort, base, r["effect"], Path(out) / f"fit-{r['effect']}",
                                       eval_trials=trials, J_base=J0, progress=progress)
     return next((r["effect"] for r in leaders if r["nuts"]["clears_bar"]), "none")
 
@@ -434,22 +438,14 @@ def loo_pit(fit: LaplaceFit, leg: str, n_draws: int = 100) -> np.ndarray:
     ∝ 1/p(y_segment | θ_s), so each PIT leaves its own 1-s segment out.
     """
     import arviz as az
-    import jax
-
-    from ._likelihood import leg_window_cdf
 
     i = fit.legs.index(leg)
     idx = fit.resampled[i, :n_draws]
     x = {k: v[i] for k, v in fit.data.leg_arrays().items()}
-    R, K = fit.data.response_length, fit.data.max_shift
-
-    def one(m, d, shift, log_sigma, log_nu):
-        return leg_window_cdf(m, {"sigma": jnp.exp(log_sigma), "nu": jnp.exp(log_nu)}, x, d, R, K, shift)
-
-    f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
-    cdf = np.asarray(jax.jit(jax.vmap(one))(
+    cdf = np.asarray(_window_cdfs(
         leg_draw_models(fit, leg, n_draws), jnp.asarray(fit.delays[i, idx], jnp.int32),
-        jnp.asarray(fit.shifts[i, idx], jnp.int32), f32(fit.draws[i, idx, -2]), f32(fit.draws[i, idx, -1]),
+        jnp.asarray(fit.shifts[i, idx], jnp.int32), jnp.asarray(fit.draws[i, idx, -2:], jnp.float32), x,
+        R=fit.data.response_length, K=fit.data.max_shift,
     ))  # (draws, windows)
     valid = fit.data.segment_mask[i]
     with warnings.catch_warnings():
@@ -460,6 +456,17 @@ def loo_pit(fit: LaplaceFit, leg: str, n_draws: int = 100) -> np.ndarray:
     keep = fit.data.window_mask[i]
     seg = fit.data.window_segment[i][keep]
     return np.sum(weights[seg].T * cdf[:, keep], axis=0)
+
+
+@functools.partial(jax.jit, static_argnames=("R", "K"))
+def _window_cdfs(models: Model, delays, shifts, log_noise, x: dict, R: int, K: int):
+    """:func:`quadshank._likelihood.leg_window_cdf` per draw (leaves, delays, shifts and
+    (log σ, log ν) with a leading draw axis): compiled once per model structure and data shape."""
+
+    def one(m, d, shift, ln):
+        return leg_window_cdf(m, {"sigma": jnp.exp(ln[0]), "nu": jnp.exp(ln[1])}, x, d, R, K, shift)
+
+    return jax.vmap(one)(models, delays, shifts, log_noise)
 
 
 def elpd_in_time(fit: LaplaceFit, cohort: Cohort, leg: str) -> list[dict]:

@@ -536,20 +536,17 @@ def plot_elpd_in_time(segments: dict, path, notes: list[str] | None = None, n_wo
     ``n_worst`` segments marked (``segments[leg]`` = list of {trial, start_s, elpd})."""
     fig, axes = _figure(len(segments), 1, 9.0, 2.6, notes)
     for ax, (leg, rows) in zip(axes[:, 0], segments.items()):
-        offset, ticks = 0.0, []
+        offsets, end = {}, 0.0  # trial -> where its time axis starts
         for trial in sorted({r["trial"] for r in rows}):
             these = [r for r in rows if r["trial"] == trial]
-            t = np.array([r["start_s"] for r in these]) + offset
+            offsets[trial] = end
+            t = np.array([r["start_s"] for r in these]) + end
             ax.plot(t, [r["elpd"] for r in these], lw=0.9, color="tab:blue")
-            ticks.append((offset, f"trial {trial}"))
-            offset = t[-1] + 5.0
-        worst = sorted(rows, key=lambda r: r["elpd"])[:n_worst]
-        for r in worst:
-            o = next(o for o, label in ticks if label == f"trial {r['trial']}")
-            ax.plot(r["start_s"] + o, r["elpd"], "o", color="tab:red", ms=5)
-        for o, label in ticks:
-            ax.axvline(o, color="0.7", lw=0.8)
-            ax.text(o, 1.0, f" {label}", transform=ax.get_xaxis_transform(), va="top", fontsize=8)
+            ax.axvline(end, color="0.7", lw=0.8)
+            ax.text(end, 1.0, f" trial {trial}", transform=ax.get_xaxis_transform(), va="top", fontsize=8)
+            end = t[-1] + 5.0
+        for r in sorted(rows, key=lambda r: r["elpd"])[:n_worst]:
+            ax.plot(r["start_s"] + offsets[r["trial"]], r["elpd"], "o", color="tab:red", ms=5)
         ax.set_ylabel("ELPD per second")
         ax.set_title(f"{leg}: pointwise PSIS-LOO ELPD in time (red: the {n_worst} worst seconds)", fontsize=10)
     axes[-1, 0].set_xlabel("time in trial [s] (trials side by side)")
