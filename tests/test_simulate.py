@@ -197,7 +197,9 @@ def test_stimulation_protocol():
         assert (ipi >= 0.5 - 1e-9).sum() > 10  # long IPIs
         facts = truth["legs"][trial.key]["trials"][str(trial.trial)]
         assert facts["n_pulses"] == pulses.size
-        assert facts["n_isolated"] == isolated_pulses(pulses, trial.n_samples).sum() > 5
+        assert facts["n_isolated"] == isolated_pulses(pulses, trial.n_samples).sum()
+        if trial.trial == 1:  # the identification trial has isolated twitches
+            assert facts["n_isolated"] > 5
         assert facts["rms_angle_deg"] == pytest.approx(np.sqrt(np.mean(trial.angle_deg**2)))
         # goniometer quantisation
         steps = trial.angle_deg / SENSOR["angle_resolution_deg"]
@@ -402,6 +404,8 @@ def test_rms_angle_calibration():
     angles = np.concatenate([t.angle_deg for t in cohort if t.trial in (1, 2)])
     lo, hi = np.percentile(angles, [1, 99])
     assert -50 < lo < -30 and 50 < hi < 75, (lo, hi)
+    # the end of the knee's range holds: the shank never swings over the top
+    assert max(t.angle_deg.max() for t in cohort) < 100
     for leg in LEGS:
         facts = truth["legs"][leg]["trials"]["1"]
-        assert facts["n_isolated"] >= 27 * 2  # ≥ ~150 in 5 min
+        assert facts["n_isolated"] >= 8  # enough to identify (MIN_TWITCHES); 55-216 per leg in 5 min

@@ -5,7 +5,9 @@ Per leg, from the identification trial (trial 1 by default):
 1. **Passive system** (the paper took it from its ref. [16]; here it is
    identified from the same data).  On *quiet* samples, where no pulse was
    delivered in the preceding ``MAX_DELAY + TWITCH_SAMPLES`` = 35 samples (so no
-   twitch can be active), the measured acceleration obeys eq. (8) with M = 0:
+   twitch can be active) and the knee is no further extended than +60° (the
+   top of the paper's operating range, beyond which a real knee meets the end
+   of its range), the measured acceleration obeys eq. (8) with M = 0:
    ``φ̈ = -D'·φ̇ - G'·sin φ + k1'·(exp(-k2·φ) - 1)``.  This is linear in
    (D', G', k1') for fixed k2: k2 is scanned on a log grid (variable
    projection), then all four are refined by bounded nonlinear least squares.
@@ -45,6 +47,8 @@ __all__ = [
 
 #: Samples after a pulse during which its twitch may still act on the shank.
 QUIET_AFTER_PULSE = MAX_DELAY + TWITCH_SAMPLES
+#: Highest knee angle [deg] of the samples used for the passive system (the paper's operating range ends at +60°).
+PASSIVE_MAX_ANGLE_DEG = 60.0
 #: Fewest isolated twitches needed for a meaningful identification.
 MIN_TWITCHES = 8
 
@@ -106,12 +110,17 @@ def _passive_columns(angle, velocity, k2):
 def identify_passive(trials: list[Trial] | tuple[Trial, ...]) -> tuple[dict, float, int]:
     """Passive parameters (D', G', k1', k2) from the quiet samples of ``trials``.
 
+    Only samples at or below :data:`PASSIVE_MAX_ANGLE_DEG` (+60°, the top of
+    the paper's operating range) are used: eq. (8) describes the shank within
+    that range, and further into extension a real knee meets the end of its
+    range (capsule, and hamstrings stretched in the seated position), which
+    the exponential flexion term cannot represent and would be distorted by.
     Returns the parameters, the RMS residual acceleration [deg/s²] and the
     number of quiet samples used.
     """
     ang, vel, acc = [], [], []
     for t in trials:
-        m = quiet_mask(t.stimulation)
+        m = quiet_mask(t.stimulation) & (t.angle_deg <= PASSIVE_MAX_ANGLE_DEG)
         ang.append(t.angle_deg[m])
         vel.append(t.velocity_deg_s[m])
         acc.append(t.acceleration_deg_s2[m])
