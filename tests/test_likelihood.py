@@ -53,7 +53,11 @@ def _reference_loglik(model, trials, d, sigma, nu, resolution, response_length):
         E = np.add.reduceat(e0, starts)
         Mw = np.add.reduceat(M, starts)
         n = np.diff(np.append(starts, angle.size))
-        total += stats.t.logpdf(E - Mw, df=nu, scale=sigma * np.sqrt(n)).sum()
+        keep = np.ones(starts.size, bool)
+        last = np.flatnonzero(stim > 0)[-1]
+        if resolution == "twitch" and last + MAX_DELAY + TWITCH_SAMPLES > angle.size:
+            keep[starts >= starts[starts <= last][-1]] = False  # the window the trial's end cuts short
+        total += stats.t.logpdf(E - Mw, df=nu, scale=sigma * np.sqrt(n))[keep].sum()
     return total
 
 
@@ -96,6 +100,27 @@ def test_twitch_windows_hold_whole_bursts():
     assert L._windows(stim, "sample").all()
     with pytest.raises(ValueError, match="resolution"):
         L._windows(stim, "minute")
+
+
+@pytest.mark.parametrize("tail", [2, MAX_DELAY + TWITCH_SAMPLES - 1, MAX_DELAY + TWITCH_SAMPLES + 5])
+def test_model1_likelihood_does_not_see_the_delay_even_at_the_end_of_a_trial(cohort_truth, tail):
+    """Model 1's twitch lies whole in its window for every d, also when the trial ends soon after a pulse."""
+    from quadshank import Cohort, Trial
+
+    cohort, truth = cohort_truth
+    t = cohort.get("TN-left", 1)
+    pulses = np.flatnonzero(t.stimulation > 0)
+    gaps = np.diff(pulses)
+    last = int(pulses[:-1][gaps > MAX_DELAY + TWITCH_SAMPLES + 10][-1])  # the trial will end `tail` after it
+    n = last + tail
+    cut = Trial.from_signals("TN", "left", 1, 0.01, t.angle_deg[:n], t.acceleration_deg_s2[:n], t.stimulation[:n])
+    model = _true_model(1, truth, "TN-left")
+    data = L.prepare(Cohort((cut,)), model, trials=(1,))
+    x = {k: v[0] for k, v in data.leg_arrays().items()}
+    ll = np.asarray(L.leg_loglik_by_delay(model, {"sigma": 40.0, "nu": 8.0}, x, data.response_length))[:, 0]
+    assert np.ptp(ll) < 1e-5 * abs(ll[0]), ll  # float32 sums
+    # the window the end cuts short is what is left out, and only that
+    assert (int(data.sample_mask[0].sum()) < n) == (tail < MAX_DELAY + TWITCH_SAMPLES)
 
 
 def test_model2_likelihood_peaks_at_the_onset_delay(cohort_truth):

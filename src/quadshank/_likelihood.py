@@ -19,7 +19,8 @@ At what resolution
     on *twitch windows* (``resolution = "twitch"``): a window runs from a pulse
     until MAX_DELAY + TWITCH_SAMPLES samples after the last pulse of its burst
     (pulses closer than that share a window), data and model summed over it,
-    so every twitch lies whole inside one window for any d.  This is the paper's
+    so every twitch lies whole inside one window for any d (a window that the
+    end of a trial cuts short is left out).  This is the paper's
     integrated twitch response (eqs. 9, 11) extended to every pulse; samples
     outside twitch windows stay single windows.  Within a window the timing of
     a twitch is not compared, so a zero-order model learns its delay only
@@ -175,6 +176,24 @@ def _windows(stim: np.ndarray, resolution: str) -> np.ndarray:
     return starts
 
 
+def _uncut(stim: np.ndarray, starts: np.ndarray, resolution: str) -> np.ndarray:
+    """Samples the likelihood compares: all, but for a twitch window cut short by the end of the trial.
+
+    A zero-order twitch lies whole inside its window for every delay only if
+    the window runs its full length; when the recording ends sooner, whether
+    the twitch falls inside would depend on d, and the window would tell the
+    delay that the window sums are meant not to see.  So that last window
+    (with its pulses) is left out.
+    """
+    mask = np.ones(stim.size, bool)
+    if resolution != "twitch":
+        return mask
+    pulses = np.flatnonzero(stim > 0)
+    if pulses.size and pulses[-1] + TWITCH_WINDOW > stim.size:
+        mask[np.flatnonzero(starts[: pulses[-1] + 1])[-1] :] = False
+    return mask
+
+
 def max_shift(model: Model) -> int:
     """Largest shortening of the delay the model's delay effect allows (0 without one)."""
     eff = model.delay_effect
@@ -226,8 +245,9 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
             cols["velocity"] += [t.velocity_deg_s, np.zeros(gap)]
             cols["acceleration"] += [t.acceleration_deg_s2, np.zeros(gap)]
             cols["stimulation"] += [t.stimulation, np.zeros(gap)]
-            cols["mask"] += [np.ones(n, bool), np.zeros(gap, bool)]
-            cols["start"] += [_windows(t.stimulation, resolution), np.ones(gap, bool)]
+            starts = _windows(t.stimulation, resolution)
+            cols["mask"] += [_uncut(t.stimulation, starts, resolution), np.zeros(gap, bool)]
+            cols["start"] += [starts, np.ones(gap, bool)]
             seg = seg0 + np.arange(n) // SEGMENT_SAMPLES
             cols["segment"] += [seg, np.full(gap, -1)]
             cols["trial_start"] += [np.full(n + gap, offset)]
