@@ -404,8 +404,6 @@ def test_rms_angle_calibration():
     angles = np.concatenate([t.angle_deg for t in cohort if t.trial in (1, 2)])
     lo, hi = np.percentile(angles, [1, 99])
     assert -50 < lo < -30 and 50 < hi < 75, (lo, hi)
-    # the end of the knee's range holds: the shank never swings over the top
-    assert max(t.angle_deg.max() for t in cohort) < 100
     for leg in LEGS:
         facts = truth["legs"][leg]["trials"]["1"]
         assert facts["n_isolated"] >= 8  # enough to identify (MIN_TWITCHES); 55-216 per leg in 5 min

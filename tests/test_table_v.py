@@ -37,14 +37,18 @@ def test_isolated_twitches_span_the_swing(reproduction):
         assert 0.9 < ratio < 1.1, (leg, ratio)
 
 
-def test_twitches_vary_from_pulse_to_pulse_as_in_table_iv(reproduction):
-    """Model 3 leaves 12-29 % RMS error in the integrated twitches in the paper; about 20 % here.
+def test_twitch_variability_gives_the_papers_table_iv(reproduction):
+    """The paper's model 3 leaves 12-29 % RMS error in the integrated twitches (Table IV).
 
-    Without the pulse-to-pulse variability the error is sensor noise only (1-3 %).
+    Without ``twitch_variability`` the simulated error is sensor noise only
+    (1-4 %); with it about 20 %, and model 1's error stays above model 3's.
     """
     ident, _, _ = reproduction
+    varied, _ = simulate_cohort(legs=LEGS, minutes=5.0, seed=0, trials=(1,), effects=("twitch_variability",))
+    varied_ident = identify_cohort(varied)
     for leg in LEGS:
-        pct = ident[leg].rms_error_pct
+        assert ident[leg].rms_error_pct["model3"] < 5, (leg, ident[leg].rms_error_pct)
+        pct = varied_ident[leg].rms_error_pct
         assert 10 < pct["model3"] < 35, (leg, pct)
         assert pct["model1"] > pct["model3"], (leg, pct)
 

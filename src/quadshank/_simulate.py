@@ -17,17 +17,16 @@ Plant (continuous time, integrated with RK4 at 1 ms)
 ----------------------------------------------------
 Passive system, eq. (8) with φ in degrees (the sine takes φ·π/180)::
 
-    φ̈ = M/I − D'·φ̇ − G'·sin φ + k1'·(exp(−k2·φ) − 1) − S(φ)
+    φ̈ = M/I − D'·φ̇ − G'·sin φ + k1'·(exp(−k2·φ) − 1)
 
-S is the end of the knee's range in extension, which eq. (8) leaves out
-because the paper's operating range stops at +60°: a steep passive stop
-``S = k_s·(exp(r_s·(φ − 75°)) − 1)`` above 75° and zero below (k_s =
-50 deg/s², r_s = 0.25/deg, :data:`EXTENSION_STOP`), about gravity's size at
-90°.  Seated with the hip flexed, a paraplegic knee rarely extends fully
-(hamstrings, capsule); without the stop the rare large swings of random
-stimulation would carry the shank over the top.  It acts on 0.3 % of the
-samples (seed 0, trials 1–2), and identification leaves samples above +60°
-out of the passive fit.
+The knee has no end of range in extension: the rare large swings of random
+stimulation are free to pass full extension (see the extremes below).  A
+steep passive stop past 75° (or 90°) was tried and left out: the models'
+passive part is eq. (8), and fits that see the stop's rare, large
+accelerations bend their passive parameters to absorb them (classical
+identification put k2 near 0 and k1 at 1000–8000 deg/s²; the modelling
+loop's model3s on one minute of JM-left with potentiation went from 3.5°
+to 14–16° at 500 ms).
 
 Active system: every pulse j (time t_j, recruitment u_j) adds a twitch of
 equivalent acceleration ``u_j·A·h(t − t_j − τ)`` with
@@ -52,13 +51,7 @@ the pulse reaching the muscle at sample k is scaled by φ_k and φ̇_k)::
     M/I(t) = Σ_j u_j · A · f(φ(t_j + τ)) · g(φ̇(t_j + τ)) · h(t − t_j − τ),
     f = max(0, 1 + γ_angle·φ),  g = max(0, 1 + γ_velocity·φ̇)
 
-with γ from Table III.  Each pulse's amplitude is also multiplied by a
-log-normal factor with mean 1 and coefficient of variation 0.2
-(:data:`TWITCH_CV`, drawn per pulse, in every trial of the cohort): the
-paper's Table IV shows that even model 3 leaves 12–29 % RMS error in the
-integrated twitch responses, so real twitches vary from pulse to pulse far
-beyond sensor noise (without it the simulated Table IV errors of model 3 are
-1–3 %).  The ``max(0, ·)`` is there because a muscle cannot
+with γ from Table III.  The ``max(0, ·)`` is there because a muscle cannot
 push the shank backwards: the linear relations of the paper would turn
 negative above φ ≈ 46° (JM-left) or φ̇ ≈ 400–600 deg/s.  Modulating the
 whole twitch by its onset state, rather than continuously, is what makes the
@@ -138,12 +131,13 @@ OT-left    0.75, 5               0.95, 14
 The swing saturates: longer or more frequent bursts mostly raise the mean
 angle, because the velocity dependence g removes energy (twitches during
 flexion are stronger than during extension) and f vanishes in extension for
-JM.  With seed 0 and 5-min trials the mean RMS angle is 23.9° (trial 1),
-24.9° (trial 2) and 19.0° (trial 3); per leg 22.6–26.4° at u = 1 and
-15.9–22.8° at u = 0.5 (TN swings most).  99 % of the samples of trials 1–2
-lie within −45°…71° (2.8 % outside −40°…60°); the extremes reach −65° and
-96° (TN-left).  Trial 1 has 55 (OT-left) to 216 (TN-left) isolated twitches
-per leg, of 451–829 pulses.
+JM.  With seed 0 and 5-min trials the mean RMS angle is 23.7° (trial 1),
+24.7° (trial 2) and 18.8° (trial 3); per leg 21.9–26.4° at u = 1 and
+15.8–22.5° at u = 0.5 (TN swings most).  99 % of the samples of trials 1–2
+lie within −44°…70° (2.6 % outside −40°…60°, 0.04 % beyond 90°); the
+extremes reach −67° and 110° (TN-left; other seeds have rare swings to
+130–170°, past full extension, which a real knee would stop).  Trial 1 has
+55 (OT-left) to 216 (TN-left) isolated twitches per leg, of 451–829 pulses.
 
 Sensors (always on)
 -------------------
@@ -180,6 +174,14 @@ Hidden effects (off by default, switched on by name)
 ``goniometer_offset``
     the goniometer reads 3° when the shank hangs at rest (zeroed with the
     leg not quite vertical); the movement is unchanged.
+``twitch_variability``
+    each pulse's twitch amplitude is multiplied by a log-normal factor with
+    mean 1 and coefficient of variation 0.2, drawn per pulse from a stream
+    of its own (the IPIs and sensor noise are unchanged).  The paper's Table
+    IV shows that even model 3 leaves 12–29 % RMS error in the integrated
+    twitch responses, so real twitches vary from pulse to pulse far beyond
+    sensor noise; without this effect the simulated Table IV errors of
+    model 3 are 1–3 %, with it about 20 %.
 
 Randomness
 ----------
@@ -217,7 +219,6 @@ __all__ = [
     "PASSIVE_TRUTH",
     "STIMULATION_DENSITY",
     "SENSOR",
-    "TWITCH_CV",
     "default_truth",
     "simulate_cohort",
     "simulate_response",
@@ -249,6 +250,7 @@ EFFECTS = (
     "potentiation",
     "accel_resonance",
     "goniometer_offset",
+    "twitch_variability",
 )
 
 #: Parameters of each hidden effect (the same for every leg).
@@ -260,6 +262,7 @@ EFFECT_PARAMETERS = {
     "potentiation": {"P": 0.8, "tau_p_s": 0.06},
     "accel_resonance": {"f_r_hz": 18.0, "zeta": 0.25},
     "goniometer_offset": {"offset_deg": 3.0},
+    "twitch_variability": {"cv": 0.2},
 }
 
 #: True passive parameters per leg: D' [1/s], G' [deg/s²], k1' [deg/s²], k2 [1/deg].
@@ -271,16 +274,8 @@ PASSIVE_TRUTH = {
     "OT-left": {"damping": 0.86, "gravity": 1650.0, "k1": 15.0, "k2": 0.060},
 }
 
-#: Passive stop at the end of the knee's extension range (the same for every leg):
-#: −k·(exp(rate·(φ − angle)) − 1) [deg/s²] for φ > angle, zero below.
-EXTENSION_STOP = {"angle_deg": 75.0, "k_deg_s2": 50.0, "rate_per_deg": 0.25}
-
 #: Fractional part added to the paper's whole-sample delay (Table I).
 DELAY_FRACTION = {4: 0.3, 5: -0.3}
-
-#: Pulse-to-pulse variability of the twitch amplitude (always on in the cohort):
-#: coefficient of variation of a log-normal factor with mean 1 (see the module docstring).
-TWITCH_CV = 0.2
 
 #: Sensor chain (always on).
 SENSOR = {
@@ -432,7 +427,6 @@ def default_truth(legs: Sequence[str] = LEGS, effects: Iterable[str] = ()) -> di
                 "sampled_twitch_sum": float(y.sum()),
                 "epoch_sum": float(epoch),
                 "epoch_fraction": float(1.0 - (1.0 + s_end) * math.exp(-s_end)),
-                "twitch_cv": TWITCH_CV,
             },
             "effects": {e: dict(EFFECT_PARAMETERS[e]) for e in effects},
             "model1_equivalent": {"G1": float(G2)},
@@ -557,9 +551,6 @@ def _chunk_runner():
         def accel(phi, v, x2):
             m = x2
             passive = -p["damping"] * v - p["gravity"] * jnp.sin(phi * _DEG) + p["k1"] * (jnp.exp(-p["k2"] * phi) - 1.0)
-            # end of the knee's range: a steep passive stop past EXTENSION_STOP["angle_deg"]
-            over = jnp.maximum(phi - EXTENSION_STOP["angle_deg"], 0.0)
-            passive = passive - EXTENSION_STOP["k_deg_s2"] * jnp.expm1(EXTENSION_STOP["rate_per_deg"] * over)
             return m + passive, m
 
         def rhs(phi, v, z, zd, x2):
@@ -686,7 +677,7 @@ def _streams(seed: int, leg: str, trial: int) -> tuple[np.random.Generator, ...]
     return tuple(np.random.default_rng(c) for c in ss.spawn(4))
 
 
-def twitch_variability(rng: np.random.Generator, n_pulses: int, cv: float = TWITCH_CV) -> np.ndarray:
+def twitch_variability(rng: np.random.Generator, n_pulses: int, cv: float) -> np.ndarray:
     """Log-normal twitch-amplitude factors with mean 1 and coefficient of variation ``cv``."""
     s2 = math.log1p(cv**2)
     return np.exp(math.sqrt(s2) * rng.standard_normal(n_pulses) - 0.5 * s2)
@@ -706,7 +697,7 @@ def _pulse_gains(pulses: np.ndarray, effects: tuple[str, ...], n_start: float) -
 
 
 def _plan_leg(leg: str, n_samples: int, seed: int, effects: tuple[str, ...]) -> dict:
-    """IPIs, pulse gains (effects × twitch variability) and fatigue state for all protocol trials of a leg, in order."""
+    """IPIs, pulse gains and fatigue state for all protocol trials of a leg, in order."""
     plans = {}
     n_carry = 0.0
     fp = EFFECT_PARAMETERS["fatigue"]
@@ -715,7 +706,9 @@ def _plan_leg(leg: str, n_samples: int, seed: int, effects: tuple[str, ...]) -> 
         rng_ipi, rng_angle, rng_acc, rng_twitch = _streams(seed, leg, trial)
         pulses = stimulation_sequence(rng_ipi, n_samples, _density(leg, u))
         n_start = n_carry if "fatigue" in effects else 0.0
-        gains = _pulse_gains(pulses, effects, n_start) * twitch_variability(rng_twitch, pulses.size)
+        gains = _pulse_gains(pulses, effects, n_start)
+        if "twitch_variability" in effects:
+            gains = gains * twitch_variability(rng_twitch, pulses.size, EFFECT_PARAMETERS["twitch_variability"]["cv"])
         plans[trial] = {
             "u": u,
             "pulses": pulses,
@@ -843,8 +836,8 @@ def simulate_response(
     and the noise-free truth at the sample instants: ``true_angle_deg``,
     ``true_velocity_deg_s``, ``true_acceleration_deg_s2``,
     ``equivalent_acceleration`` (M/I) and ``twitch_activation`` (M/I before
-    the f·g modulation).  Every twitch has its nominal amplitude here: the
-    cohort's pulse-to-pulse variability (:data:`TWITCH_CV`) is not applied.
+    the f·g modulation).  ``twitch_variability`` draws its random factors
+    in the cohort's protocol only; here it is not applied.
     """
     (leg,) = _check_legs((leg,))
     effects = _check_effects(effects)
