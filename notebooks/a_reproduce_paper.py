@@ -195,13 +195,12 @@ table_v_frame(T)
 fig = plot_j_vs_horizon(T)
 
 # %% [markdown]
-# On the full cohort, model 3 comes close to the paper at every horizon. Models
-# 1 and 2 do much worse at 1 s than the paper's 8–12°. In the simulated truth
-# the Table III torque–angle slopes switch the twitch off in extension, and a
-# model without that dependence overshoots. The README's *Results* section
-# traces this to the simulator's stimulation pattern. Model 2 is better than
-# model 3 at 100 ms, because its DARMA twitch matches the simulated twitch
-# shape.
+# On the full cohort the errors grow with horizon, as in the paper, and model
+# 3 is best at 1 s (8.6° against the paper's 7.5° in trial 2), with
+# models 1 and 2 close to the paper's 12–13°. One result differs: model 2 is
+# better at 100 ms, because its DARMA twitch matches the simulated twitch
+# shape, which models 1 and 3 put into a single sample at the delay (the
+# README's *Results* section says more).
 #
 # The paper's sign test pairs J within leg and trial, over trials 2 and 3, and
 # is an exact two-sided binomial test at α = 0.05. With five legs there are 10

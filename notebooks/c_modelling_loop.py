@@ -64,14 +64,14 @@ pd.set_option("display.width", 160)
 #
 # One leg (JM-left) and one minute of trial 1, the size of the loop's own
 # tests. The default screens every registered candidate effect. With
-# `QUADSHANK_NOTEBOOK_SMALL=1` (the notebook's test) the data are half a minute,
+# `QUADSHANK_NOTEBOOK_SMALL=1` (the notebook's test) the data are 45 s,
 # and fewer candidates and draws are used.
 
 # %%
 SMALL = os.environ.get("QUADSHANK_NOTEBOOK_SMALL") == "1"
 LEG, SEED, HIDDEN = "JM-left", 1, "potentiation"
 if SMALL:
-    MINUTES, N_DRAWS, N_J_DRAWS, STRIDE = 0.5, 60, 10, 20
+    MINUTES, N_DRAWS, N_J_DRAWS, STRIDE = 0.75, 60, 10, 20
     CANDIDATES = ["potentiation", "fatigue"]
 else:
     MINUTES, N_DRAWS, N_J_DRAWS, STRIDE = 1.0, 150, 30, 5
@@ -284,7 +284,7 @@ ranking_frame(again)
 # quadshank discover DATA --out loop --confirm   # ranking, rounds, NUTS confirmation, report.md
 # ```
 #
-# At the small test size (30 s, few draws) the ranking is noisy. There the
+# At the small test size (45 s, few draws) the ranking is noisy. There the
 # notebook only shows that the steps run.
 
 # %%
