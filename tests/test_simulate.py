@@ -407,3 +407,19 @@ def test_rms_angle_calibration():
     for leg in LEGS:
         facts = truth["legs"][leg]["trials"]["1"]
         assert facts["n_isolated"] >= 8  # enough to identify (MIN_TWITCHES); 55-216 per leg in 5 min
+
+
+def test_twitch_variability_factors_have_mean_one_and_the_stated_spread():
+    from quadshank._simulate import EFFECT_PARAMETERS, twitch_variability
+
+    cv = EFFECT_PARAMETERS["twitch_variability"]["cv"]
+    g = twitch_variability(np.random.default_rng(0), 200_000, cv)
+    assert g.min() > 0
+    assert g.mean() == pytest.approx(1.0, abs=0.003)
+    assert g.std() / g.mean() == pytest.approx(cv, rel=0.02)
+    # switched on, only the twitch amplitudes change: same pulses, same sensor noise streams
+    base, _ = run(seed=2)
+    varied, _ = run(seed=2, effects=("twitch_variability",))
+    for a, b in zip(base, varied):
+        np.testing.assert_array_equal(a.stimulation, b.stimulation)
+    assert not np.array_equal(base.trials[0].angle_deg, varied.trials[0].angle_deg)
