@@ -135,8 +135,8 @@ JM.  With seed 0 and 5-min trials the mean RMS angle is 23.7° (trial 1),
 24.7° (trial 2) and 18.8° (trial 3); per leg 21.9–26.4° at u = 1 and
 15.8–22.5° at u = 0.5 (TN swings most).  99 % of the samples of trials 1–2
 lie within −44°…70° (2.6 % outside −40°…60°, 0.04 % beyond 90°); the
-extremes reach −67° and 110° (TN-left; other seeds have rare swings to
-130–170°, past full extension, which a real knee would stop).  Trial 1 has
+extremes reach −67° and 110° (TN-left; seeds 1 and 2 have rare swings to
+155° and 111°, past full extension, which a real knee would stop).  Trial 1 has
 55 (OT-left) to 216 (TN-left) isolated twitches per leg, of 451–829 pulses.
 
 Sensors (always on)
