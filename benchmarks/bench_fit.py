@@ -220,7 +220,7 @@ def main(argv=None) -> int:
         "",
         "| measure | value | target |",
         "|---|---|---|",
-        f"| fit wall time less compilation (sampling; also the classical start and saving) | {sampling:.0f} s | ≤ 60 s (full size) |",
+        f"| fit wall time less compilation (sampling; also finding the start and saving) | {sampling:.0f} s | ≤ 60 s (full size) |",
         f"| compilation | {compile_s:.0f} s | reported separately |",
         f"| R-hat max | {diag['rhat_max']:.3f} | < 1.01 |",
         f"| bulk ESS min | {diag['ess_bulk_min']:.0f} | ≥ 400 |",
