@@ -2,8 +2,8 @@
 
 The same joint density as :func:`quadshank._fit.numpyro_model` for the paper's
 model 3 with the angle-dependent delay (or without it): legs standardised by
-their priors with the population mean and subject level integrated out
-(s_leg ~ MVN(0, 11ᵀ + r_s²S + r_l²I)), per-leg Student-t noise on twitch-window
+their priors with the population mean, subject level and spreads integrated out
+(s_leg ~ Σ_g w_g MVN(0, 11ᵀ + r_s,g²S + r_l,g²I) on quadshank's grid of spreads), per-leg Student-t noise on twitch-window
 sums of the equivalent acceleration, the delay d ∈ {0…10} and the shift summed
 out by log-sum-exp.  It reads the same touch tables (``quadshank._likelihood.prepare``)
 and is checked against quadshank's log density at a common point
@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from quadshank._fit import NU_PRIOR, SIGMA_PRIOR, log_shift_prior, model_params
+from quadshank._fit import NU_PRIOR, SIGMA_PRIOR, log_shift_prior, model_params, spread_grid
 from quadshank._likelihood import N_DELAYS, LikelihoodData
 
 SUPPORTED = {"zero_order", "linear_torque_angle", "linear_torque_velocity", "damping", "gravity", "elasticity",
@@ -48,18 +48,17 @@ def build_pymc_model(model, data: LikelihoodData):
         raise ValueError("the PyMC peer is written for the zero-order activation (models 1 and 3)")
     L = data.n_legs
     R, K = data.response_length, data.max_shift
-    ls = np.asarray(data.leg_subject)
-    same = (ls[:, None] == ls[None, :]).astype(float)
+    log_w, _, _, prec, logdet, _ = spread_grid(tuple(int(i) for i in data.leg_subject))
     with pm.Model() as pmodel:
         leg = {}
         for p in model_params(model):
             if p.shape:
                 raise ValueError(f"parameter {p.name!r} is a vector; the peer handles scalars")
             family, loc, scale = p.prior[:3]
-            r_s = pm.HalfNormal(f"{p.name}_sd_subject_rel", 1.0)
-            r_l = pm.HalfNormal(f"{p.name}_sd_leg_rel", 1.0)
-            cov = np.ones((L, L)) + r_s**2 * same + r_l**2 * np.eye(L)
-            s = pm.MvNormal(f"{p.name}_s_leg", mu=np.zeros(L), cov=cov)
+            # the spreads summed out on quadshank's grid: s ~ Σ_g w_g MVN(0, C_g)
+            s = pm.Flat(f"{p.name}_s_leg", shape=L)
+            quad = pt.sum(pt.dot(prec, s) * s[None, :], axis=-1)  # (G,)
+            pm.Potential(f"{p.name}_spread_prior", pt.logsumexp(log_w - 0.5 * (quad + logdet + L * math.log(2 * math.pi))))
             x = loc + scale * s
             leg[p.name] = pt.exp(x) if family == "lognormal" else x
         sigma = pm.LogNormal("sigma", mu=SIGMA_PRIOR[0], sigma=SIGMA_PRIOR[1], shape=L)

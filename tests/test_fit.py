@@ -7,6 +7,8 @@ and reproducibility.  Recovery and coverage at full size are benchmarks.
 
 import json
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -109,6 +111,69 @@ def test_unknown_effect_and_missing_trial_are_plain_errors(data_dir, capsys):
     assert "has no trial 7" in capsys.readouterr().err
 
 
+def _spread_mixture_by_hand(s, leg_subject):
+    """Σ_g w_g N(s; 0, 11ᵀ + r_s² S + r_l² I) over SPREAD_GRID, with the HalfNormal(1) mass of each
+    cell found by quadrature of its density, and the normal density from scipy."""
+    from scipy import integrate, stats
+
+    from quadshank._fit import SPREAD_GRID
+
+    r = SPREAD_GRID
+    edges = np.concatenate([[0.0], np.sqrt(r[1:] * r[:-1]), [np.inf]])
+    mass = np.array([integrate.quad(stats.halfnorm.pdf, a, b)[0] for a, b in zip(edges[:-1], edges[1:])])
+    same = (leg_subject[:, None] == leg_subject[None, :]).astype(float)
+    terms = np.zeros((r.size, r.size))
+    for i, rs in enumerate(r):
+        for j, rl in enumerate(r):
+            cov = 1.0 + rs**2 * same + rl**2 * np.eye(leg_subject.size)
+            terms[i, j] = mass[i] * mass[j] * stats.multivariate_normal(np.zeros(leg_subject.size), cov).pdf(s)
+    return terms
+
+
+def test_spread_mixture_is_the_discretised_halfnormal_prior_summed_out():
+    from quadshank._fit import SpreadMixture
+
+    leg_subject = np.array([0, 0, 1, 1, 2])
+    prior = SpreadMixture(leg_subject)
+    for s in ([0.1, 0.12, -0.3, -0.2, 0.5], [0.0] * 5, [2.0, -1.5, 0.3, 0.2, -0.9]):
+        s = np.array(s)
+        want = np.log(_spread_mixture_by_hand(s, leg_subject).sum())
+        assert float(prior.log_prob(jnp.asarray(s, jnp.float32))) == pytest.approx(want, rel=1e-4, abs=1e-4)
+    # its draws have the mixture's covariance: E[s sᵀ] = Σ_g w_g C_g
+    draws = np.asarray(prior.sample(jax.random.PRNGKey(0), (40000,)), np.float64)
+    from quadshank._fit import spread_grid
+
+    log_w, r_s, r_l, *_ = spread_grid(tuple(leg_subject))
+    same = (leg_subject[:, None] == leg_subject[None, :]).astype(float)
+    want = np.einsum("g,gij->ij", np.exp(log_w), 1.0 + r_s[:, None, None] ** 2 * same + r_l[:, None, None] ** 2 * np.eye(5))
+    np.testing.assert_allclose(draws.T @ draws / draws.shape[0], want, rtol=0.06, atol=0.04)
+
+
+def test_spreads_are_drawn_from_their_conditional_on_the_grid():
+    """spread_draws against P(r_s, r_l | s) computed by hand, for legs that agree and legs that do not."""
+    from quadshank._fit import SPREAD_GRID, model_params, spread_draws
+
+    model = build_model("model1")
+    leg_subject = np.array([0, 0, 1, 1, 2])
+    n = 30000
+    for s in ([0.30, 0.31, 0.29, 0.30, 0.30], [0.3, -0.9, 1.4, 0.1, -1.2]):
+        s = np.array(s)
+        terms = _spread_mixture_by_hand(s, leg_subject)
+        p_l = terms.sum(axis=0) / terms.sum()  # P(r_l | s)
+        p_s = terms.sum(axis=1) / terms.sum()
+        out = spread_draws(model, {"gain_s_leg": np.broadcast_to(s, (1, n, 5))}, leg_subject, seed=0)
+        got_l = np.array([np.mean(out["gain_sd_leg_rel"] == r) for r in SPREAD_GRID])
+        got_s = np.array([np.mean(out["gain_sd_subject_rel"] == r) for r in SPREAD_GRID])
+        np.testing.assert_allclose(got_l, p_l, atol=0.012)
+        np.testing.assert_allclose(got_s, p_s, atol=0.012)
+    # legs that agree put the leg spread at the grid's floor, legs that differ well above it
+    agree = spread_draws(model, {"gain_s_leg": np.full((1, 2000, 5), 0.3)}, leg_subject, seed=1)["gain_sd_leg_rel"]
+    differ = spread_draws(model, {"gain_s_leg": np.broadcast_to([0.3, -0.9, 1.4, 0.1, -1.2], (1, 2000, 5))}, leg_subject, seed=1)
+    assert np.median(agree) == SPREAD_GRID[0] and np.median(differ["gain_sd_leg_rel"]) > 0.5
+    gain = next(p for p in model_params(model) if p.name == "gain")
+    np.testing.assert_allclose(differ["gain_sd_leg"], differ["gain_sd_leg_rel"] * gain.prior[2])
+
+
 def test_population_and_subject_draws_follow_their_gaussian_conditional():
     """hyper_draws against Gaussian conditioning of the joint (μ, x_legs), computed another way."""
     from quadshank._fit import hyper_draws, model_params
@@ -180,6 +245,51 @@ def test_angle_delay_fit_reports_the_delay_angle_curve(tmp_path):
     assert shifts.shape == (5,) and np.all(shifts <= delays)
 
 
+def test_summed_out_threshold_is_drawn_with_the_delay_from_their_joint_conditional():
+    """sample_step_states at a fixed θ against P(d, shift, state | θ, y) computed from the
+    likelihood's states: the shift's and the threshold's distribution (its CDF at pulse angles
+    and between them, where the truncated prior shapes it), and every drawn threshold splitting
+    the pulses as its state does."""
+    from scipy import stats
+
+    from quadshank._fit import _with_discrete_axes, log_shift_prior, sample_step_states, step_param
+    from quadshank._likelihood import leg_loglik_by_threshold, prepare, step_log_mass
+
+    cohort, truth = simulate_cohort(legs=["JM-left"], minutes=0.3, seed=4, effects=["angle_delay"], trials=(1,))
+    model = build_model("model3", ["angle_delay"])
+    data = prepare(cohort, model)
+    step = step_param(model, data)
+    assert step.name == "threshold"
+    tr = truth["legs"]["JM-left"]
+    values = {**tr["passive"], "gain": tr["active"]["G2"], "gamma_angle": tr["active"]["gamma_angle"],
+              "gamma_velocity": tr["active"]["gamma_velocity"]}  # fmt: skip
+    n = 3000
+    post = {p: np.full((n, 1), values[p], np.float32) for p in ("gain", "gamma_angle", "gamma_velocity", "damping", "gravity", "k1", "k2")}
+    post |= {"sigma": np.full((n, 1), 900.0, np.float32), "nu": np.full((n, 1), 4.0, np.float32)}  # noisy: spread states
+    d, shift, threshold = sample_step_states(model, data, post, None, seed=3)
+    # the exact conditional
+    one = _with_discrete_axes(model.with_params({k: v[0, 0] for k, v in post.items() if k not in ("sigma", "nu")}, threshold=0.0), ())
+    x = {k: v[0] for k, v in data.leg_arrays().items()}
+    ll = np.asarray(leg_loglik_by_threshold(one, {"sigma": 900.0, "nu": 4.0}, x, data.response_length, data.max_shift), np.float64)
+    logp = ll + np.asarray(step_log_mass(one, x, 0.0, 25.0))[None, None] + log_shift_prior(data.max_shift)[:, :, None]
+    p = np.exp(logp - logp.max())
+    p /= p.sum()
+    p_shift = p.sum(axis=(0, 2))
+    assert 0.1 < p_shift[0] < 0.9  # the test needs a spread
+    np.testing.assert_allclose(np.bincount(shift[:, 0], minlength=3) / n, p_shift, atol=0.03)
+    np.testing.assert_allclose(np.bincount(d[:, 0], minlength=11) / n, p.sum(axis=(1, 2)), atol=0.03)
+    angles = np.sort(data.angle[0][data.pulse_sample[0][data.pulse_u[0] > 0]].astype(np.float64))
+    edges = np.concatenate([[-np.inf], angles, [np.inf]])
+    p_state = p.sum(axis=(0, 1))[: angles.size + 1]
+    for a in (angles[3], 0.5 * (angles[5] + angles[6]), -20.0, angles[-4]):
+        # P(threshold < a) = Σ_j P(j) P(threshold < a | j), the prior truncated to state j's interval
+        lo, hi = stats.norm.cdf(edges[:-1], 0, 25), stats.norm.cdf(edges[1:], 0, 25)
+        within = np.clip((stats.norm.cdf(a, 0, 25) - lo) / np.maximum(hi - lo, 1e-300), 0.0, 1.0)
+        assert np.mean(threshold[:, 0] < a) == pytest.approx(p_state @ within, abs=0.03), a
+    # a drawn threshold lies in an interval between pulse angles (never on one)
+    assert not np.isin(threshold[:, 0], angles.astype(np.float32)).any()
+
+
 def test_chains_start_at_the_classical_estimate_of_the_leading_delay_mode():
     from functools import partial
 
@@ -221,7 +331,7 @@ def test_screen_start_puts_each_chain_at_a_laplace_draw_with_the_laplace_metric(
     leg is the Laplace covariance.  model3s has vector parameters (a, b), whose site is (C, L)."""
     from numpyro.infer.util import constrain_fn
 
-    from quadshank._fit import HYPER_METRIC_VARIANCE, numpyro_model, screen_start
+    from quadshank._fit import numpyro_model, screen_start
     from quadshank._likelihood import prepare
     from quadshank._screen import _values_np, laplace_fit
 
@@ -257,4 +367,5 @@ def test_screen_start_puts_each_chain_at_a_laplace_draw_with_the_laplace_metric(
     a1_leg1, b0_leg1, b0_leg0 = at["a_s_leg"] + 1 * 2 + 1, at["b_s_leg"] + 0 * 2 + 1, at["b_s_leg"] + 0 * 2 + 0
     assert metric[a1_leg1, b0_leg1] == pytest.approx(scr.covariance[1, j_a1, j_b0], rel=1e-5)
     assert metric[a1_leg1, b0_leg0] == 0.0
-    assert metric[at["k1_sd_leg_rel"], at["k1_sd_leg_rel"]] == pytest.approx(HYPER_METRIC_VARIANCE)
+    # the levels above the legs are summed out: the legs' values and noise are the whole vector
+    assert all(k.endswith("_s_leg") or k in ("sigma", "nu") for k in names)

@@ -206,6 +206,36 @@ def test_angle_delay_reduces_to_plain_delays_at_its_limits(cohort_truth, number)
             np.testing.assert_allclose(ll[shift:, shift], want, rtol=2e-6)
 
 
+@pytest.mark.parametrize("number", [2, 3])
+def test_threshold_states_are_the_hard_step_at_thresholds_between_pulse_angles(cohort_truth, number):
+    """leg_loglik_by_threshold's state j equals the (d, shift) log-likelihood of the hard step at a
+    threshold between the j-th and (j+1)-th pulse angle (two trials, so the pulses of both are ranked
+    together); the states' prior masses are the Normal prior's between those angles."""
+    cohort, truth = cohort_truth
+    leg = "JM-right"
+    plain = _true_model(number, truth, leg)
+    model = plain.add(AngleDelay())
+    data = L.prepare(cohort, model, trials=(1, 2), legs=[leg])
+    x = {k: v[0] for k, v in data.leg_arrays().items()}
+    noise = {"sigma": 40.0, "nu": 8.0}
+    R, K = data.response_length, data.max_shift
+    ll = np.asarray(L.leg_loglik_by_threshold(model, noise, x, R, K))
+    angles = np.sort(data.angle[0][data.pulse_sample[0][data.pulse_u[0] > 0]].astype(np.float64))
+    n = angles.size
+    assert ll.shape == (MAX_DELAY + 1, K + 1, data.pulse_sample.shape[1] + 1) and n > 40
+    for j in (0, 1, n // 3, n // 2, n - 1, n):
+        if 0 < j < n and angles[j] == angles[j - 1]:
+            continue
+        threshold = -1e3 if j == 0 else 1e3 if j == n else 0.5 * (angles[j - 1] + angles[j])
+        hard = plain.add(AngleDelay(threshold=threshold, softness_deg=0.0))
+        want = np.asarray(L.leg_loglik_by_delay(hard, noise, x, R, K))
+        np.testing.assert_allclose(ll[:, :, j], want, rtol=1e-6, err_msg=f"state {j}")
+    mass = np.exp(np.asarray(L.step_log_mass(model, x, 0.0, 25.0), np.float64))
+    edges = np.concatenate([[-np.inf], angles, [np.inf]])
+    np.testing.assert_allclose(mass[: n + 1], np.diff(stats.norm.cdf(edges, 0.0, 25.0)), atol=2e-7)
+    assert np.all(mass[n + 1 :] == 0.0)  # padding pulses
+
+
 def test_pointwise_segments_with_an_angle_delay_sum_to_its_loglik(cohort_truth):
     """Pointwise segments with an angle-dependent delay sum to the (d, shift) log-likelihood."""
     cohort, truth = cohort_truth

@@ -530,11 +530,19 @@ class AngleDelay(TwoPathDelay):
     about −20° in all subjects ("the muscle must first take up slack" at short
     lengths is its explanation for the longer delay near extension).  A pulse
     delivered at angle φ takes delay d − shift with weight
-    w(φ) = σ((threshold − φ)/SOFTNESS_DEG) and d with weight 1 − w: a step
-    smoothed over a few degrees, so the threshold has a gradient.  ``shift`` in
-    0 … max_shift is discrete and summed out with d by the fit; shift 0 is no
-    angle dependence at all, so the posterior of shift says whether the delay
-    changes, by how much, and the threshold where.
+    w(φ) = σ((threshold − φ)/softness_deg) and d with weight 1 − w: a step
+    smoothed over a degree, so the threshold has a gradient for the screen's
+    optimisation; ``softness_deg=0`` is the hard step w = [φ < threshold].
+    ``shift`` in 0 … max_shift is discrete and summed out with d by the fit;
+    shift 0 is no angle dependence at all, so the posterior of shift says
+    whether the delay changes, by how much, and the threshold where.
+
+    The hierarchical fit sums the threshold out too (``step_param``), for the
+    hard step: between two neighbouring pulse angles every threshold splits the
+    pulses alike, so the likelihood is a staircase in the threshold, each stair
+    weighted by its prior mass (see :mod:`quadshank._likelihood`).  Sampled,
+    the staircase (smoothed over a degree) holds NUTS to steps a fraction of a
+    degree long: 127 leapfrog steps per draw against 15 without the effect.
     """
 
     kind = "delay"
@@ -542,9 +550,11 @@ class AngleDelay(TwoPathDelay):
     signature = "onset"
     #: Largest shortening considered [samples].
     max_shift = 2
-    #: Width of the smoothed step [deg]: about the goniometer's noise and a pulse's angle uncertainty.
+    #: Width of the smoothed step [deg] by default: about the goniometer's noise and a pulse's angle uncertainty.
     SOFTNESS_DEG = 1.0
     discrete = ("shift",)
+    #: The parameter at which the pulse weight steps, summed out by the hierarchical fit.
+    step_param = "threshold"
     params = (
         Param(
             "threshold",
@@ -556,10 +566,14 @@ class AngleDelay(TwoPathDelay):
     )
     threshold: Any = -20.0
     shift: Any = 1
+    #: Width of the smoothed step [deg]; 0 for the hard step (static, not a parameter).
+    softness_deg: float = SOFTNESS_DEG
 
     def pulse_weight(self, angle):
         """Share of a pulse delivered at ``angle`` that takes the shorter delay."""
-        return jax.nn.sigmoid((self.threshold - angle) / self.SOFTNESS_DEG)
+        if self.softness_deg == 0:
+            return (jnp.asarray(angle) < self.threshold).astype(jnp.result_type(float))
+        return jax.nn.sigmoid((self.threshold - angle) / self.softness_deg)
 
 
 @register_effect

@@ -24,8 +24,17 @@ r = τ/scale, because each leg's thousands of samples pin its values down: a
 sampled population mean or subject level between them is a funnel, and
 parameters whose prior scales differ by seven orders of magnitude
 (γ_velocity, G') defeat the mass matrix's adaptation unless standardised.
+The relative spreads are summed out too, as the delay is: their HalfNormal(1)
+prior is put on a grid (:data:`SPREAD_GRID`, each point holding the prior mass
+of its cell) and s_leg's prior is the mixture Σ_g w_g MVN(0, C(r_g))
+(:class:`SpreadMixture`).  A sampled r is the funnel once more: where the legs
+agree, r → 0 draws them together, the sampler's step has to shrink with r, and
+the trajectories run to the tree's depth with divergences.  Summed out, the
+prior of s_leg is smooth and bounded (its peak at agreeing legs is at most a few
+times its height elsewhere), and r is drawn afterwards from its conditional on
+the grid (:func:`spread_draws`).
 Population means and subject values are drawn afterwards from their Gaussian
-conditional given each draw (:func:`hyper_draws`).  A dense mass matrix absorbs the remaining linear correlations
+conditional given each draw and its spreads (:func:`hyper_draws`).  A dense mass matrix absorbs the remaining linear correlations
 (k1 with k2, gain with the gain factors).  Noise (Student-t, see
 :mod:`quadshank._likelihood`) is per leg: σ ~ LogNormal(log 40 deg/s², 1),
 ν ~ Gamma(2, 0.1).  The delay d of each leg has a uniform prior on 0 … 10
@@ -64,8 +73,11 @@ from ._likelihood import (
     N_DELAYS,
     LikelihoodData,
     leg_loglik_by_delay,
+    leg_loglik_by_threshold,
     leg_pointwise,
     prepare,
+    step_edges,
+    step_log_mass,
 )
 from ._model import Model, paper_model
 
@@ -148,6 +160,72 @@ def _arr(v, shape):
     return jnp.broadcast_to(jnp.asarray(v, jnp.float32), shape)
 
 
+#: Relative spreads r = τ/scale (between subjects, between legs) on which their HalfNormal(1)
+#: prior is discretised and summed out: log-spaced, each point holding its cell's prior mass
+#: (the first cell reaching down to 0, the last up to ∞).  The floor, 0.1 prior scales (6 % of
+#: G′ between legs, 2 % of the gravity term), keeps the prior of the legs' differences no
+#: narrower than what a well-determined leg's data resolve: with a floor of 0.02, the narrow
+#: components pull the poorly-determined parameters (k1, k2) into a funnel of their own
+#: (model 3, 5 legs × 1 min: step size 0.10 against 0.28, 31 leapfrog steps against 15).
+SPREAD_GRID = np.geomspace(0.1, 3.0, 10)
+
+
+@functools.lru_cache(maxsize=32)
+def spread_grid(leg_subject: tuple[int, ...]):
+    """The (r_s, r_l) grid for legs grouped into subjects as ``leg_subject``.
+
+    Returns numpy arrays over the G = len(SPREAD_GRID)² points: log prior weight (G,),
+    r_s and r_l (G,), and of C_g = 11ᵀ + r_s² S + r_l² I the inverse (G, L, L),
+    log determinant (G,) and Cholesky factor (G, L, L).
+    """
+    from scipy.special import erf
+
+    r = SPREAD_GRID
+    edges = np.concatenate([[0.0], np.sqrt(r[1:] * r[:-1]), [np.inf]])
+    mass = np.diff(erf(edges / math.sqrt(2.0)))  # HalfNormal(1) mass of each cell
+    r_s, r_l = (v.ravel() for v in np.meshgrid(r, r, indexing="ij"))
+    log_w = (np.log(mass)[:, None] + np.log(mass)[None, :]).ravel()
+    ls = np.asarray(leg_subject)
+    L = ls.size
+    same = (ls[:, None] == ls[None, :]).astype(np.float64)
+    cov = 1.0 + r_s[:, None, None] ** 2 * same + r_l[:, None, None] ** 2 * np.eye(L)
+    chol = np.linalg.cholesky(cov)
+    logdet = 2.0 * np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(-1)
+    return log_w, r_s, r_l, np.linalg.inv(cov), logdet, chol
+
+
+def spread_log_weights(s_leg, leg_subject) -> np.ndarray | jnp.ndarray:
+    """log [w_g MVN(s_leg; 0, C_g)] over the spread grid, (..., G) for ``s_leg`` (..., L)."""
+    log_w, _, _, prec, logdet, _ = spread_grid(tuple(int(i) for i in leg_subject))
+    xp = jnp if isinstance(s_leg, jax.Array) else np
+    quad = xp.einsum("...l,glm,...m->...g", s_leg, prec.astype(s_leg.dtype), s_leg)
+    L = prec.shape[-1]
+    return log_w - 0.5 * (quad + logdet + L * math.log(2.0 * math.pi))
+
+
+class SpreadMixture(dist.Distribution):
+    """Prior of the standardised leg values of one parameter component, the spreads summed out:
+    Σ_g w_g MVN(0, 11ᵀ + r_s,g² S + r_l,g² I) over :data:`SPREAD_GRID` (event: the legs)."""
+
+    support = dist.constraints.real_vector
+    reparametrized_params = []
+
+    def __init__(self, leg_subject, batch_shape=(), *, validate_args=None):
+        self.leg_subject = tuple(int(i) for i in leg_subject)
+        super().__init__(batch_shape=tuple(batch_shape), event_shape=(len(self.leg_subject),), validate_args=validate_args)
+
+    def log_prob(self, value):
+        return jax.scipy.special.logsumexp(spread_log_weights(value, self.leg_subject), axis=-1)
+
+    def sample(self, key, sample_shape=()):
+        log_w, _, _, _, _, chol = spread_grid(self.leg_subject)
+        shape = tuple(sample_shape) + self.batch_shape
+        k1, k2 = jax.random.split(key)
+        g = jax.random.categorical(k1, jnp.asarray(log_w, jnp.float32), shape=shape)
+        z = jax.random.normal(k2, shape + self.event_shape)
+        return jnp.einsum("...lm,...m->...l", jnp.asarray(chol, jnp.float32)[g], z)
+
+
 def _hierarchical(p: Param, n_legs: int, n_subjects: int, leg_subject, centred: bool = True):
     """Sample one parameter down to its level; returns the leg values (and records subject values)."""
     family, loc, scale = p.prior[:3]
@@ -158,25 +236,15 @@ def _hierarchical(p: Param, n_legs: int, n_subjects: int, leg_subject, centred: 
     ev = len(shape)
     if p.level == "leg" and centred:
         # Legs sampled directly, standardised by the prior (x = loc + scale·s), with the
-        # population mean and the subject level integrated out analytically:
-        #   s_leg ~ MVN(0, 11ᵀ + r_s² S + r_l² I),  S[i, j] = 1 when legs i and j share a subject,
-        # r = τ/scale the spreads in prior scales.  Standardising puts every parameter on a
-        # unit prior scale whatever its units (γ_velocity ~ 1e-3 s/deg, G' ~ 1e4 deg/s²), so the
-        # mass matrix adapts from a sensible start; integrating μ out leaves no funnel.
-        # μ and the subject values are drawn from their conditional afterwards (hyper_draws).
-        r_s = numpyro.sample(f"{p.name}_sd_subject_rel", dist.HalfNormal(jnp.ones(shape)).to_event(ev))
-        r_l = numpyro.sample(f"{p.name}_sd_leg_rel", dist.HalfNormal(jnp.ones(shape)).to_event(ev))
-        numpyro.deterministic(f"{p.name}_sd_subject", r_s * scale)
-        numpyro.deterministic(f"{p.name}_sd_leg", r_l * scale)
-        same = (leg_subject[:, None] == leg_subject[None, :]).astype(jnp.float32)
-        ones = jnp.ones((n_legs, n_legs), jnp.float32)
-        eye = jnp.eye(n_legs, dtype=jnp.float32)
-        per_comp = lambda v: jnp.reshape(v, (-1, 1, 1))  # one covariance per component
-        cov = ones + per_comp(r_s) ** 2 * same + per_comp(r_l) ** 2 * eye  # (C, L, L)
-        if not shape:
-            cov = cov[0]
+        # population mean, the subject level and the spreads integrated out:
+        #   s_leg ~ Σ_g w_g MVN(0, 11ᵀ + r_s,g² S + r_l,g² I),  S[i, j] = 1 when legs i and j share
+        # a subject, r = τ/scale the spreads in prior scales on SPREAD_GRID (see the module's
+        # docstring).  Standardising puts every parameter on a unit prior scale whatever its
+        # units (γ_velocity ~ 1e-3 s/deg, G' ~ 1e4 deg/s²); summing μ and r out leaves no funnel.
+        # r, μ and the subject values are drawn from their conditionals afterwards (hyper_draws).
+        prior = SpreadMixture(np.asarray(leg_subject), batch_shape=shape)
         # (L,) for a scalar parameter, (C, L) for a vector one
-        s_leg = numpyro.sample(f"{p.name}_s_leg", dist.MultivariateNormal(jnp.zeros(cov.shape[:-1]), cov).to_event(ev))
+        s_leg = numpyro.sample(f"{p.name}_s_leg", prior.to_event(ev))
         x_leg = loc + scale * jnp.reshape(s_leg.T, (n_legs, *shape))
         return numpyro.deterministic(p.name, transform(x_leg))
     mu = numpyro.sample(f"{p.name}_mu", dist.Normal(loc, scale).to_event(ev))
@@ -213,14 +281,20 @@ def numpyro_model(
     """
     x = arrays if arrays is not None else data.leg_arrays()
     n_legs, n_subjects = data.n_legs, len(data.subjects)
-    leg_subject = jnp.asarray(data.leg_subject)
-    values = {p.name: _hierarchical(p, n_legs, n_subjects, leg_subject, centred) for p in model_params(model)}
+    leg_subject = np.asarray(data.leg_subject)  # a constant: the spread grid is built from it
+    step = step_param(model, data)
+    values = {p.name: _hierarchical(p, n_legs, n_subjects, leg_subject, centred) for p in model_params(model) if step is None or p.name != step.name}
+    if step is not None:  # summed out in the likelihood; the value is never read
+        values[step.name] = jnp.zeros((n_legs, *step.shape), jnp.float32)
     with numpyro.plate("legs", n_legs):
         sigma = numpyro.sample("sigma", dist.LogNormal(*SIGMA_PRIOR))
         nu = numpyro.sample("nu", dist.Gamma(*NU_PRIOR))
     stacked = _with_discrete_axes(model.with_params(values), (n_legs,))
     R, K = data.response_length, data.max_shift
-    ll = cohort_loglik_by_delay(stacked, sigma, nu, x, R, K)
+    if step is None:
+        ll = cohort_loglik_by_delay(stacked, sigma, nu, x, R, K)
+    else:
+        ll = jax.scipy.special.logsumexp(cohort_loglik_by_threshold(stacked, sigma, nu, x, R, K, *step.prior[1:3]), axis=-1)
     d_prior = jnp.full((n_legs, N_DELAYS), -math.log(N_DELAYS)) if log_delay_prior is None else jnp.asarray(log_delay_prior)
     logp = ll + d_prior[:, :, None] + jnp.asarray(log_shift_prior(K))[None]  # (L, D, K + 1)
     total = jax.scipy.special.logsumexp(logp, axis=(-2, -1))
@@ -240,6 +314,32 @@ def cohort_loglik_by_delay(stacked: Model, sigma, nu, x: dict, R: int, K: int):
     dispatched and compiled one at a time.
     """
     return jax.vmap(lambda m, s, n, xi: leg_loglik_by_delay(m, {"sigma": s, "nu": n}, xi, R, K))(stacked, sigma, nu, x)
+
+
+@functools.partial(jax.jit, static_argnames=("R", "K"))
+def cohort_loglik_by_threshold(stacked: Model, sigma, nu, x: dict, R: int, K: int, loc, scale):
+    """log p(y_leg, state j | θ_leg, d, shift) of every leg, (L, D, K + 1, P + 1), for a step delay
+    effect whose threshold has the prior Normal(loc, scale): the likelihood of each threshold
+    state plus the log prior mass of its interval."""
+
+    def one(m, s, n, xi):
+        ll = leg_loglik_by_threshold(m, {"sigma": s, "nu": n}, xi, R, K)
+        return ll + step_log_mass(m, xi, loc, scale)
+
+    return jax.vmap(one)(stacked, sigma, nu, x)
+
+
+def step_param(model: Model, data: LikelihoodData) -> Param | None:
+    """The delay effect's step parameter that the fit sums out (None: nothing to sum out).
+
+    It needs the data's step tables (a delay that can shift) and a normal prior."""
+    name = getattr(model.delay_effect, "step_param", None)
+    if name is None or data.step_order is None:
+        return None
+    p = next(p for p in model.delay_effect.declared_params() if p.name == name)
+    if p.prior[0] != "normal" or p.shape:
+        raise ValueError(f"{model.delay_effect.name}: a summed-out step parameter needs a scalar normal prior, not {p.prior}")
+    return p
 
 
 def classical_start(cohort: Cohort, model: Model, data: LikelihoodData, trial: int) -> dict:
@@ -294,10 +394,6 @@ def classical_start(cohort: Cohort, model: Model, data: LikelihoodData, trial: i
     return out
 
 
-#: Inverse-metric entry of a hyperparameter (log of a relative spread) in the screen's metric.
-HYPER_METRIC_VARIANCE = 0.5
-
-
 def screen_start(cohort: Cohort, model: Model, data: LikelihoodData, settings: FitSettings, conditioned, arrays, n_starts: int = 3):
     """Starting points and a metric for NUTS from the per-leg screen (:mod:`quadshank._screen`).
 
@@ -305,15 +401,14 @@ def screen_start(cohort: Cohort, model: Model, data: LikelihoodData, settings: F
     (chain c of leg i starts at the c-th Laplace draw of that leg) and a dense inverse
     metric holding each leg's Laplace covariance.  Each leg's thousands of samples
     make its block nearly Gaussian and very narrow (posterior sds down to 1e-3 prior
-    scales, correlated k1–k2, a–b, gain–gain factors), while the hyperparameters are
-    loosely held by a handful of legs; a metric estimated from a short warm-up misses
-    one scale or the other, and chains that start at different points settle at
+    scales, correlated k1–k2, a–b, gain–gain factors); a metric estimated from a short
+    warm-up misses that, and chains that start at different points settle at
     different delays.  The screen's multi-start optimisation of the marginal
-    posterior finds the leading mode, the Laplace covariance is the metric for it, and
-    the hyperparameters (log r) get ``HYPER_METRIC_VARIANCE``.
+    posterior finds the leading mode and the Laplace covariance is the metric for it.
+    The legs are the whole latent vector (the levels above them are summed out), and
+    the legs are coupled only through their prior, so the metric is block-diagonal.
     """
     from numpyro import handlers
-    from numpyro.distributions.transforms import biject_to
 
     from ._screen import laplace_fit
 
@@ -329,26 +424,30 @@ def screen_start(cohort: Cohort, model: Model, data: LikelihoodData, settings: F
         n += int(np.size(sites[k]["value"]))
     L = data.n_legs
 
+    # a parameter the fit sums out (a step delay effect's threshold) has no site: its entries
+    # of the screen's vector are dropped, and the Laplace covariance of the rest is the block of it
+    kept = np.concatenate([np.full(s.size, f"{s.name}_s_leg" in offsets) for s in scr.specs] + [np.ones(2, bool)])
+
     def positions(i):
-        """Where leg i's screen vector (z per parameter, log σ, log ν) sits in the latent vector."""
+        """Where leg i's screen vector (z per parameter, log σ, log ν; kept entries) sits in the latent vector."""
         out = []
         for s in scr.specs:
             site = f"{s.name}_s_leg"
-            out += [offsets[site] + (c * L + i if s.shape else i) for c in range(s.size)]
+            if site in offsets:
+                out += [offsets[site] + (c * L + i if s.shape else i) for c in range(s.size)]
         return np.asarray(out + [offsets["sigma"] + i, offsets["nu"] + i])
 
-    base = np.zeros(n)
-    rng = jax.random.PRNGKey(settings.seed)
-    for k in names:  # sites the screen does not cover (relative spreads): the prior median
-        fn = sites[k]["fn"]
-        median = jnp.median(fn.sample(rng, (101,)), axis=0)
-        base[offsets[k] : offsets[k] + np.size(sites[k]["value"])] = np.ravel(biject_to(fn.support).inv(median))
-    inits = np.tile(base, (chains, 1))
-    imm = np.eye(n) * HYPER_METRIC_VARIANCE
+    inits = np.zeros((chains, n))
+    imm = np.zeros((n, n))
+    covered = np.zeros(n, bool)
     for i in range(L):
         idx = positions(i)
-        imm[np.ix_(idx, idx)] = scr.covariance[i]
-        inits[:, idx] = scr.draws[i, :chains]
+        imm[np.ix_(idx, idx)] = scr.covariance[i][np.ix_(kept, kept)]
+        inits[:, idx] = scr.draws[i, :chains][:, kept]
+        covered[idx] = True
+    if not covered.all():
+        missing = [k for k in names if not covered[offsets[k] : offsets[k] + int(np.size(sites[k]["value"]))].all()]
+        raise ValueError(f"the screen gives no start for {', '.join(missing)}; use start='classical' or 'prior'")
     init_params = {}
     for k in names:
         shape = np.shape(sites[k]["value"])
@@ -487,9 +586,11 @@ def hyper_draws(model: Model, samples: dict, leg_subject, n_subjects: int, seed:
     units, μ ~ N(0, 1), b_s ~ N(0, r_s²), s_leg = μ + b_s(leg) + N(0, r_l²), so (μ, b | s_leg, r)
     is Gaussian.  ``samples`` arrays have leading axes (chains, draws); returns
     ``{name}_mu`` (chains, draws, *shape) and ``{name}_subject`` (chains, draws, subjects, *shape)
-    in the parameter's units.
+    in the parameter's units, and the spreads of :func:`spread_draws` where ``samples`` has none.
     """
     leg_subject = np.asarray(leg_subject)
+    spreads = spread_draws(model, samples, leg_subject, seed)
+    samples = {**samples, **spreads}
     n_legs = leg_subject.size
     A = np.zeros((n_legs, n_subjects + 1))
     A[:, 0] = 1.0
@@ -523,6 +624,34 @@ def hyper_draws(model: Model, samples: dict, leg_subject, n_subjects: int, seed:
         out[f"{p.name}_mu"] = tf(loc_a + scale_a * mu_std).reshape(*lead, *shape)
         subj = tf(loc_a[:, None] + scale_a[:, None] * subj_std)  # (ch, dr, C, S)
         out[f"{p.name}_subject"] = np.moveaxis(subj, -1, 2).reshape(*lead, n_subjects, *shape)
+    return {**spreads, **out}
+
+
+def spread_draws(model: Model, samples: dict, leg_subject, seed: int) -> dict:
+    """The relative spreads (r_s, r_l) of each draw, from their conditional on the grid.
+
+    Given the standardised leg values s of a draw, P(r_g | s) ∝ w_g MVN(s; 0, C(r_g))
+    (:func:`spread_log_weights`); one grid point is drawn per draw and parameter
+    component.  Returns ``{name}_sd_subject_rel`` and ``{name}_sd_leg_rel``
+    (chains, draws, *shape) and the same in the parameter's units, ``{name}_sd_subject``
+    and ``{name}_sd_leg``, for the parameters whose spreads ``samples`` does not hold.
+    """
+    _, r_s, r_l, *_ = spread_grid(tuple(int(i) for i in np.asarray(leg_subject)))
+    rng = np.random.default_rng(seed + 3)
+    out = {}
+    for p in model_params(model):
+        site = f"{p.name}_s_leg"
+        if site not in samples or f"{p.name}_sd_leg_rel" in samples:
+            continue
+        shape = tuple(p.shape)
+        lead = np.shape(samples[site])[:2]
+        s_leg = np.asarray(samples[site], np.float64).reshape(*lead, -1, len(leg_subject))  # (ch, dr, C, L)
+        logp = spread_log_weights(s_leg, leg_subject)
+        g = np.argmax(logp + rng.gumbel(size=logp.shape), axis=-1)  # (ch, dr, C)
+        scale = np.broadcast_to(np.asarray(p.prior[2], np.float64), shape).reshape(-1)
+        for key, r in (("subject", r_s[g]), ("leg", r_l[g])):
+            out[f"{p.name}_sd_{key}_rel"] = r.reshape(*lead, *shape)
+            out[f"{p.name}_sd_{key}"] = (r * scale).reshape(*lead, *shape)
     return out
 
 
@@ -541,6 +670,61 @@ def sample_delays(delay_logp: np.ndarray, seed: int) -> tuple[np.ndarray, np.nda
     g = jax.random.gumbel(jax.random.PRNGKey(seed + 1), flat.shape)
     k = np.asarray(jnp.argmax(jnp.asarray(flat) + g, axis=-1))
     return k // n_shift, k % n_shift
+
+
+def hard_step(model: Model) -> Model:
+    """``model`` with its delay effect's step hard (``softness_deg = 0``), as the fit sums it out."""
+    eff = model.delay_effect
+    if eff is None or not hasattr(eff, "softness_deg"):
+        return model
+    return dataclasses.replace(model, effects=tuple(dataclasses.replace(e, softness_deg=0.0) if e is eff else e for e in model.effects))
+
+
+def sample_step_states(model: Model, data: LikelihoodData, posterior: dict, log_delay_prior, seed: int, chunk: int = 16):
+    """(d, shift, threshold) per draw and leg, for a fit that summed a step delay effect's threshold out.
+
+    (d, shift, state) are drawn jointly from P(d, shift, state | θ, data) by Gumbel-max, state
+    being the threshold's interval between two neighbouring pulse angles
+    (:func:`quadshank._likelihood.step_tables`), and the threshold from its Normal prior
+    truncated to that interval.  With shift 0 the states are alike, so the threshold is drawn
+    from its prior: the data say nothing of it.  ``posterior`` arrays are (draws, legs, ...);
+    ``log_delay_prior`` (legs, D) or None (uniform).  Returns three (draws, legs) arrays.
+    """
+    from scipy.stats import truncnorm
+
+    step = step_param(model, data)
+    loc, scale = step.prior[1:3]
+    x = data.leg_arrays()
+    R, K = data.response_length, data.max_shift
+    n_draws, L = np.shape(posterior["sigma"])
+    d_prior = np.full((L, N_DELAYS), -math.log(N_DELAYS)) if log_delay_prior is None else np.asarray(log_delay_prior)
+    prior = jnp.asarray(d_prior[:, :, None] + log_shift_prior(K)[None], jnp.float32)[..., None]  # (L, D, K + 1, 1)
+    stacked = leg_models(model, {**posterior, step.name: np.zeros((n_draws, L), np.float32)})
+
+    def one_draw(m, sigma, nu, key):
+        logp = cohort_loglik_by_threshold(m, sigma, nu, x, R, K, loc, scale) + prior  # (L, D, K + 1, J)
+        flat = logp.reshape(L, -1)
+        k = jnp.argmax(flat + jax.random.gumbel(key, flat.shape), axis=-1)
+        J = logp.shape[-1]
+        d, rest = k // ((K + 1) * J), k % ((K + 1) * J)
+        state = rest % J
+        edges = jax.vmap(lambda mi, xi: step_edges(mi, xi, loc, scale))(m, x)  # (L, J + 1)
+        lo = jnp.take_along_axis(edges, state[:, None], axis=1)[:, 0]
+        hi = jnp.take_along_axis(edges, state[:, None] + 1, axis=1)[:, 0]
+        return d, rest // J, lo, hi
+
+    f = jax.jit(jax.vmap(one_draw))
+    keys = jax.random.split(jax.random.PRNGKey(seed + 4), n_draws)
+    out = []
+    for i in range(0, n_draws, chunk):
+        sl = slice(i, min(i + chunk, n_draws))
+        m = jax.tree_util.tree_map(lambda v: v[sl], stacked)
+        out.append([np.asarray(v) for v in f(m, jnp.asarray(posterior["sigma"][sl]), jnp.asarray(posterior["nu"][sl]), keys[sl])])
+    d, shift, lo, hi = (np.concatenate([o[j] for o in out]) for j in range(4))
+    lo, hi = lo.astype(np.float64), hi.astype(np.float64)  # the drawn state's edges in prior scales
+    rng = np.random.default_rng(seed + 5)
+    threshold = loc + scale * truncnorm.rvs(lo, hi, random_state=rng)
+    return d, shift, threshold.astype(np.float32)
 
 
 def pointwise_loglik(
@@ -592,7 +776,9 @@ def describe_fit(model: Model, data: LikelihoodData, settings: FitSettings) -> d
 def model_from_description(desc: dict) -> Model:
     """Rebuild the (unparameterised) Model a fit was made with."""
     effects = [get_effect(n)() for n in desc["effects"]]
-    return Model(tuple(effects), name=desc["model"], sampling_period_s=desc.get("sampling_period_s", 0.01))
+    model = Model(tuple(effects), name=desc["model"], sampling_period_s=desc.get("sampling_period_s", 0.01))
+    # a fit that summed a step parameter out drew it under the hard step, and is evaluated so
+    return hard_step(model) if desc.get("summed_out") else model
 
 
 def to_json(desc: dict) -> str:

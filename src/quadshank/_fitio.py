@@ -23,10 +23,13 @@ from ._fit import (
     describe_fit,
     hyper_draws,
     from_json,
+    hard_step,
     model_from_description,
     model_params,
     pointwise_loglik,
     sample_delays,
+    sample_step_states,
+    step_param,
     to_json,
 )
 from ._io import atomic_path, write_json
@@ -67,9 +70,16 @@ def to_inference_data(
     samples = {k: np.asarray(v) for k, v in mcmc.get_samples(group_by_chain=True).items()}
     samples.update(hyper_draws(model, samples, data.leg_subject, len(data.subjects), settings.seed))
     chains, draws = samples["delay_logp"].shape[:2]
-    joint = samples.get("delay_shift_logp", samples["delay_logp"])
-    delays, shifts = sample_delays(joint.reshape(chains * draws, *joint.shape[2:]), settings.seed)
     flat = {k: v.reshape(chains * draws, *v.shape[2:]) for k, v in samples.items()}
+    step = step_param(model, data)
+    if step is None:
+        joint = samples.get("delay_shift_logp", samples["delay_logp"])
+        delays, shifts = sample_delays(joint.reshape(chains * draws, *joint.shape[2:]), settings.seed)
+    else:  # the threshold was summed out: drawn with (d, shift) from their joint conditional
+        delays, shifts, threshold = sample_step_states(model, data, flat, log_delay_prior, settings.seed)
+        flat[step.name] = threshold
+        samples[step.name] = threshold.reshape(chains, draws, data.n_legs)
+        model = hard_step(model)
     ll = pointwise_loglik(model, data, flat, delays, shifts)
     samples["delay"] = delays.reshape(chains, draws, data.n_legs)
     if data.max_shift:
@@ -128,6 +138,8 @@ def to_inference_data(
         },
     )
     desc = describe_fit(model, data, settings)
+    if step is not None:
+        desc["summed_out"] = [step.name]  # drawn afterwards, under the hard step (see model_from_description)
     desc["delay_prior"] = {
         "source": delay_source or "uniform",
         "probabilities": None if log_delay_prior is None else np.exp(np.asarray(log_delay_prior, np.float64)).round(6).tolist(),
@@ -214,13 +226,13 @@ def _leg_draws(idata, name: str, i: int) -> np.ndarray:
 
 
 def delay_angle_curve(idata, i: int) -> np.ndarray:
-    """Effective delay [samples] of pulses delivered at each ANGLE_GRID angle, per draw: d − shift·w(φ)."""
+    """Effective delay [samples] of pulses delivered at each ANGLE_GRID angle, per draw: d − shift·[φ < threshold]."""
     from ._effects import AngleDelay
 
     d = _leg_draws(idata, "delay", i).astype(float)
     shift = _leg_draws(idata, "delay_shift", i).astype(float)
     threshold = _leg_draws(idata, "threshold", i)
-    w = np.asarray(AngleDelay(threshold=threshold[:, None]).pulse_weight(ANGLE_GRID[None, :]), np.float64)
+    w = np.asarray(AngleDelay(threshold=threshold[:, None], softness_deg=0.0).pulse_weight(ANGLE_GRID[None, :]), np.float64)
     return d[:, None] - shift[:, None] * w
 
 

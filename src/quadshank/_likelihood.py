@@ -75,6 +75,9 @@ __all__ = [
     "impulse_response",
     "gain_factors",
     "leg_loglik_by_delay",
+    "leg_loglik_by_threshold",
+    "step_log_mass",
+    "step_edges",
     "leg_pointwise",
     "leg_active_output",
     "student_t_logpdf",
@@ -132,6 +135,14 @@ class LikelihoodData:
     touch_pos: np.ndarray  # (L, D, P*(R+K)) index into touch_window
     touch_window: np.ndarray  # (L, D, U) windows reached at delay d
     touch_mask: np.ndarray  # (L, D, U) bool
+    # with a step delay effect (its step parameter summed out, see step_tables); else None
+    step_order: np.ndarray | None = None  # (L, P) pulses by increasing angle (padding last)
+    step_pulse_valid: np.ndarray | None = None  # (L, P) bool, in that order
+    step_entry_pair: np.ndarray | None = None  # (L, D, P*(R+K)) (window, pulse) pair of each entry
+    step_pair_window: np.ndarray | None = None  # (L, D, Q) index into touch_window
+    step_pair_pulse: np.ndarray | None = None  # (L, D, Q) pulse of each pair
+    step_pair_first: np.ndarray | None = None  # (L, D, Q) first pair of the same window
+    step_pair_mask: np.ndarray | None = None  # (L, D, Q) bool
 
     @property
     def n_legs(self) -> int:
@@ -143,6 +154,8 @@ class LikelihoodData:
             "angle velocity acceleration stimulation sample_mask window window_len window_mask window_segment "
             "segment_mask pulse_sample pulse_u pulse_ipi_s pulse_count pulse_time_s touch_sample touch_valid touch_pos touch_window touch_mask"
         ).split()
+        if self.step_order is not None:
+            names += [f.name for f in dataclasses.fields(self) if f.name.startswith("step_")]
         return {n: jnp.asarray(getattr(self, n)) for n in names}
 
 
@@ -337,6 +350,9 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         touch_mask[i, d, : uniq.size] = uniq >= 0
         touch_pos[i, d] = inv
 
+    step = {}
+    if K and getattr(model.delay_effect, "step_param", None):
+        step = step_tables(angle, pulse_sample, pulse_u, touch_valid, touch_pos, R + K)
     subjects = tuple(dict.fromkeys(x["subject"] for x in per_leg))
     return LikelihoodData(
         legs=legs,
@@ -367,7 +383,58 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         touch_pos=touch_pos,
         touch_window=touch_window,
         touch_mask=touch_mask,
+        **step,
     )
+
+
+def step_tables(angle, pulse_sample, pulse_u, touch_valid, touch_pos, RK: int) -> dict:
+    """What summing out a step delay effect's threshold needs, from the data alone.
+
+    Under the hard step the pulses delivered below the threshold take the shorter
+    delay; ordering the pulses by their angle, every threshold between the j-th and
+    the (j+1)-th angle shortens the first j, so the threshold's P + 1 intervals are
+    P + 1 states.  Moving from state j to j + 1 changes the windows that pulse j+1
+    reaches; in each such window, what the pulses before it in angle order have
+    already changed is a running sum over the window's (window, pulse) pairs, taken
+    in angle order.  Returns the ``step_*`` fields of :class:`LikelihoodData`.
+    """
+    L, P = pulse_sample.shape
+    D = touch_valid.shape[1]
+    key = np.where(pulse_u > 0, np.take_along_axis(angle, pulse_sample, axis=1), np.inf)
+    order = np.argsort(key, axis=1, kind="stable")
+    rank = np.argsort(order, axis=1)
+    pulse_of_entry = np.repeat(np.arange(P), RK)
+    found = []
+    for i in range(L):
+        for d in range(D):
+            ok = touch_valid[i, d]
+            pairs = np.stack([touch_pos[i, d], rank[i][pulse_of_entry]], axis=1)[ok]
+            uniq, inv = np.unique(pairs, axis=0, return_inverse=True)
+            found.append((i, d, ok, uniq, inv.reshape(-1)))
+    Q = _bucket(max(1, max(u.shape[0] for *_, u, _ in found)) + 1)  # + a spare pair for the masked entries
+    entry_pair = np.full((L, D, P * RK), Q - 1, np.int64)
+    pair_window = np.zeros((L, D, Q), np.int64)
+    pair_pulse = np.zeros((L, D, Q), np.int64)
+    pair_first = np.zeros((L, D, Q), np.int64)
+    pair_mask = np.zeros((L, D, Q), bool)
+    for i, d, ok, uniq, inv in found:
+        n = uniq.shape[0]
+        entry_pair[i, d, ok] = inv
+        pair_window[i, d, :n] = uniq[:, 0]
+        pair_pulse[i, d, :n] = order[i][uniq[:, 1]]
+        new_window = np.concatenate([[True], uniq[1:, 0] != uniq[:-1, 0]]) if n else np.zeros(0, bool)
+        pair_first[i, d, :n] = np.maximum.accumulate(np.where(new_window, np.arange(n), 0))
+        pair_first[i, d, n:] = np.arange(n, Q)
+        pair_mask[i, d, :n] = True
+    return {
+        "step_order": order,
+        "step_pulse_valid": np.take_along_axis(pulse_u > 0, order, axis=1),
+        "step_entry_pair": entry_pair,
+        "step_pair_window": pair_window,
+        "step_pair_pulse": pair_pulse,
+        "step_pair_first": pair_first,
+        "step_pair_mask": pair_mask,
+    }
 
 
 # ============================================================================ JAX side
@@ -513,6 +580,95 @@ def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
 
         out.append(jax.vmap(one)(delays, x["touch_valid"], x["touch_sample"], x["touch_pos"], x["touch_window"], x["touch_mask"]))
     return base + jnp.stack(out, axis=-1)
+
+
+def _cumsum(x, block: int = 32):
+    """Cumulative sum along the last axis in blocks: within each block by a triangular matrix
+    product, then the blocks' totals.  XLA lowers ``jnp.cumsum`` on the CPU to a window
+    reduction whose cost grows with the square of the length (5 ms for 110 rows of 2500)."""
+    n = x.shape[-1]
+    m = -(-n // block)
+    xp = jnp.pad(x, [(0, 0)] * (x.ndim - 1) + [(0, m * block - n)]).reshape(*x.shape[:-1], m, block)
+    within = xp @ jnp.triu(jnp.ones((block, block), x.dtype))
+    before = within[..., -1] @ jnp.triu(jnp.ones((m, m), x.dtype), 1)  # the earlier blocks' totals
+    return (within + before[..., None]).reshape(*x.shape[:-1], m * block)[..., :n]
+
+
+def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
+    """log p(y_leg | θ, d, shift, state j), (MAX_DELAY + 1, K + 1, P + 1), one leg, for a step delay effect.
+
+    State j: the threshold lies between the j-th and (j+1)-th pulse angle (pulses
+    in increasing angle, :func:`step_tables`), so the first j pulses take delay
+    d − shift under the hard step.  Column shift 0 is the same for every j.  The
+    effect's own threshold is not read.
+    """
+    x = _sensed(model, x)
+    E, scale, lp0 = _window_terms(model, noise, x)
+    base = jnp.sum(lp0)
+    F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
+    G = output_factors(model, x["angle"], x["velocity"], x["stimulation"])
+    uq = _pulse_q(model, x)
+    U = x["touch_window"].shape[-1]
+    Q = x["step_pair_mask"].shape[-1]
+    P = x["pulse_sample"].shape[-1]
+    h = model_response(model, R)
+    h_pad = jnp.concatenate([jnp.zeros(K, h.dtype), h, jnp.zeros(K, h.dtype)])
+    p = x["pulse_sample"]
+    last = F.shape[-1] - 1
+    nu = noise["nu"]
+
+    def one(d, valid, samples, pos, tw, tm, entry_pair, pair_window, pair_pulse, pair_first, pair_mask):
+        def amplitudes(shift):
+            resp = jax.lax.dynamic_slice_in_dim(h_pad, shift, R + K)[None, :]
+            amp = (uq * F[jnp.clip(p + d - shift, 0, last)])[:, None] * resp
+            amp = amp.reshape(-1) if G is None else amp.reshape(-1) * G[samples]
+            return jnp.where(valid, amp, 0.0)
+
+        a_long = amplitudes(0)
+        M = jax.ops.segment_sum(a_long, pos, num_segments=U)
+        r0 = E[tw] - M
+        lp_long = jnp.where(tm, student_t_logpdf(r0, nu, scale[tw]) - lp0[tw], 0.0)
+        ell_long = base + jnp.sum(lp_long)
+        rows = [jnp.full((P + 1,), ell_long)]
+        r_pair = r0[pair_window]
+        s_pair = scale[tw][pair_window]
+        keep = pair_mask & tm[pair_window]
+        for shift in range(1, K + 1):
+            b = jax.ops.segment_sum(amplitudes(shift) - a_long, entry_pair, num_segments=Q)  # per (window, pulse)
+            cs = _cumsum(b)
+            incl = cs - (cs[pair_first] - b[pair_first])  # this pair and the window's earlier ones
+            excl = incl - b
+            delta = student_t_logpdf(r_pair - incl, nu, s_pair) - student_t_logpdf(r_pair - excl, nu, s_pair)
+            per_pulse = jax.ops.segment_sum(jnp.where(keep, delta, 0.0), pair_pulse, num_segments=P)
+            steps = jnp.where(x["step_pulse_valid"], per_pulse[x["step_order"]], 0.0)
+            rows.append(ell_long + jnp.concatenate([jnp.zeros(1, steps.dtype), _cumsum(steps)]))
+        return jnp.stack(rows)  # (K + 1, P + 1)
+
+    delays = jnp.arange(x["touch_sample"].shape[0])
+    return jax.vmap(one)(
+        delays, x["touch_valid"], x["touch_sample"], x["touch_pos"], x["touch_window"], x["touch_mask"],
+        x["step_entry_pair"], x["step_pair_window"], x["step_pair_pulse"], x["step_pair_first"], x["step_pair_mask"],
+    )  # fmt: skip
+
+
+def step_edges(model: Model, x: dict, loc, scale):
+    """The threshold states' edges in prior scales (P + 2,), one leg: −∞, the pulses' true
+    angles in increasing order, +∞ (padding pulses at +∞)."""
+    x = _sensed(model, x)
+    a = x["angle"][x["pulse_sample"][x["step_order"]]]
+    z = jnp.where(x["step_pulse_valid"], (a - loc) / scale, jnp.inf)
+    return jnp.concatenate([jnp.full(1, -jnp.inf, z.dtype), z, jnp.full(1, jnp.inf, z.dtype)])
+
+
+def step_log_mass(model: Model, x: dict, loc, scale):
+    """log prior mass of each threshold state (P + 1,), one leg, for a Normal(loc, scale) threshold:
+    the intervals between the pulses' true angles in increasing order (padding: mass 0)."""
+    edges = step_edges(model, x, loc, scale)
+    lo, hi = edges[:-1], edges[1:]
+    # from the nearer tail, so that intervals far out keep their (small) mass in float32
+    mass = jnp.where(lo + hi > 0, jax.scipy.special.ndtr(-lo) - jax.scipy.special.ndtr(-hi),
+                     jax.scipy.special.ndtr(hi) - jax.scipy.special.ndtr(lo))  # fmt: skip
+    return jnp.where(mass > 0, jnp.log(jnp.where(mass > 0, mass, 1.0)), -jnp.inf)
 
 
 def leg_active_output(model: Model, x: dict, d_index, R: int, K: int = 0, shift=0):
