@@ -17,9 +17,9 @@ The peer is the same model written in PyMC (benchmarks/peer_pymc.py) and
 sampled by nutpie, on the same data with the same chains, warm-up and draws;
 it needs the optional ``bench`` extra (``pip install -e ".[bench]"``).  Its
 log density is checked against quadshank's at a common point first.  nutpie
-runs its chains in parallel threads, numpyro here one after another: the
-comparison is ESS per second of wall time, each sampler used as it is meant
-to be.  ``--no-peer`` skips it.
+runs its chains in parallel threads, numpyro here as one batched program
+(``--chain-method vectorized``, the default): the comparison is ESS per second
+of wall time, each sampler used as it is meant to be.  ``--no-peer`` skips it.
 """
 
 from __future__ import annotations
@@ -144,7 +144,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-peer", action="store_true", help="skip the PyMC + nutpie peer")
     ap.add_argument("--start", default="screen", choices=STARTS,
                     help="where the chains start (quadshank fit --start); each start has its own section")
-    ap.add_argument("--chain-method", default="sequential", choices=("sequential", "vectorized", "parallel"))
+    ap.add_argument("--chain-method", default=FitSettings.chain_method, choices=("sequential", "vectorized", "parallel"))
     ap.add_argument("--out", default="results/benchmarks.md")
     args = ap.parse_args(argv)
     effects = args.add_effect if args.add_effect is not None else ["angle_delay"]

@@ -2,12 +2,14 @@
 
 The same joint density as :func:`quadshank._fit.numpyro_model` for the paper's
 model 3 with the angle-dependent delay (or without it): legs standardised by
-their priors with the population mean, subject level and spreads integrated out
-(s_leg ~ Σ_g w_g MVN(0, 11ᵀ + r_s,g²S + r_l,g²I) on quadshank's grid of spreads), per-leg Student-t noise on twitch-window
-sums of the equivalent acceleration, the delay d ∈ {0…10} and the shift summed
-out by log-sum-exp.  It reads the same touch tables (``quadshank._likelihood.prepare``)
-and is checked against quadshank's log density at a common point
-(:func:`check_same_density`) before any timing is trusted.
+their priors with the population mean, subject level and spreads integrated
+out (s_leg ~ Σ_g w_g MVN(0, 11ᵀ + r_s,g²S + r_l,g²I) on quadshank's grid of
+spreads), per-leg Student-t noise on twitch-window sums of the equivalent
+acceleration, the delay d ∈ {0…10}, the shift and the threshold (its states
+between the pulse angles) summed out by log-sum-exp.  It reads the same
+touch and step tables (``quadshank._likelihood.prepare``) and is checked
+against quadshank's log density at a common point (:func:`check_same_density`)
+before any timing is trusted.
 
 Needs the optional ``bench`` extra (pymc, nutpie); nothing in quadshank imports it.
 """
@@ -50,8 +52,11 @@ def build_pymc_model(model, data: LikelihoodData):
     R, K = data.response_length, data.max_shift
     log_w, _, _, prec, logdet, _ = spread_grid(tuple(int(i) for i in data.leg_subject))
     with pm.Model() as pmodel:
-        leg = {}
+        leg, step_prior = {}, None
         for p in model_params(model):
+            if p.name == "threshold":  # summed out in the likelihood, as in quadshank's fit
+                step_prior = tuple(p.prior[1:3])
+                continue
             if p.shape:
                 raise ValueError(f"parameter {p.name!r} is a vector; the peer handles scalars")
             family, loc, scale = p.prior[:3]
@@ -66,8 +71,8 @@ def build_pymc_model(model, data: LikelihoodData):
         shift_prior = log_shift_prior(K)
         total = 0.0
         for i in range(L):
-            total = total + _leg_marginal(pt, data, i, {k: v[i] for k, v in leg.items()}, sigma[i], nu[i], R, K,
-                                          shift_prior, "threshold" in leg)  # fmt: skip
+            values = {k: v[i] for k, v in leg.items()} | {"threshold_prior": step_prior}
+            total = total + _leg_marginal(pt, data, i, values, sigma[i], nu[i], R, K, shift_prior, step_prior is not None)
         pm.Potential("likelihood", total)
     return pmodel
 
@@ -93,21 +98,52 @@ def _leg_marginal(pt, data, i, v, sigma, nu, R, K, shift_prior, angle_delay):
     ts, valid, pos = data.touch_sample[i], data.touch_valid[i], data.touch_pos[i]  # (D, P*(R+K))
     tw, tm = data.touch_window[i], data.touch_mask[i]  # (D, U)
     flat_pos = (pos + np.arange(D)[:, None] * U).ravel()
-    cols = []
-    for shift in range(K + 1):
-        long = h_pad[: R + K][None, :]
-        if K and angle_delay:
-            w = pt.sigmoid((v["threshold"] - angle[data.pulse_sample[i]]) / 1.0)[:, None]
-            short = h_pad[shift: shift + R + K][None, :]
-            amp = (u * ((1.0 - w) * long + w * short)).ravel()
-        else:
-            amp = (u * long).ravel()
-        c = pt.switch(valid, amp[None, :] * F[ts], 0.0)  # (D, P*(R+K))
-        M = pt.zeros(D * U)[flat_pos].inc(c.ravel()).reshape((D, U))
-        lp = _t_logpdf(pt, E[tw] - M, nu, scale[tw]) - lp0[tw]
-        cols.append(pt.sum(pt.switch(tm, lp, 0.0), axis=1))
-    ll = pt.sum(lp0) + pt.stack(cols, axis=1)  # (D, K + 1)
-    logp = ll - math.log(N_DELAYS) + shift_prior
+
+    def amplitudes(shift):  # (D, P*(R+K)): the one-sample response, F at the sample it reaches
+        return pt.switch(valid, (u * h_pad[shift : shift + R + K][None, :]).ravel()[None, :] * F[ts], 0.0)
+
+    a_long = amplitudes(0)
+    M = pt.zeros(D * U)[flat_pos].inc(a_long.ravel()).reshape((D, U))
+    r0 = E[tw] - M
+    lp = _t_logpdf(pt, r0, nu, scale[tw]) - lp0[tw]
+    ell_long = pt.sum(lp0) + pt.sum(pt.switch(tm, lp, 0.0), axis=1)  # (D,)
+    if not (K and angle_delay):
+        return pt.logsumexp(ell_long - math.log(N_DELAYS) + shift_prior[:, 0])
+    # the threshold summed out under the hard step, as quadshank's leg_loglik_by_threshold:
+    # state j shortens the j pulses of lowest angle; running sums over (window, pulse) pairs
+    Q, P = data.step_pair_mask.shape[-1], data.pulse_sample.shape[-1]
+    rows_d = np.arange(D)[:, None]
+    pair_window, pair_first = data.step_pair_window[i], data.step_pair_first[i]  # (D, Q)
+    flat_pair = (data.step_entry_pair[i] + rows_d * Q).ravel()
+    flat_pulse = (data.step_pair_pulse[i] + rows_d * P).ravel()
+    r_pair = r0[rows_d, pair_window]
+    s_pair = scale[tw][rows_d, pair_window]
+    keep = data.step_pair_mask[i] & tm[rows_d, pair_window]
+    order, valid_order = data.step_order[i], data.step_pulse_valid[i]
+    a = angle[data.pulse_sample[i][order]]
+    z = np.where(valid_order, (a - v["threshold_prior"][0]) / v["threshold_prior"][1], np.inf)
+    edges = np.concatenate([[-np.inf], z, [np.inf]])
+    from scipy.special import ndtr
+
+    with np.errstate(divide="ignore"):
+        log_mass = np.log(np.where(edges[:-1] + edges[1:] > 0, ndtr(-edges[:-1]) - ndtr(-edges[1:]), ndtr(edges[1:]) - ndtr(edges[:-1])))
+    log_mass = np.maximum(log_mass, -1e30)
+
+    def kernel(x):
+        zz = x / s_pair
+        return -0.5 * (nu + 1.0) * pt.log1p(zz * zz / nu)
+
+    cols = [pt.logsumexp(ell_long[:, None] + log_mass[None, :], axis=1)]  # shift 0: every state alike
+    for shift in range(1, K + 1):
+        b = pt.zeros(D * Q)[flat_pair].inc((amplitudes(shift) - a_long).ravel()).reshape((D, Q))
+        cs = pt.cumsum(b, axis=1)
+        incl = cs - (cs[rows_d, pair_first] - b[rows_d, pair_first])
+        delta = pt.switch(keep, kernel(r_pair - incl) - kernel(r_pair - incl + b), 0.0)
+        per_pulse = pt.zeros(D * P)[flat_pulse].inc(delta.ravel()).reshape((D, P))
+        steps = pt.switch(valid_order[None, :], per_pulse[:, order], 0.0)
+        states = ell_long[:, None] + pt.concatenate([pt.zeros((D, 1)), pt.cumsum(steps, axis=1)], axis=1)  # (D, P + 1)
+        cols.append(pt.logsumexp(states + log_mass[None, :], axis=1))
+    logp = pt.stack(cols, axis=1) - math.log(N_DELAYS) + shift_prior  # (D, K + 1)
     return pt.logsumexp(logp)
 
 

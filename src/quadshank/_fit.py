@@ -116,9 +116,11 @@ class FitSettings:
     centred: bool = True
     dense_mass: bool = True
     trials: tuple[int, ...] = (1,)
-    #: numpyro's ``chain_method``: "sequential" (one chain after another; the CPU default),
-    #: "vectorized" (all chains in one batched program; worth it on a GPU) or "parallel".
-    chain_method: str = "sequential"
+    #: numpyro's ``chain_method``: "vectorized" (all chains in one batched program: on the
+    #: 2-core CPU, 4 chains × 200 iterations of model 3 + angle_delay on 5 legs × 2 min took
+    #: 57 s against 133 s one after another, screen and compilation included), "sequential"
+    #: or "parallel" (one device per chain).
+    chain_method: str = "vectorized"
     #: Where the chains start: "screen" (each leg's mode and Laplace covariance from the
     #: screen, which also give the metric; see :func:`screen_start`), "classical" (the
     #: classical least-squares estimate, jittered) or "prior" (the prior median).
