@@ -454,8 +454,8 @@ def screen_start(cohort: Cohort, model: Model, data: LikelihoodData, settings: F
     for k in names:
         shape = np.shape(sites[k]["value"])
         v = inits[:, offsets[k] : offsets[k] + int(np.prod(shape, dtype=int))].reshape((chains, *shape))
-        init_params[k] = jnp.asarray(v if chains > 1 else v[0], jnp.float32)
-    return init_params, {tuple(names): jnp.asarray(imm, jnp.float32)}
+        init_params[k] = jnp.asarray(v if chains > 1 else v[0], jnp.result_type(float))
+    return init_params, {tuple(names): jnp.asarray(imm, jnp.result_type(float))}
 
 
 def _init_near(site=None, values=None, jitter=INIT_JITTER, fallback=None):
@@ -512,9 +512,21 @@ def fit(
     progress: bool = True,
     log_delay_prior=None,
 ):
-    """Run NUTS; returns (mcmc, data).  ``log_delay_prior``: see :func:`delay_prior_from`."""
+    """Run NUTS; returns (mcmc, data).  ``log_delay_prior``: see :func:`delay_prior_from`.
+
+    Samples in double precision, as the screen optimises: the log density of five
+    5-minute legs is ~1e6, where single precision rounds it to ~0.06, and NUTS,
+    seeing that noise in every energy difference, shrinks its step until the trees
+    reach their depth (model 3 + angle_delay, 5 legs × 5 min: 255 leapfrog steps per
+    draw in single precision, 12 in double).
+    """
+    with jax.enable_x64(True):
+        return _fit(cohort, model, settings, legs, progress, log_delay_prior)
+
+
+def _fit(cohort, model, settings, legs, progress, log_delay_prior):
     data = prepare(cohort, model, trials=settings.trials, legs=legs)
-    arrays = data.leg_arrays()
+    arrays = {k: v.astype(jnp.float64) if jnp.issubdtype(v.dtype, jnp.floating) else v for k, v in data.leg_arrays().items()}
     if log_delay_prior is not None:
         log_delay_prior = np.asarray(log_delay_prior, np.float32)
         if log_delay_prior.shape != (data.n_legs, N_DELAYS):
