@@ -704,6 +704,11 @@ def sample_step_states(model: Model, data: LikelihoodData, posterior: dict, log_
     from its prior: the data say nothing of it.  ``posterior`` arrays are (draws, legs, ...);
     ``log_delay_prior`` (legs, D) or None (uniform).  Returns three (draws, legs) arrays.
     """
+    with jax.enable_x64(True):  # the states' log-likelihoods are ~1e5: single precision would blur them
+        return _sample_step_states(model, data, posterior, log_delay_prior, seed, chunk)
+
+
+def _sample_step_states(model, data, posterior, log_delay_prior, seed, chunk):
     from scipy.stats import truncnorm
 
     step = step_param(model, data)
@@ -712,8 +717,8 @@ def sample_step_states(model: Model, data: LikelihoodData, posterior: dict, log_
     R, K = data.response_length, data.max_shift
     n_draws, L = np.shape(posterior["sigma"])
     d_prior = np.full((L, N_DELAYS), -math.log(N_DELAYS)) if log_delay_prior is None else np.asarray(log_delay_prior)
-    prior = jnp.asarray(d_prior[:, :, None] + log_shift_prior(K)[None], jnp.float32)[..., None]  # (L, D, K + 1, 1)
-    stacked = leg_models(model, {**posterior, step.name: np.zeros((n_draws, L), np.float32)})
+    prior = jnp.asarray(d_prior[:, :, None] + log_shift_prior(K)[None])[..., None]  # (L, D, K + 1, 1)
+    stacked = leg_models(model, {**posterior, step.name: np.zeros((n_draws, L))})
 
     def one_draw(m, sigma, nu, key):
         logp = cohort_loglik_by_threshold(m, sigma, nu, x, R, K, loc, scale) + prior  # (L, D, K + 1, J)
