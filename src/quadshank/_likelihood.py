@@ -47,6 +47,15 @@ The delay
     and their response windows, not the trial's length; nothing runs as a
     sequential scan over samples.
 
+A delay that steps with the angle
+    With a delay effect that shortens d for the pulses below a threshold angle
+    (``step_param``), the fit sums the threshold out as well
+    (:func:`leg_loglik_by_threshold`): ordered by angle, the pulses split into
+    P + 1 threshold states, and moving from one state to the next changes only
+    the windows the next pulse reaches, by a running sum over (window, pulse)
+    pairs in angle order (:func:`step_tables`, data alone).  Each state is
+    weighted by its interval's prior mass (:func:`step_log_mass`).
+
 Units for PSIS-LOO
     Windows are summed into segments of SEGMENT_SAMPLES (1 s) per trial: the
     residual's correlation (twitch-shape misfit, resonance) dies out within a
