@@ -146,6 +146,8 @@ def main(argv=None) -> int:
                     help="where the chains start (quadshank fit --start); each start has its own section")
     ap.add_argument("--chain-method", default=FitSettings.chain_method, choices=("sequential", "vectorized", "parallel"))
     ap.add_argument("--out", default="results/benchmarks.md")
+    ap.add_argument("--section", default=None,
+                    help="name of the section (and JSON record) written; default bench_fit[_backend][_start]")
     args = ap.parse_args(argv)
     effects = args.add_effect if args.add_effect is not None else ["angle_delay"]
     legs = [x for x in args.legs.split(",") if x]
@@ -201,6 +203,7 @@ def main(argv=None) -> int:
     section = "bench_fit" if jax.default_backend() == "cpu" else f"bench_fit_{jax.default_backend()}"
     if args.start != "classical":
         section += f"_{args.start}"
+    section = args.section or section
     write_json(Path(args.out).with_name(f"{section}.json"), record)
 
     full = (len(legs), args.minutes, args.chains, args.warmup, args.draws) == (5, 5.0, 4, 1000, 1000)
