@@ -200,9 +200,10 @@ def spread_log_weights(s_leg, leg_subject) -> np.ndarray | jnp.ndarray:
     """log [w_g MVN(s_leg; 0, C_g)] over the spread grid, (..., G) for ``s_leg`` (..., L)."""
     log_w, _, _, prec, logdet, _ = spread_grid(tuple(int(i) for i in leg_subject))
     xp = jnp if isinstance(s_leg, jax.Array) else np
-    quad = xp.einsum("...l,glm,...m->...g", s_leg, prec.astype(s_leg.dtype), s_leg)
+    dt = s_leg.dtype
+    quad = xp.einsum("...l,glm,...m->...g", s_leg, prec.astype(dt), s_leg)
     L = prec.shape[-1]
-    return log_w - 0.5 * (quad + logdet + L * math.log(2.0 * math.pi))
+    return log_w.astype(dt) - 0.5 * (quad + logdet.astype(dt) + L * math.log(2.0 * math.pi))
 
 
 class SpreadMixture(dist.Distribution):
