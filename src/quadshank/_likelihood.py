@@ -565,17 +565,24 @@ def _contributions(model: Model, x: dict, R: int, K: int, shift, d, F, uq, valid
     return jnp.where(valid, amp, 0.0)
 
 
+def _leg_terms(model: Model, noise: dict, x: dict):
+    """What every delay of one leg shares: the arrays with the true angle, the window sums of
+    the equivalent acceleration with their scales and base log densities, the gain and output
+    factors at every sample, and each pulse's u·q."""
+    x = _sensed(model, x)
+    E, scale, lp0 = _window_terms(model, noise, x)
+    F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
+    G = output_factors(model, x["angle"], x["velocity"], x["stimulation"])
+    return x, E, scale, lp0, F, G, _pulse_q(model, x)
+
+
 def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
     """log p(y_leg | θ, d, shift), shape (MAX_DELAY + 1, K + 1), one leg (vmap over legs outside).
 
     Entries with shift > d are computed but meaningless (the prior excludes them).
     """
-    x = _sensed(model, x)
-    E, scale, lp0 = _window_terms(model, noise, x)
+    x, E, scale, lp0, F, G, uq = _leg_terms(model, noise, x)
     base = jnp.sum(lp0)
-    F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
-    G = output_factors(model, x["angle"], x["velocity"], x["stimulation"])
-    uq = _pulse_q(model, x)
     U = x["touch_window"].shape[-1]
     delays = jnp.arange(x["touch_sample"].shape[0])
     out = []
@@ -618,12 +625,8 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
     d − shift under the hard step.  Column shift 0 is the same for every j.  The
     effect's own threshold is not read.
     """
-    x = _sensed(model, x)
-    E, scale, lp0 = _window_terms(model, noise, x)
+    x, E, scale, lp0, F, G, uq = _leg_terms(model, noise, x)
     base = jnp.sum(lp0)
-    F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
-    G = output_factors(model, x["angle"], x["velocity"], x["stimulation"])
-    uq = _pulse_q(model, x)
     U = x["touch_window"].shape[-1]
     Q = x["step_pair_mask"].shape[-1]
     P = x["pulse_sample"].shape[-1]
