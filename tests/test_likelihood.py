@@ -252,3 +252,58 @@ def test_student_t_cdf_matches_scipy():
     z = np.linspace(-8.0, 8.0, 41)
     for nu in (1.2, 4.0, 30.0):
         np.testing.assert_allclose(np.asarray(L.student_t_cdf(jnp.asarray(z), nu)), stats.t.cdf(z, nu), atol=2e-6)
+
+
+def _general(x):
+    """The leg's arrays without the pulse-level tables: the (pulse, lag) path."""
+    drop = ("pulse_slot", "slot_window", "slot_mask", "step_slot_order", "step_slot_first", "step_rank_pos")
+    return {k: v for k, v in x.items() if k not in drop}
+
+
+@pytest.mark.parametrize("effect", [AngleDelay(threshold=-20.0), AngleDelay(threshold=5.0, softness_deg=0.0), None])
+def test_pulse_level_path_equals_the_pulse_lag_path(cohort_truth, effect):
+    """On twitch windows the pulse-level path (one term per pulse) gives the (pulse, lag) path's
+    log-likelihood for every delay and every shift the prior allows, and so do its threshold
+    states; the data include windows holding several pulses, so the running sums within a
+    window are exercised."""
+    cohort, truth = cohort_truth
+    leg = "TN-left"
+    model = _true_model(3, truth, leg)
+    model = model if effect is None else model.add(effect)
+    data = L.prepare(cohort, model, trials=(1, 2), legs=[leg])
+    assert data.pulse_slot is not None
+    n_pulses = int((data.pulse_u[0] > 0).sum())
+    n_slots = int(data.slot_mask[0].sum())
+    assert n_slots < n_pulses - 10  # several windows hold more than one pulse
+    x = {k: jnp.asarray(v[0], jnp.float64) if jnp.issubdtype(v.dtype, jnp.floating) else v[0] for k, v in data.leg_arrays().items()}
+    noise = {"sigma": 40.0, "nu": 6.0}
+    R, K = data.response_length, data.max_shift
+    allowed = np.arange(K + 1)[None, :] <= np.arange(MAX_DELAY + 1)[:, None]  # shift ≤ d
+    with jax.enable_x64(True):  # in double precision (as the fit runs) the two agree to rounding
+        model = model.with_params(jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), model.params()))
+        fast = np.asarray(L.leg_loglik_by_delay(model, noise, x, R, K))
+        slow = np.asarray(L.leg_loglik_by_delay(model, noise, _general(x), R, K))
+        np.testing.assert_allclose(fast[allowed], slow[allowed], rtol=1e-12)
+        assert np.ptp(fast) > 10.0  # the delay matters to model 3
+        if data.step_order is not None:
+            fast = np.asarray(L.leg_loglik_by_threshold(model, noise, x, R, K))
+            slow = np.asarray(L.leg_loglik_by_threshold(model, noise, _general(x), R, K))
+            np.testing.assert_allclose(fast[allowed], slow[allowed], rtol=1e-12)
+            assert np.ptp(fast[5, 1]) > 1.0  # the states differ
+
+
+def test_pulse_level_path_only_where_a_twitch_stays_in_its_window(cohort_truth):
+    """prepare takes the pulse-level path for the zero-order activation, not for DARMA's shaped
+    twitch; pulse_tables declines when a pulse's response would leave its window."""
+    cohort, truth = cohort_truth
+    assert L.prepare(cohort, _true_model(1, truth, "TN-left"), legs=["TN-left"]).pulse_slot is not None
+    assert L.prepare(cohort, _true_model(2, truth, "TN-left"), legs=["TN-left"]).pulse_slot is None
+    n, p = 100, 40
+    window = np.arange(n)[None, :].copy()
+    window[0, p : p + MAX_DELAY + 1] = p  # one window of MAX_DELAY + 1 samples from the pulse
+    mask = np.ones((1, n), bool)
+    pulse, u = np.array([[p]]), np.array([[1.0]])
+    assert L.pulse_tables(window, mask, pulse, u, 1, n)["pulse_slot"].tolist() == [[0]]
+    assert L.pulse_tables(window, mask, pulse, u, 2, n) == {}  # a response of two samples leaves it at d = MAX_DELAY
+    mask[0, p + 3] = False
+    assert L.pulse_tables(window, mask, pulse, u, 1, n) == {}  # a sample it reaches is not compared

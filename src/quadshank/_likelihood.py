@@ -152,6 +152,13 @@ class LikelihoodData:
     step_pair_pulse: np.ndarray | None = None  # (L, D, Q) pulse of each pair
     step_pair_first: np.ndarray | None = None  # (L, D, Q) first pair of the same window
     step_pair_mask: np.ndarray | None = None  # (L, D, Q) bool
+    # the pulse-level path (see pulse_tables): a twitch stays inside its pulse's window; else None
+    pulse_slot: np.ndarray | None = None  # (L, P) slot of each pulse's window (padding -> spare, masked slot)
+    slot_window: np.ndarray | None = None  # (L, V) window of each slot
+    slot_mask: np.ndarray | None = None  # (L, V) bool
+    step_slot_order: np.ndarray | None = None  # (L, P) pulses by slot, then by angle
+    step_slot_first: np.ndarray | None = None  # (L, P) position (in that order) of the slot's first pulse
+    step_rank_pos: np.ndarray | None = None  # (L, P) position in that order of the j-th pulse by angle
 
     @property
     def n_legs(self) -> int:
@@ -163,9 +170,8 @@ class LikelihoodData:
             "angle velocity acceleration stimulation sample_mask window window_len window_mask window_segment "
             "segment_mask pulse_sample pulse_u pulse_ipi_s pulse_count pulse_time_s touch_sample touch_valid touch_pos touch_window touch_mask"
         ).split()
-        if self.step_order is not None:
-            names += [f.name for f in dataclasses.fields(self) if f.name.startswith("step_")]
-        return {n: jnp.asarray(getattr(self, n)) for n in names}
+        names += [f.name for f in dataclasses.fields(self) if f.name.startswith(("step_", "pulse_slot", "slot_"))]
+        return {n: jnp.asarray(getattr(self, n)) for n in names if getattr(self, n) is not None}
 
 
 def _bucket(n: int) -> int:
@@ -359,9 +365,13 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         touch_mask[i, d, : uniq.size] = uniq >= 0
         touch_pos[i, d] = inv
 
+    window = np.where(sample_mask, window, W - 1)
     step = {}
     if K and getattr(model.delay_effect, "step_param", None):
         step = step_tables(angle, pulse_sample, pulse_u, touch_valid, touch_pos, R + K)
+    slots = pulse_tables(window, sample_mask, pulse_sample, pulse_u, R, W) if resolution == "twitch" and not model.outputs else {}
+    if slots and step:
+        slots |= pulse_step_tables(step["step_order"], slots["pulse_slot"])
     subjects = tuple(dict.fromkeys(x["subject"] for x in per_leg))
     return LikelihoodData(
         legs=legs,
@@ -376,7 +386,7 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         acceleration=acceleration,
         stimulation=stimulation,
         sample_mask=sample_mask,
-        window=np.where(sample_mask, window, W - 1),
+        window=window,
         window_len=window_len,
         window_mask=window_mask,
         window_segment=window_segment,
@@ -393,7 +403,62 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         touch_window=touch_window,
         touch_mask=touch_mask,
         **step,
+        **slots,
     )
+
+
+def pulse_tables(window, sample_mask, pulse_sample, pulse_u, R: int, W: int) -> dict:
+    """The pulse-level path's tables, or {} where it does not apply.
+
+    On twitch windows (the zero-order activation) a pulse's whole response lies
+    inside the window of its own sample for every delay, so a window's model sum
+    is Σ over its pulses of u_i q_i F(p_i + d − shift) Σh: one term per pulse
+    rather than one per (pulse, lag), the same windows for every d.  Checked
+    here on the data: every sample from a pulse to MAX_DELAY + R − 1 after it
+    must lie in the pulse's window and be compared.  (The lags before a pulse,
+    which only a shift longer than d reaches, are not checked: the prior gives
+    those combinations no mass.)  A slot is a window holding at least one pulse.
+    """
+    L, P = pulse_sample.shape
+    N = window.shape[1]
+    reach = np.arange(MAX_DELAY + R)
+    found = []
+    for i in range(L):
+        ok = pulse_u[i] > 0
+        p = pulse_sample[i][ok]
+        s = p[:, None] + reach[None, :]
+        if s.size and s.max() >= N:
+            return {}
+        if not (sample_mask[i][s].all() and (window[i][s] == window[i][p][:, None]).all()):
+            return {}
+        uniq, inv = np.unique(window[i][p], return_inverse=True)
+        found.append((ok, uniq, inv.reshape(-1)))
+    V = _bucket(max(u.size for _, u, _ in found) + 1)  # + a spare, masked slot for the padding pulses
+    pulse_slot = np.full((L, P), V - 1, np.int64)
+    slot_window = np.full((L, V), W - 1, np.int64)  # the last window is masked
+    slot_mask = np.zeros((L, V), bool)
+    for i, (ok, uniq, inv) in enumerate(found):
+        pulse_slot[i, ok] = inv
+        slot_window[i, : uniq.size] = uniq
+        slot_mask[i, : uniq.size] = True
+    return {"pulse_slot": pulse_slot, "slot_window": slot_window, "slot_mask": slot_mask}
+
+
+def pulse_step_tables(step_order, pulse_slot) -> dict:
+    """:func:`step_tables` for the pulse-level path: a (window, pulse) pair is a pulse, so the
+    running sums run over the pulses ordered by slot, then by angle."""
+    L, P = pulse_slot.shape
+    rank = np.argsort(step_order, axis=1)
+    slot_order = np.stack([np.lexsort((rank[i], pulse_slot[i])) for i in range(L)])
+    pos = np.argsort(slot_order, axis=1)  # each pulse's position in that order
+    sorted_slot = np.take_along_axis(pulse_slot, slot_order, axis=1)
+    new_slot = np.concatenate([np.ones((L, 1), bool), sorted_slot[:, 1:] != sorted_slot[:, :-1]], axis=1)
+    first = np.maximum.accumulate(np.where(new_slot, np.arange(P)[None, :], 0), axis=1)
+    return {
+        "step_slot_order": slot_order,
+        "step_slot_first": first,
+        "step_rank_pos": np.take_along_axis(pos, step_order, axis=1),
+    }
 
 
 def step_tables(angle, pulse_sample, pulse_u, touch_valid, touch_pos, RK: int) -> dict:
@@ -581,6 +646,8 @@ def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
 
     Entries with shift > d are computed but meaningless (the prior excludes them).
     """
+    if "pulse_slot" in x:
+        return _by_delay_pulses(model, noise, x, R, K)
     x, E, scale, lp0, F, G, uq = _leg_terms(model, noise, x)
     base = jnp.sum(lp0)
     U = x["touch_window"].shape[-1]
@@ -625,6 +692,8 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
     d − shift under the hard step.  Column shift 0 is the same for every j.  The
     effect's own threshold is not read.
     """
+    if "pulse_slot" in x:
+        return _by_threshold_pulses(model, noise, x, R, K)
     x, E, scale, lp0, F, G, uq = _leg_terms(model, noise, x)
     base = jnp.sum(lp0)
     U = x["touch_window"].shape[-1]
@@ -668,6 +737,69 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
         delays, x["touch_valid"], x["touch_sample"], x["touch_pos"], x["touch_window"], x["touch_mask"],
         x["step_entry_pair"], x["step_pair_window"], x["step_pair_pulse"], x["step_pair_first"], x["step_pair_mask"],
     )  # fmt: skip
+
+
+# --------------------------------------------------------------- the pulse-level path
+
+
+def _pulse_terms(model: Model, noise: dict, x: dict, R: int, K: int):
+    """What the pulse-level path shares (see :func:`pulse_tables`): the arrays with the true
+    angle, the base log-likelihood, the slots' window sums and scales, and each pulse's
+    whole-twitch output (K + 1, D, P) at delay d when it takes shift s,
+    u_i q_i F(p_i + d − s) Σh, the gain factors evaluated at those samples only."""
+    x = _sensed(model, x)
+    E, scale, lp0 = _window_terms(model, noise, x)
+    p = x["pulse_sample"]
+    last = x["angle"].shape[-1] - 1
+    at = jnp.clip(p[None, :] + jnp.arange(-K, N_DELAYS)[:, None], 0, last)  # (K + D, P): p + j, j = −K … MAX_DELAY
+    F = gain_factors(model, x["angle"][at], x["velocity"][at], x["stimulation"][at])
+    uq = _pulse_q(model, x)
+    whole = uq * jnp.sum(model_response(model, R).astype(uq.dtype))  # summed at the data's precision
+    amp = jnp.stack([whole * F[K - s : K - s + N_DELAYS] for s in range(K + 1)])
+    sw = x["slot_window"]
+    return x, jnp.sum(lp0), E[sw], scale[sw], x["slot_mask"] & x["window_mask"][sw], amp
+
+
+def _slot_sums(a, slot, V: int):
+    """Σ over each slot's pulses of ``a`` (..., P) -> (..., V)."""
+    lead = a.shape[:-1]
+    flat = a.reshape(-1, a.shape[-1]).T  # (P, rest): one scatter of rows
+    return jax.ops.segment_sum(flat, slot, num_segments=V).T.reshape(*lead, V)
+
+
+def _by_delay_pulses(model: Model, noise: dict, x: dict, R: int, K: int):
+    """:func:`leg_loglik_by_delay` on the pulse-level path."""
+    x, base, Es, ss, keep, amp = _pulse_terms(model, noise, x, R, K)
+    if K:
+        w = model.delay_effect.pulse_weight(x["angle"][x["pulse_sample"]])
+        amp = (1.0 - w) * amp[:1] + w * amp  # shift 0 is the plain response
+    M = _slot_sums(jnp.moveaxis(amp, 0, 1), x["pulse_slot"], x["slot_window"].shape[-1])  # (D, K + 1, V)
+    nu = noise["nu"]
+    lp = _t_kernel(Es - M, nu, ss) - _t_kernel(Es, nu, ss)
+    return base + jnp.sum(jnp.where(keep, lp, 0.0), axis=-1)
+
+
+def _by_threshold_pulses(model: Model, noise: dict, x: dict, R: int, K: int):
+    """:func:`leg_loglik_by_threshold` on the pulse-level path: a (window, pulse) pair is a pulse."""
+    x, base, Es, ss, keep, amp = _pulse_terms(model, noise, x, R, K)
+    V = x["slot_window"].shape[-1]
+    P = x["pulse_sample"].shape[-1]
+    nu = noise["nu"]
+    r0 = Es - _slot_sums(amp[0], x["pulse_slot"], V)  # (D, V): every pulse at its long delay
+    ell_long = base + jnp.sum(jnp.where(keep, _t_kernel(r0, nu, ss) - _t_kernel(Es, nu, ss), 0.0), axis=-1)
+    order, first = x["step_slot_order"], x["step_slot_first"]
+    slot = x["pulse_slot"][order]
+    r_pair, s_pair, keep_pair = r0[:, slot], ss[slot], keep[slot]
+    rows = [jnp.broadcast_to(ell_long[:, None], (N_DELAYS, P + 1))]
+    for shift in range(1, K + 1):
+        b = (amp[shift] - amp[0])[:, order]  # (D, P) by slot, then angle
+        cs = _cumsum(b)
+        incl = cs - (cs[:, first] - b[:, first])  # this pulse and the slot's pulses below it in angle
+        excl = incl - b
+        delta = jnp.where(keep_pair, _t_kernel(r_pair - incl, nu, s_pair) - _t_kernel(r_pair - excl, nu, s_pair), 0.0)
+        steps = jnp.where(x["step_pulse_valid"], delta[:, x["step_rank_pos"]], 0.0)  # by angle
+        rows.append(ell_long[:, None] + jnp.concatenate([jnp.zeros((N_DELAYS, 1), steps.dtype), _cumsum(steps)], axis=-1))
+    return jnp.stack(rows, axis=1)  # (D, K + 1, P + 1)
 
 
 def step_edges(model: Model, x: dict, loc, scale):
