@@ -45,7 +45,12 @@ The delay
     delay d.  Those windows depend on the data alone and are found once here,
     so the cost of the delay and of the active parameters follows the pulses
     and their response windows, not the trial's length; nothing runs as a
-    sequential scan over samples.
+    sequential scan over samples.  On twitch windows a pulse's whole response
+    stays in its own window for every d (checked by :func:`pulse_tables`), so
+    a window's model sum has one term per pulse, u_i q_i F(p_i + d) Σh, and
+    the gain factors are evaluated at the pulses' samples only (the
+    pulse-level path; ``benchmarks/bench_likelihood.py`` times its gradient
+    against one term per (pulse, lag)).
 
 A delay that steps with the angle
     With a delay effect that shortens d for the pulses below a threshold angle
