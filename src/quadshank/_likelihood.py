@@ -521,13 +521,12 @@ def step_tables(angle, pulse_sample, pulse_u, touch_valid, touch_pos, RK: int) -
 
 def student_t_logpdf(x, nu, scale):
     """log density of a Student-t with ``nu`` degrees of freedom and ``scale`` at ``x``."""
-    z = x / scale
     return (
         jax.scipy.special.gammaln(0.5 * (nu + 1.0))
         - jax.scipy.special.gammaln(0.5 * nu)
         - 0.5 * jnp.log(nu * math.pi)
         - jnp.log(scale)
-        - 0.5 * (nu + 1.0) * jnp.log1p(z * z / nu)
+        + _t_kernel(x, nu, scale)
     )
 
 
@@ -607,6 +606,13 @@ def output_factors(model: Model, angle, velocity, stimulation):
     return G
 
 
+def _padded_response(model: Model, R: int, K: int):
+    """The model's response to a unit pulse, R samples, with K zeros on either side: the slice
+    of R + K from ``shift`` is the response on the extended lags −K … R − 1 at delay d − shift."""
+    h = model_response(model, R)
+    return jnp.concatenate([jnp.zeros(K, h.dtype), h, jnp.zeros(K, h.dtype)])
+
+
 def _contributions(model: Model, x: dict, R: int, K: int, shift, d, F, uq, valid, samples, G=None):
     """M̂ of each (pulse, extended lag) at delay d and one shift, flattened; 0 where it reaches no sample.
 
@@ -616,8 +622,7 @@ def _contributions(model: Model, x: dict, R: int, K: int, shift, d, F, uq, valid
     factors at its own onset, and the whole by the output factors ``G`` at the
     sample it reaches (``samples``).  ``shift`` and ``d`` may be traced.
     """
-    h = model_response(model, R)
-    h_pad = jnp.concatenate([jnp.zeros(K, h.dtype), h, jnp.zeros(K, h.dtype)])
+    h_pad = _padded_response(model, R, K)
     long = h_pad[None, : R + K]
     p = x["pulse_sample"]
     last = F.shape[-1] - 1
@@ -704,8 +709,7 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
     U = x["touch_window"].shape[-1]
     Q = x["step_pair_mask"].shape[-1]
     P = x["pulse_sample"].shape[-1]
-    h = model_response(model, R)
-    h_pad = jnp.concatenate([jnp.zeros(K, h.dtype), h, jnp.zeros(K, h.dtype)])
+    h_pad = _padded_response(model, R, K)
     p = x["pulse_sample"]
     last = F.shape[-1] - 1
     nu = noise["nu"]
