@@ -29,11 +29,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from results_md import write_section  # noqa: E402
 
 from quadshank._fit import build_model, numpyro_model  # noqa: E402
-from quadshank._likelihood import prepare  # noqa: E402
+from quadshank._likelihood import PULSE_LEVEL_FIELDS, prepare  # noqa: E402
 from quadshank._paper import LEGS  # noqa: E402
 from quadshank._simulate import simulate_cohort  # noqa: E402
-
-PULSE_LEVEL = ("pulse_slot", "slot_window", "slot_mask", "step_slot_order", "step_slot_first", "step_rank_pos")
 
 
 def main(argv=None) -> int:
@@ -55,7 +53,7 @@ def main(argv=None) -> int:
         raise SystemExit("the pulse-level path does not apply to this data")
     with jax.enable_x64(True):
         arrays = {k: v.astype(jnp.float64) if jnp.issubdtype(v.dtype, jnp.floating) else v for k, v in data.leg_arrays().items()}
-        paths = {"pulse level": arrays, "(pulse, lag)": {k: v for k, v in arrays.items() if k not in PULSE_LEVEL}}
+        paths = {"pulse level": arrays, "(pulse, lag)": {k: v for k, v in arrays.items() if k not in PULSE_LEVEL_FIELDS}}
         funcs, values, compile_s = {}, {}, {}
         for name, x in paths.items():
             info = initialize_model(jax.random.PRNGKey(0), lambda a: numpyro_model(model, data, a), model_args=(x,))

@@ -256,8 +256,7 @@ def test_student_t_cdf_matches_scipy():
 
 def _general(x):
     """The leg's arrays without the pulse-level tables: the (pulse, lag) path."""
-    drop = ("pulse_slot", "slot_window", "slot_mask", "step_slot_order", "step_slot_first", "step_rank_pos")
-    return {k: v for k, v in x.items() if k not in drop}
+    return {k: v for k, v in x.items() if k not in L.PULSE_LEVEL_FIELDS}
 
 
 @pytest.mark.parametrize("effect", [AngleDelay(threshold=-20.0), AngleDelay(threshold=5.0, softness_deg=0.0), None])

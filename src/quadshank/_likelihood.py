@@ -99,6 +99,7 @@ __all__ = [
     "response_length",
     "SEGMENT_SAMPLES",
     "N_DELAYS",
+    "PULSE_LEVEL_FIELDS",
 ]
 
 #: Samples per PSIS-LOO unit (1 s at T_s = 10 ms).
@@ -107,6 +108,9 @@ SEGMENT_SAMPLES = 100
 N_DELAYS = MAX_DELAY + 1
 #: Longest twitch window: the largest delay plus the twitch duration.
 TWITCH_WINDOW = MAX_DELAY + TWITCH_SAMPLES
+#: The pulse-level path's tables (:func:`pulse_tables`, :func:`pulse_step_tables`): given
+#: arrays without them, the likelihood takes the (pulse, lag) path.
+PULSE_LEVEL_FIELDS = ("pulse_slot", "slot_window", "slot_mask", "step_slot_order", "step_slot_first", "step_rank_pos")
 
 
 class LikelihoodError(ValueError):
@@ -175,7 +179,7 @@ class LikelihoodData:
             "angle velocity acceleration stimulation sample_mask window window_len window_mask window_segment "
             "segment_mask pulse_sample pulse_u pulse_ipi_s pulse_count pulse_time_s touch_sample touch_valid touch_pos touch_window touch_mask"
         ).split()
-        names += [f.name for f in dataclasses.fields(self) if f.name.startswith(("step_", "pulse_slot", "slot_"))]
+        names += [f.name for f in dataclasses.fields(self) if f.name.startswith("step_") or f.name in PULSE_LEVEL_FIELDS]
         return {n: jnp.asarray(getattr(self, n)) for n in names if getattr(self, n) is not None}
 
 
@@ -694,6 +698,25 @@ def _cumsum(x, block: int = 32):
     return (within + before[..., None]).reshape(*x.shape[:-1], m * block)[..., :n]
 
 
+def _pair_deltas(b, first, r, s, keep, nu):
+    """Along the last axis, (window, pulse) pairs in window order and, within a window, in angle
+    order: the change of each pair's window log density when its pulse takes the shorter delay
+    after the window's pulses before it have.  ``b`` is each pair's change of the window's model
+    sum, ``first`` the position of its window's first pair, ``r`` and ``s`` the window's residual
+    (every pulse at the long delay) and scale; 0 where ``keep`` is False."""
+    cs = _cumsum(b)
+    incl = cs - (jnp.take(cs, first, axis=-1) - jnp.take(b, first, axis=-1))  # this pair and the window's earlier ones
+    excl = incl - b
+    return jnp.where(keep, _t_kernel(r - incl, nu, s) - _t_kernel(r - excl, nu, s), 0.0)
+
+
+def _state_rows(ell_long, steps):
+    """log-likelihood of threshold states 0 … P (last axis): state 0's ``ell_long`` (no pulse
+    shortened) plus the running sum of the pulses' ``steps`` in increasing angle."""
+    zero = jnp.zeros((*steps.shape[:-1], 1), steps.dtype)
+    return ell_long[..., None] + jnp.concatenate([zero, _cumsum(steps)], axis=-1)
+
+
 def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
     """log p(y_leg | θ, d, shift, state j), (MAX_DELAY + 1, K + 1, P + 1), one leg, for a step delay effect.
 
@@ -732,13 +755,10 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
         keep = pair_mask & tm[pair_window]
         for shift in range(1, K + 1):
             b = jax.ops.segment_sum(amplitudes(shift) - a_long, entry_pair, num_segments=Q)  # per (window, pulse)
-            cs = _cumsum(b)
-            incl = cs - (cs[pair_first] - b[pair_first])  # this pair and the window's earlier ones
-            excl = incl - b
-            delta = _t_kernel(r_pair - incl, nu, s_pair) - _t_kernel(r_pair - excl, nu, s_pair)
-            per_pulse = jax.ops.segment_sum(jnp.where(keep, delta, 0.0), pair_pulse, num_segments=P)
+            delta = _pair_deltas(b, pair_first, r_pair, s_pair, keep, nu)
+            per_pulse = jax.ops.segment_sum(delta, pair_pulse, num_segments=P)
             steps = jnp.where(x["step_pulse_valid"], per_pulse[x["step_order"]], 0.0)
-            rows.append(ell_long + jnp.concatenate([jnp.zeros(1, steps.dtype), _cumsum(steps)]))
+            rows.append(_state_rows(ell_long, steps))
         return jnp.stack(rows)  # (K + 1, P + 1)
 
     delays = jnp.arange(x["touch_sample"].shape[0])
@@ -802,12 +822,9 @@ def _by_threshold_pulses(model: Model, noise: dict, x: dict, R: int, K: int):
     rows = [jnp.broadcast_to(ell_long[:, None], (N_DELAYS, P + 1))]
     for shift in range(1, K + 1):
         b = (amp[shift] - amp[0])[:, order]  # (D, P) by slot, then angle
-        cs = _cumsum(b)
-        incl = cs - (cs[:, first] - b[:, first])  # this pulse and the slot's pulses below it in angle
-        excl = incl - b
-        delta = jnp.where(keep_pair, _t_kernel(r_pair - incl, nu, s_pair) - _t_kernel(r_pair - excl, nu, s_pair), 0.0)
+        delta = _pair_deltas(b, first, r_pair, s_pair, keep_pair, nu)
         steps = jnp.where(x["step_pulse_valid"], delta[:, x["step_rank_pos"]], 0.0)  # by angle
-        rows.append(ell_long[:, None] + jnp.concatenate([jnp.zeros((N_DELAYS, 1), steps.dtype), _cumsum(steps)], axis=-1))
+        rows.append(_state_rows(ell_long, steps))
     return jnp.stack(rows, axis=1)  # (D, K + 1, P + 1)
 
 
