@@ -39,6 +39,7 @@ from ._model import Model
 __all__ = [
     "to_inference_data",
     "diagnose_sampling",
+    "delay_splits",
     "fit_summary",
     "save_fit",
     "load_fit",
@@ -49,6 +50,8 @@ __all__ = [
 
 #: Acceptance of a fit: R-hat below, ESS (bulk and tail) at least per chain, no divergence, E-BFMI above.
 THRESHOLDS = {"rhat_max": 1.01, "ess_per_chain": 100, "divergences": 0, "bfmi_min": 0.3}
+#: Two chains whose P(d) of one leg lie further apart than this (total variation) sample different delays.
+DELAY_SPLIT_TV = 0.5
 #: Posterior quantiles of the reported interval (90 %).
 INTERVAL = (0.05, 0.95)
 
@@ -153,6 +156,25 @@ def sampled_vars(idata) -> list[str]:
     return [v for v in idata.posterior.data_vars if v not in ("delay", "delay_logp", "delay_shift", "delay_shift_logp")]
 
 
+def delay_splits(idata) -> dict[str, list[int]]:
+    """Legs whose chains settled at different delays: ``{leg: each chain's most probable delay}``.
+
+    A chain's P(d) is its mean of P(d | θ, data) over its draws.  The delay is summed
+    out, but θ moves with it (model 3 learns d through the states at which its gains
+    are read), so a posterior can have one mode of θ per delay, which NUTS, moving θ
+    continuously, rarely crosses.  Chains whose P(d) lie more than
+    :data:`DELAY_SPLIT_TV` apart in total variation are in different modes, and the
+    fit's P(d) is then an accident of where the chains started.
+    """
+    post = idata.posterior
+    if "delay_logp" not in post.data_vars or post.sizes["chain"] < 2:
+        return {}
+    p = np.exp(np.asarray(post["delay_logp"], np.float64)).mean(axis=1)  # (chain, leg, D)
+    tv = 0.5 * np.abs(p[:, None] - p[None, :]).sum(axis=-1).max(axis=(0, 1))  # (leg,)
+    legs = [str(x) for x in post["leg"].values]
+    return {leg: [int(m) for m in p[:, i].argmax(axis=-1)] for i, leg in enumerate(legs) if tv[i] > DELAY_SPLIT_TV}
+
+
 def diagnose_sampling(idata) -> dict:
     """R-hat, bulk and tail ESS, divergences, E-BFMI against :data:`THRESHOLDS`, with advice."""
     import arviz as az
@@ -182,6 +204,14 @@ def diagnose_sampling(idata) -> dict:
     elif not rhat_max < THRESHOLDS["rhat_max"]:
         problems.append(f"R-hat {rhat_max:.3f} ≥ {THRESHOLDS['rhat_max']}: chains disagree")
         advice.append("run longer (--warmup, --draws) or check for several posterior modes")
+    splits = delay_splits(idata)
+    if splits:
+        where = "; ".join(f"{leg} ({', '.join(f'chain {c}: {d}' for c, d in enumerate(modes))})" for leg, modes in splits.items())
+        problems.append(f"chains settled at different delays [samples]: {where}")
+        advice.append(
+            "the delay has modes the sampler does not cross: fit more data (longer or more trials), or give "
+            "the delay a prior from another fit (--delay-from FITDIR; the paper took d from model 2)"
+        )
     if not ess_bulk_min >= ess_needed:
         problems.append(f"bulk ESS {ess_bulk_min:.0f} < {ess_needed} ({THRESHOLDS['ess_per_chain']} per chain)")
         advice.append("draw more (--draws)")
@@ -201,6 +231,7 @@ def diagnose_sampling(idata) -> dict:
         "ess_tail_min": ess_tail_min,
         "divergences": divergences,
         "bfmi_min": bfmi_min,
+        "delay_splits": splits,
         "chains": int(chains),
         "draws": int(idata.posterior.sizes["draw"]),
         "thresholds": {**THRESHOLDS, "ess_min": ess_needed},

@@ -283,7 +283,7 @@ def run_recovery(
                 summary = run_fit(cohort, fit_dir, model, add_effects, fs, progress=progress)
             diag = summary["diagnostics"]
             info = {"seed": seed, **{k: diag[k] for k in ("rhat_max", "ess_bulk_min", "divergences", "ok")},
-                    "sampling_seconds": summary.get("sampling_seconds")}  # fmt: skip
+                    "sampling_seconds": summary.get("sampling_seconds"), "delay_splits": diag.get("delay_splits", {})}  # fmt: skip
             changes = {leg: s["delay_angle"]["change_probability"] for leg, s in summary["legs"].items() if "delay_angle" in s}
             if changes:
                 info["change_probability"] = changes
@@ -372,12 +372,15 @@ def coverage_markdown(result: dict) -> str:
     for model, m in result["models"].items():
         cells = ", ".join(f"{k} {v['covered']}/{v['n']}" for k, v in m["by_param"].items())
         lines.append(f"- **{model}**: {cells}")
-    lines += ["", "## Sampling", "", "| model | seed | R-hat max | bulk ESS min | divergences | sampling [s] |", "|---|---|---|---|---|---|"]
+    lines += ["", "## Sampling", "", "| model | seed | R-hat max | bulk ESS min | divergences | chains at different delays "
+              "| sampling [s] |", "|---|---|---|---|---|---|---|"]
     for model, m in result["models"].items():
         for f in m["fits"]:
             secs = f.get("sampling_seconds")
+            splits = f.get("delay_splits")
+            where = "–" if splits is None else ", ".join(f"{leg} {'/'.join(map(str, d))}" for leg, d in splits.items()) or "none"
             lines.append(
-                f"| {model} | {f['seed']} | {f['rhat_max']:.3f} | {f['ess_bulk_min']:.0f} | {f['divergences']} | "
+                f"| {model} | {f['seed']} | {f['rhat_max']:.3f} | {f['ess_bulk_min']:.0f} | {f['divergences']} | {where} | "
                 f"{'' if secs is None else f'{secs:.0f}'} |"
             )
     return "\n".join(lines) + "\n"

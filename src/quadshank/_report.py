@@ -387,6 +387,10 @@ def _diagnostics_section(fit_summary: dict) -> str:
         ["E-BFMI, smallest", _num(d.get("bfmi_min")), f"&gt; {_num(th.get('bfmi_min'))}",
          verdict(finite(d.get("bfmi_min")) and d["bfmi_min"] > th.get("bfmi_min", 0.3))],
     ]
+    if "delay_splits" in d:  # fits saved before this check lack it
+        splits = d["delay_splits"]
+        rows.append(["legs whose chains settled at different delays",
+                     _e(", ".join(splits) if splits else "none"), "none", verdict(not splits)])
     head = (f"<p>{_e(d.get('chains'))} chain(s) of {_e(d.get('draws'))} draws. Overall: "
             + ('<span class="ok">the fit passed its checks.</span>' if d.get("ok")
                else '<span class="fail">the fit FAILED its checks.</span>') + "</p>")
