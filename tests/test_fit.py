@@ -44,13 +44,17 @@ def test_fit_folder_holds_a_complete_reloadable_fit(fitted):
     for leg, s in summary["legs"].items():
         assert len(s["delay_posterior"]) == N_DELAYS
         assert sum(s["delay_posterior"]) == pytest.approx(1.0, abs=1e-4)
+        assert len(s["delay_evidence"]) == N_DELAYS and sum(s["delay_evidence"]) == pytest.approx(1.0)
         for name in ("gain", "gamma_angle", "gamma_velocity", "damping", "gravity", "k1", "k2", "sigma", "nu"):
             q = s["params"][name]
             assert q["lo"] <= q["median"] <= q["hi"], (leg, name)
             assert q["units"]
-    for key in ("rhat_max", "ess_bulk_min", "divergences", "ess_tail_min", "bfmi_min"):
+    for key in ("rhat_max", "ess_bulk_min", "divergences", "ess_tail_min", "bfmi_min", "delay_splits", "delay_missed"):
         assert key in summary["diagnostics"]
+    assert summary["delay_evidence_seconds"] > 0
     idata, model, desc = load_fit(out)
+    np.testing.assert_allclose(idata.constant_data["delay_evidence"].sel(leg="JM-left"),
+                               summary["legs"]["JM-left"]["delay_evidence"])
     assert desc["model"] == "model3" and desc["trials"] == [1]
     assert desc["settings"]["max_tree_depth"] == 6 and desc["settings"]["start"] == "screen"
     assert np.asarray(idata.sample_stats["n_steps"]).max() <= 2**6 - 1
@@ -217,6 +221,9 @@ def test_delay_prior_from_another_fit(fitted, data_dir):
     for leg in src["legs"]:
         prior = (1 - DELAY_PRIOR_FLOOR) * np.asarray(src["legs"][leg]["delay_posterior"]) + DELAY_PRIOR_FLOOR / N_DELAYS
         np.testing.assert_allclose(got["legs"][leg]["delay_posterior"], prior / prior.sum(), rtol=2e-3, atol=1e-5)  # float32
+        # the per-delay evidence of a model blind to d is the fit's delay prior, not the uniform one
+        np.testing.assert_allclose(got["legs"][leg]["delay_evidence"], prior / prior.sum(), rtol=2e-3, atol=1e-5)
+    assert got["diagnostics"]["delay_missed"] == {}
     _, _, desc = load_fit(out)
     assert desc["delay_prior"]["source"] == str(source)
     with pytest.raises(KeyError, match="OT-left"):
@@ -331,9 +338,9 @@ def test_screen_start_puts_each_chain_at_a_laplace_draw_with_the_laplace_metric(
     leg is the Laplace covariance.  model3s has vector parameters (a, b), whose site is (C, L)."""
     from numpyro.infer.util import constrain_fn
 
-    from quadshank._fit import numpyro_model, screen_start
+    from quadshank._fit import fit_screen, numpyro_model, screen_start
     from quadshank._likelihood import prepare
-    from quadshank._screen import _values_np, laplace_fit
+    from quadshank._screen import _values_np
 
     cohort, _ = simulate_cohort(legs=["TN-left", "JM-left"], minutes=0.3, seed=4, trials=(1,))
     model = build_model("model3s")
@@ -344,8 +351,8 @@ def test_screen_start_puts_each_chain_at_a_laplace_draw_with_the_laplace_metric(
     def conditioned(arrays):
         return numpyro_model(model, data, arrays)
 
-    init, imm = screen_start(cohort, model, data, settings, conditioned, arrays)
-    scr = laplace_fit(cohort, model, legs=data.legs, n_starts=3, n_draws=3, seed=2, loo=False)
+    scr = fit_screen(cohort, model, settings, legs=data.legs)
+    init, imm = screen_start(model, data, settings, conditioned, arrays, scr)
     (names, metric), = imm.items()
     metric = np.asarray(metric, np.float64)
     assert list(names) == sorted(init) and np.allclose(metric, metric.T)
@@ -371,19 +378,27 @@ def test_screen_start_puts_each_chain_at_a_laplace_draw_with_the_laplace_metric(
     assert all(k.endswith("_s_leg") or k in ("sigma", "nu") for k in names)
 
 
-def _two_chain_fit(p_delay):
+def _two_chain_fit(p_delay, evidence=None):
     """InferenceData of 2 well-mixed chains × 400 draws on legs A and B, whose P(d | θ, data) per
-    chain is ``p_delay`` (chain, leg, D)."""
+    chain is ``p_delay`` (chain, leg, D); ``evidence``: (leg, D) per-delay Laplace P(d)."""
     import arviz as az
 
     rng = np.random.default_rng(0)
-    logp = np.log(np.broadcast_to(np.asarray(p_delay)[:, None], (2, 400, 2, N_DELAYS)))
+    with np.errstate(divide="ignore"):  # a delay a chain never visits: log 0
+        logp = np.log(np.broadcast_to(np.asarray(p_delay)[:, None], (2, 400, 2, N_DELAYS)))
     return az.from_dict(
         posterior={"gain": rng.standard_normal((2, 400, 2)), "delay_logp": logp},
         sample_stats={"diverging": np.zeros((2, 400), bool), "energy": rng.standard_normal((2, 400))},
+        constant_data={} if evidence is None else {"delay_evidence": np.asarray(evidence, np.float64)},
         coords={"leg": ["A", "B"], "delay_samples": np.arange(N_DELAYS)},
-        dims={"gain": ["leg"], "delay_logp": ["leg", "delay_samples"]},
+        dims={"gain": ["leg"], "delay_logp": ["leg", "delay_samples"], "delay_evidence": ["leg", "delay_samples"]},
     )
+
+
+def _peaked(mode, spread=0.05):
+    out = np.full(N_DELAYS, spread / (N_DELAYS - 1))
+    out[mode] = 1.0 - spread
+    return out
 
 
 def test_chains_at_different_delays_fail_the_checks_and_name_the_leg():
@@ -391,11 +406,7 @@ def test_chains_at_different_delays_fail_the_checks_and_name_the_leg():
     do at short data) fail, and the problem names the leg and each chain's delay."""
     from quadshank._fitio import diagnose_sampling
 
-    def p(mode, spread=0.05):
-        out = np.full(N_DELAYS, spread / (N_DELAYS - 1))
-        out[mode] = 1.0 - spread
-        return out
-
+    p = _peaked
     agree = diagnose_sampling(_two_chain_fit([[p(4), 0.5 * (p(4) + p(5))], [p(4), 0.5 * (p(4) + p(5))]]))
     assert agree["ok"], agree["problems"]
     assert agree["delay_splits"] == {}
@@ -405,3 +416,50 @@ def test_chains_at_different_delays_fail_the_checks_and_name_the_leg():
     assert split["delay_splits"] == {"B": [4, 5]}
     assert any("B (chain 0: 4, chain 1: 5)" in x for x in split["problems"]), split["problems"]
     assert any("--delay-from" in a for a in split["advice"])
+
+
+def test_a_delay_the_evidence_weighs_but_no_chain_visits_fails_the_checks():
+    """Chains that agree on one delay while the per-delay Laplace evidence gives a neighbour a
+    fifth of the mass (model 3 on a minute of data) fail, naming the leg, the delay and both
+    weights; a neighbour the chains visit, or one the evidence barely weighs, passes."""
+    from quadshank._fitio import diagnose_sampling
+
+    one = np.zeros(N_DELAYS)
+    one[3] = 1.0
+    chains = [[one, _peaked(4, 0.2)], [one, _peaked(4, 0.2)]]  # leg B's chains give every other delay 0.02
+    ev_ok = np.stack([_peaked(3, 0.05), 0.8 * _peaked(4, 0.0) + 0.2 * _peaked(5, 0.0)])
+    ok = diagnose_sampling(_two_chain_fit(chains, ev_ok))
+    assert ok["ok"], ok["problems"]
+    assert ok["delay_missed"] == {}
+    ev_bad = ev_ok.copy()
+    ev_bad[0] = 0.79 * _peaked(3, 0.0) + 0.21 * _peaked(4, 0.0)
+    bad = diagnose_sampling(_two_chain_fit(chains, ev_bad))
+    assert not bad["ok"]
+    assert bad["delay_missed"] == {"A": {4: [0.21, 0.0]}}
+    assert any("A (d = 4: 0.21 by the evidence, 0.00 in the chains)" in x for x in bad["problems"]), bad["problems"]
+    # without the evidence (fits saved before it, or made with delay_evidence=False) nothing is claimed
+    assert diagnose_sampling(_two_chain_fit(chains))["delay_missed"] == {}
+
+
+def test_delay_evidence_weighs_each_delay_by_its_own_mode():
+    """One Laplace approximation per delay.  Model 3 on a minute of TN-left (matching truth, d = 4)
+    has a mode at d = 3 and one at d = 4: the screen, near the first, puts all of P(d) on 3; the
+    evidence gives 4 about a fifth.  Model 2 pins d (all on the truth), and model 1, whose window
+    sums cannot see d, leaves it at the uniform prior."""
+    from quadshank._recovery import simulate_matching
+    from quadshank._screen import delay_evidence, laplace_fit
+
+    for name, seed, minutes in [("model3", 2, 1.0), ("model2", 0, 0.5), ("model1", 0, 0.5)]:
+        cohort, truth = simulate_matching(name, ("TN-left",), minutes, seed)
+        assert truth["legs"]["TN-left"]["delay"] == 4
+        scr = laplace_fit(cohort, build_model(name), n_starts=1, loo=False)
+        ev = delay_evidence(scr)
+        assert ev.shape == (1, N_DELAYS) and ev.sum() == pytest.approx(1.0)
+        if name == "model3":
+            assert scr.delay_posterior[0, 3] > 0.99
+            assert 0.6 < ev[0, 3] < 0.95 and 0.05 < ev[0, 4] < 0.4, ev.round(3)
+            assert ev[0, 3] + ev[0, 4] > 0.99
+        elif name == "model2":
+            assert ev[0, 4] > 0.99, ev.round(3)
+        else:
+            np.testing.assert_allclose(ev[0], 1.0 / N_DELAYS, atol=0.01)

@@ -146,6 +146,7 @@ def cmd_fit(args) -> int:
         trials=tuple(int(t) for t in _csv_list(args.trials)),
         start=args.start,
         adapt_metric=args.adapt_metric,
+        delay_evidence=args.delay_evidence,
         max_tree_depth=args.max_tree_depth,
     )
     legs = _csv_list(args.legs) if args.legs else None
@@ -185,7 +186,8 @@ def cmd_recovery(args) -> int:
 
     command = "quadshank " + " ".join(shlex.quote(a) for a in args.argv)
     settings = FitSettings(
-        chains=args.chains, warmup=args.warmup, draws=args.draws, start=args.start, adapt_metric=args.adapt_metric
+        chains=args.chains, warmup=args.warmup, draws=args.draws, start=args.start, adapt_metric=args.adapt_metric,
+        delay_evidence=args.delay_evidence,
     )
     result = run_recovery(
         args.out,
@@ -370,6 +372,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "also the metric (default); the classical least-squares identification; the prior median")
         sp.add_argument("--adapt-metric", action="store_true",
                         help="with --start screen, adapt the metric in warm-up too (by default the screen's is kept)")
+        sp.add_argument("--no-delay-evidence", dest="delay_evidence", action="store_false",
+                        help="with --start screen, skip weighing each leg's delays by a Laplace approximation per "
+                             "delay (11 optimisations per leg, checked against the chains' P(d))")
 
     def sim_options(sp, minutes_default):
         sp.add_argument("--minutes", type=float, default=minutes_default, help="length of each trial [min]")

@@ -128,6 +128,10 @@ class FitSettings:
     #: With ``start="screen"``, adapt the metric in warm-up as well (by default the screen's
     #: is kept and only the step size adapts); the other starts always adapt it.
     adapt_metric: bool = False
+    #: With ``start="screen"``, weigh each leg's delays by a Laplace approximation per delay
+    #: (:func:`quadshank._screen.delay_evidence`), stored in the fit and checked against the
+    #: chains' P(d): chains that never visit a delay holding ≥ 0.1 of that weight fail the fit.
+    delay_evidence: bool = True
 
     def __post_init__(self):
         if self.start not in STARTS:
@@ -397,8 +401,30 @@ def classical_start(cohort: Cohort, model: Model, data: LikelihoodData, trial: i
     return out
 
 
-def screen_start(cohort: Cohort, model: Model, data: LikelihoodData, settings: FitSettings, conditioned, arrays, n_starts: int = 3):
+def uses_screen(model: Model, settings: FitSettings) -> bool:
+    """Whether the chains start from the screen: the screen's vector maps onto the standardised
+    leg sites, and a parameter declared at the subject or population level has none (such a
+    model starts as "classical" does)."""
+    return settings.start == "screen" and settings.centred and all(p.level == "leg" for p in model_params(model))
+
+
+def fit_screen(cohort: Cohort, model: Model, settings: FitSettings, legs=None, n_starts: int = 3):
+    """The screen :func:`fit` starts its chains from (None where it starts otherwise, see
+    :func:`uses_screen`); computed ahead so that :func:`quadshank._screen.delay_evidence` can
+    start from it too."""
+    from ._screen import laplace_fit
+
+    if not uses_screen(model, settings):
+        return None
+    with jax.enable_x64(True):
+        return laplace_fit(cohort, model, trials=settings.trials, legs=legs, n_starts=n_starts,
+                           n_draws=max(settings.chains, 2), seed=settings.seed, loo=False)
+
+
+def screen_start(model: Model, data: LikelihoodData, settings: FitSettings, conditioned, arrays, scr):
     """Starting points and a metric for NUTS from the per-leg screen (:mod:`quadshank._screen`).
+
+    ``scr``: the screen of the fit's legs (:func:`fit_screen`).
 
     Returns ``(init_params, inverse_mass_matrix)``: unconstrained values per chain
     (chain c of leg i starts at the c-th Laplace draw of that leg) and a dense inverse
@@ -413,11 +439,10 @@ def screen_start(cohort: Cohort, model: Model, data: LikelihoodData, settings: F
     """
     from numpyro import handlers
 
-    from ._screen import laplace_fit
-
     chains = settings.chains
-    scr = laplace_fit(cohort, model, trials=settings.trials, legs=data.legs, n_starts=n_starts,
-                      n_draws=max(chains, 2), seed=settings.seed, loo=False)
+    if scr.legs != data.legs or scr.draws.shape[1] < chains:
+        raise ValueError(f"the screen is of legs {', '.join(scr.legs)} with {scr.draws.shape[1]} draws; "
+                         f"the fit needs {', '.join(data.legs)} and {chains}: make it with fit_screen()")
     trace = handlers.trace(handlers.seed(conditioned, settings.seed)).get_trace(arrays)
     sites = {k: v for k, v in trace.items() if v["type"] == "sample" and not v["is_observed"]}
     names = sorted(sites)  # numpyro's order of the flattened latent vector
@@ -512,8 +537,10 @@ def fit(
     legs=None,
     progress: bool = True,
     log_delay_prior=None,
+    screen=None,
 ):
-    """Run NUTS; returns (mcmc, data).  ``log_delay_prior``: see :func:`delay_prior_from`.
+    """Run NUTS; returns (mcmc, data).  ``log_delay_prior``: see :func:`delay_prior_from`;
+    ``screen``: the chains' start (:func:`fit_screen`), made here when needed and not given.
 
     Samples in double precision, as the screen optimises: the log density of five
     5-minute legs is ~1e6, where single precision rounds it to ~0.06, and NUTS,
@@ -522,10 +549,10 @@ def fit(
     draw in single precision, 12 in double).
     """
     with jax.enable_x64(True):
-        return _fit(cohort, model, settings, legs, progress, log_delay_prior)
+        return _fit(cohort, model, settings, legs, progress, log_delay_prior, screen)
 
 
-def _fit(cohort, model, settings, legs, progress, log_delay_prior):
+def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen):
     data = prepare(cohort, model, trials=settings.trials, legs=legs)
     arrays = {k: v.astype(jnp.float64) if jnp.issubdtype(v.dtype, jnp.floating) else v for k, v in data.leg_arrays().items()}
     if log_delay_prior is not None:
@@ -540,13 +567,13 @@ def _fit(cohort, model, settings, legs, progress, log_delay_prior):
 
     init = init_to_median(num_samples=15)
     init_params, imm = None, None
-    # the screen's vector maps onto the standardised leg sites; a parameter declared at the
-    # subject or population level has none, and such a model starts as "classical" does
-    screenable = all(p.level == "leg" for p in model_params(model))
-    if settings.start == "screen" and settings.centred and screenable:
-        if progress:
-            print("fit: each leg's mode and Laplace covariance (the screen) for the chains' start and metric", file=sys.stderr, flush=True)
-        init_params, imm = screen_start(cohort, model, data, settings, conditioned, arrays)
+    if uses_screen(model, settings):
+        if screen is None:
+            if progress:
+                print("fit: each leg's mode and Laplace covariance (the screen) for the chains' start and metric",
+                      file=sys.stderr, flush=True)
+            screen = fit_screen(cohort, model, settings, legs=data.legs)
+        init_params, imm = screen_start(model, data, settings, conditioned, arrays, screen)
         if not settings.dense_mass:
             imm = {k: jnp.diagonal(v) for k, v in imm.items()}
     elif settings.start in ("screen", "classical") and settings.centred:

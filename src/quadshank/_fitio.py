@@ -40,6 +40,7 @@ __all__ = [
     "to_inference_data",
     "diagnose_sampling",
     "delay_splits",
+    "delay_missed",
     "fit_summary",
     "save_fit",
     "load_fit",
@@ -52,6 +53,9 @@ __all__ = [
 THRESHOLDS = {"rhat_max": 1.01, "ess_per_chain": 100, "divergences": 0, "bfmi_min": 0.3}
 #: Two chains whose P(d) of one leg lie further apart than this (total variation) sample different delays.
 DELAY_SPLIT_TV = 0.5
+#: A delay the per-delay Laplace evidence gives at least the first weight, and the chains' pooled
+#: P(d) less than the second, is a mode of the delay the chains never visited.
+DELAY_MISSED = (0.1, 0.01)
 #: Posterior quantiles of the reported interval (90 %).
 INTERVAL = (0.05, 0.95)
 
@@ -61,12 +65,15 @@ class FitFolderError(FileNotFoundError):
 
 
 def to_inference_data(
-    mcmc, model: Model, data: LikelihoodData, settings: FitSettings, delay_source=None, log_delay_prior=None
+    mcmc, model: Model, data: LikelihoodData, settings: FitSettings, delay_source=None, log_delay_prior=None,
+    delay_evidence=None,
 ):
     """InferenceData of a finished run, pointwise log-likelihood included.
 
     ``delay_source`` and ``log_delay_prior`` record where the delay prior came from
-    (None: uniform on 0 … 10 samples).
+    (None: uniform on 0 … 10 samples).  ``delay_evidence``: (legs, 11) P(d | data) from
+    one Laplace approximation per delay (:func:`quadshank._screen.delay_evidence`),
+    kept as ``constant_data.delay_evidence`` for :func:`delay_missed`.
     """
     import arviz as az
 
@@ -127,6 +134,7 @@ def to_inference_data(
             "stimulation": data.stimulation,
             "sample_mask": data.sample_mask.astype(np.int8),
             "segment_mask": data.segment_mask.astype(np.int8),
+            **({} if delay_evidence is None else {"delay_evidence": np.asarray(delay_evidence, np.float64)}),
         },
         coords=coords,
         dims={
@@ -138,6 +146,7 @@ def to_inference_data(
             "stimulation": ["leg", "sample"],
             "sample_mask": ["leg", "sample"],
             "segment_mask": ["leg", "segment"],
+            "delay_evidence": ["leg", "delay_samples"],
         },
     )
     desc = describe_fit(model, data, settings)
@@ -173,6 +182,27 @@ def delay_splits(idata) -> dict[str, list[int]]:
     tv = 0.5 * np.abs(p[:, None] - p[None, :]).sum(axis=-1).max(axis=(0, 1))  # (leg,)
     legs = [str(x) for x in post["leg"].values]
     return {leg: [int(m) for m in p[:, i].argmax(axis=-1)] for i, leg in enumerate(legs) if tv[i] > DELAY_SPLIT_TV}
+
+
+def delay_missed(idata) -> dict[str, dict[int, list[float]]]:
+    """Delays of a leg that hold weight by the per-delay Laplace evidence but that no chain
+    visited: ``{leg: {d: [Laplace P(d), the chains' P(d)]}}`` (see :data:`DELAY_MISSED`).
+
+    Chains that agree can still all sit in one mode of the delay, which is what
+    :func:`delay_splits` cannot see: the evidence, one mode per delay, can.
+    """
+    if "constant_data" not in idata.groups() or "delay_evidence" not in idata.constant_data:
+        return {}
+    ev = np.asarray(idata.constant_data["delay_evidence"], np.float64)  # (leg, D)
+    chains = np.exp(np.asarray(idata.posterior["delay_logp"], np.float64)).mean(axis=(0, 1))  # (leg, D)
+    legs = [str(x) for x in idata.posterior["leg"].values]
+    lo_ev, hi_chain = DELAY_MISSED
+    out = {}
+    for i, leg in enumerate(legs):
+        missed = np.flatnonzero((ev[i] >= lo_ev) & (chains[i] < hi_chain))
+        if missed.size:
+            out[leg] = {int(d): [round(float(ev[i, d]), 3), round(float(chains[i, d]), 3)] for d in missed}
+    return out
 
 
 def diagnose_sampling(idata) -> dict:
@@ -212,6 +242,17 @@ def diagnose_sampling(idata) -> dict:
             "the delay has modes the sampler does not cross: fit more data (longer or more trials), or give "
             "the delay a prior from another fit (--delay-from FITDIR; the paper took d from model 2)"
         )
+    missed = delay_missed(idata)
+    if missed:
+        where = "; ".join(
+            f"{leg} (" + ", ".join(f"d = {d}: {e:.2f} by the evidence, {c:.2f} in the chains" for d, (e, c) in ds.items()) + ")"
+            for leg, ds in missed.items()
+        )
+        problems.append(f"the chains never visited a delay that a Laplace approximation per delay weighs: {where}")
+        advice.append(
+            "the delay's posterior has several modes and the chains sit in one: fit more data (longer or more "
+            "trials), or give the delay a prior from another fit (--delay-from FITDIR)"
+        )
     if not ess_bulk_min >= ess_needed:
         problems.append(f"bulk ESS {ess_bulk_min:.0f} < {ess_needed} ({THRESHOLDS['ess_per_chain']} per chain)")
         advice.append("draw more (--draws)")
@@ -232,6 +273,7 @@ def diagnose_sampling(idata) -> dict:
         "divergences": divergences,
         "bfmi_min": bfmi_min,
         "delay_splits": splits,
+        "delay_missed": missed,
         "chains": int(chains),
         "draws": int(idata.posterior.sizes["draw"]),
         "thresholds": {**THRESHOLDS, "ess_min": ess_needed},
@@ -319,6 +361,8 @@ def fit_summary(idata) -> dict:
             "delay_mode_samples": int(np.argmax(probs)),
             "params": params,
         }
+        if "constant_data" in idata.groups() and "delay_evidence" in idata.constant_data:
+            legs[leg]["delay_evidence"] = [float(p) for p in np.asarray(idata.constant_data["delay_evidence"][i])]
         if curves:
             legs[leg]["delay_angle"] = delay_angle_summary(idata, i, curves[i])
     diag = diagnose_sampling(idata)

@@ -7,6 +7,7 @@ last, so a folder with a summary is complete) and returns the summary.
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -332,8 +333,9 @@ def run_fit(
     ``delay_from``: a fit folder whose delay posterior becomes this fit's delay prior
     (see :func:`quadshank._fit.delay_prior_from`).
     """
-    from ._fit import FitSettings, build_model, delay_prior_from, fit
+    from ._fit import FitSettings, build_model, delay_prior_from, fit, fit_screen, uses_screen
     from ._fitio import begin_fit, read_summary, save_fit, to_inference_data
+    from ._screen import delay_evidence
 
     settings = settings or FitSettings()
     out = Path(out)
@@ -345,12 +347,27 @@ def run_fit(
     out.mkdir(parents=True, exist_ok=True)
     begin_fit(out)
     t0 = time.perf_counter()
-    mcmc, data = fit(cohort, m, settings, legs=legs, progress=progress, log_delay_prior=log_prior)
+    if progress and uses_screen(m, settings):
+        print("fit: each leg's mode and Laplace covariance (the screen) for the chains' start and metric",
+              file=sys.stderr, flush=True)
+    screen = fit_screen(cohort, m, settings, legs=legs)
+    mcmc, data = fit(cohort, m, settings, legs=legs, progress=progress, log_delay_prior=log_prior, screen=screen)
     sampling = time.perf_counter() - t0
-    idata = to_inference_data(
-        mcmc, m, data, settings, delay_source=None if delay_from is None else str(delay_from), log_delay_prior=log_prior
-    )
     extra = {"sampling_seconds": sampling}
+    evidence = None
+    if screen is not None and settings.delay_evidence:
+        if progress:
+            print("fit: each leg's delays weighed by a Laplace approximation per delay", file=sys.stderr, flush=True)
+        t1 = time.perf_counter()
+        evidence = delay_evidence(screen)
+        if log_prior is not None:  # the fit's delay prior, not the evidence's uniform one
+            evidence = evidence * np.exp(np.asarray(log_prior, np.float64))
+            evidence = evidence / evidence.sum(axis=1, keepdims=True)
+        extra["delay_evidence_seconds"] = time.perf_counter() - t1
+    idata = to_inference_data(
+        mcmc, m, data, settings, delay_source=None if delay_from is None else str(delay_from), log_delay_prior=log_prior,
+        delay_evidence=evidence,
+    )
     if data_source is not None:
         extra["data"] = str(data_source)
     return save_fit(idata, out, extra=extra)

@@ -192,6 +192,8 @@ def coverage_rows(summary: dict, truth: dict) -> list[dict]:
             "leg": leg, "param": "delay", "true": float(true["delay"]), "median": float(mode),
             "lo": float(mode), "hi": float(mode), "covered": mode == true["delay"],
             "p_mode": float(np.max(s["delay_posterior"])),
+            "p_true": float(s["delay_posterior"][int(true["delay"])]),
+            **({"p_true_evidence": float(s["delay_evidence"][int(true["delay"])])} if "delay_evidence" in s else {}),
         })  # fmt: skip
         if "shift" in true.get("discrete", {}) and "delay_angle" in s:
             shift = int(np.argmax(s["delay_angle"]["shift_posterior"]))
@@ -283,7 +285,8 @@ def run_recovery(
                 summary = run_fit(cohort, fit_dir, model, add_effects, fs, progress=progress)
             diag = summary["diagnostics"]
             info = {"seed": seed, **{k: diag[k] for k in ("rhat_max", "ess_bulk_min", "divergences", "ok")},
-                    "sampling_seconds": summary.get("sampling_seconds"), "delay_splits": diag.get("delay_splits", {})}  # fmt: skip
+                    "sampling_seconds": summary.get("sampling_seconds"), "delay_splits": diag.get("delay_splits", {}),
+                    "delay_missed": diag.get("delay_missed", {})}  # fmt: skip
             changes = {leg: s["delay_angle"]["change_probability"] for leg, s in summary["legs"].items() if "delay_angle" in s}
             if changes:
                 info["change_probability"] = changes
@@ -373,14 +376,26 @@ def coverage_markdown(result: dict) -> str:
         cells = ", ".join(f"{k} {v['covered']}/{v['n']}" for k, v in m["by_param"].items())
         lines.append(f"- **{model}**: {cells}")
     lines += ["", "## Sampling", "", "| model | seed | R-hat max | bulk ESS min | divergences | chains at different delays "
-              "| sampling [s] |", "|---|---|---|---|---|---|---|"]
+              "| delays weighed but not visited | sampling [s] |", "|---|---|---|---|---|---|---|---|"]
     for model, m in result["models"].items():
         for f in m["fits"]:
             secs = f.get("sampling_seconds")
-            splits = f.get("delay_splits")
+            splits, missed = f.get("delay_splits"), f.get("delay_missed")
             where = "–" if splits is None else ", ".join(f"{leg} {'/'.join(map(str, d))}" for leg, d in splits.items()) or "none"
+            unseen = "–" if missed is None else "; ".join(
+                f"{leg} " + ", ".join(f"d = {d} ({e:.2f})" for d, (e, _c) in ds.items()) for leg, ds in missed.items()) or "none"
             lines.append(
                 f"| {model} | {f['seed']} | {f['rhat_max']:.3f} | {f['ess_bulk_min']:.0f} | {f['divergences']} | {where} | "
-                f"{'' if secs is None else f'{secs:.0f}'} |"
+                f"{unseen} | {'' if secs is None else f'{secs:.0f}'} |"
             )
+    wrong = [r for r in result.get("rows", []) if r["param"] == "delay" and not r["covered"]]
+    if wrong:
+        lines += ["", "## Legs whose posterior mode of d is wrong", "",
+                  "P(true d) in the chains and by a Laplace approximation per delay (`delay_evidence`).", "",
+                  "| model | seed | leg | true d | mode | P(true d), chains | P(true d), Laplace per delay |",
+                  "|---|---|---|---|---|---|---|"]
+        for r in wrong:
+            ev = r.get("p_true_evidence")
+            lines.append(f"| {r['model']} | {r['seed']} | {r['leg']} | {r['true']:.0f} | {r['median']:.0f} | "
+                         f"{r.get('p_true', float('nan')):.2f} | {'–' if ev is None else f'{ev:.2f}'} |")
     return "\n".join(lines) + "\n"

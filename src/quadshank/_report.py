@@ -391,6 +391,11 @@ def _diagnostics_section(fit_summary: dict) -> str:
         splits = d["delay_splits"]
         rows.append(["legs whose chains settled at different delays",
                      _e(", ".join(splits) if splits else "none"), "none", verdict(not splits)])
+    if "delay_missed" in d:
+        missed = d["delay_missed"]
+        cell = "; ".join(f"{leg}: d = {', '.join(map(str, ds))}" for leg, ds in missed.items()) or "none"
+        rows.append(["delays weighed by a Laplace approximation per delay that no chain visited",
+                     _e(cell), "none", verdict(not missed)])
     head = (f"<p>{_e(d.get('chains'))} chain(s) of {_e(d.get('draws'))} draws. Overall: "
             + ('<span class="ok">the fit passed its checks.</span>' if d.get("ok")
                else '<span class="fail">the fit FAILED its checks.</span>') + "</p>")

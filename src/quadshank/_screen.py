@@ -42,7 +42,7 @@ from ._fit import NU_PRIOR, SIGMA_PRIOR, _with_discrete_axes, classical_start, l
 from ._likelihood import N_DELAYS, LikelihoodData, leg_loglik_by_delay, leg_pointwise, prepare
 from ._model import Model
 
-__all__ = ["LaplaceFit", "laplace_fit", "delta_elpd", "leg_draw_models"]
+__all__ = ["LaplaceFit", "laplace_fit", "delay_evidence", "delta_elpd", "leg_draw_models"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -187,6 +187,16 @@ def _objective(model: Model, specs: list[_Spec], R: int, K: int):
     return joint, neg_logpost
 
 
+def _neg_logpost_at_delay(joint):
+    """−log p(θ, d, y) with d fixed (a traced index: one compilation serves every d)."""
+
+    def f(vec, x, d):
+        logp, prior = joint(vec, x)
+        return -(jax.scipy.special.logsumexp(logp[d]) + prior)
+
+    return f
+
+
 _COMPILED: dict = {}
 
 
@@ -209,6 +219,7 @@ def _compiled(model: Model, specs: list[_Spec], R: int, K: int, n_segments: int)
         jax.jit(jax.vmap(lambda v, x: joint(v, x)[0], in_axes=(0, None))),
         jax.jit(jax.vmap(lambda v: _log_prior(specs, v))),
         jax.jit(jax.vmap(pointwise_one, in_axes=(0, 0, 0, None))),
+        jax.jit(jax.value_and_grad(_neg_logpost_at_delay(joint))),  # compiled on first use (delay_evidence)
     )
     _COMPILED[key] = out
     return out
@@ -278,7 +289,7 @@ def _laplace_fit(
     data = prepare(cohort, model, trials=trials, legs=legs)
     specs = _specs(model)
     R, K = data.response_length, data.max_shift
-    joint, value_and_grad, joint_b, prior_b, pw = _compiled(model, specs, R, K, data.n_segments)
+    joint, value_and_grad, joint_b, prior_b, pw, _ = _compiled(model, specs, R, K, data.n_segments)
     arrays = {k: jnp.asarray(v, jnp.float64) if np.issubdtype(v.dtype, np.floating) else v for k, v in data.leg_arrays().items()}
     dim = sum(s.size for s in specs) + 2
     rng = np.random.default_rng(seed)
@@ -382,6 +393,52 @@ def _laplace_fit(
         resampled=np.stack(resampled),
         weights_ess=np.asarray(weights_ess),
     )
+
+
+def delay_evidence(screen: LaplaceFit, max_iter: int = 400) -> np.ndarray:
+    """P(d | data) per leg from one Laplace approximation per delay: ``(legs, 11)``.
+
+    The screen's own P(d) (and a NUTS chain's) averages P(d | θ, data) over θ near
+    one mode.  Where d is learned through θ (model 3 reads its gains at the states
+    a delayed pulse meets, so each d has its own mode in θ), that is P(d | θ) at
+    the mode of one delay, near 1 for it, however much mass the modes of other
+    delays hold.  Here each d gets its own mode θ̂_d (L-BFGS from the screen's mode)
+    and Laplace evidence log p(y, d) ≈ log p(y, d, θ̂_d) − ½ log det H_d (the
+    curvature's eigenvalues floored at the prior precision, as in the screen), and
+    P(d | data) ∝ p(y, d).  Eleven optimisations per leg: a check of the delay's
+    modes, not part of the screen.
+    """
+    with jax.enable_x64(True):
+        return _delay_evidence(screen, max_iter)
+
+
+def _delay_evidence(screen: LaplaceFit, max_iter: int) -> np.ndarray:
+    data = screen.data
+    value_and_grad = _compiled(screen.model, list(screen.specs), data.response_length, data.max_shift, data.n_segments)[5]
+    arrays = {k: jnp.asarray(v, jnp.float64) if np.issubdtype(v.dtype, np.floating) else v for k, v in data.leg_arrays().items()}
+    out = np.zeros((data.n_legs, N_DELAYS))
+    for i in range(data.n_legs):
+        x = {k: v[i] for k, v in arrays.items()}
+        log_ev = np.full(N_DELAYS, -np.inf)
+        for d in range(N_DELAYS):
+            dd = jnp.asarray(d, jnp.int32)
+
+            def vg(v, x, dd=dd):
+                return value_and_grad(jnp.asarray(v, jnp.float64), x, dd)
+
+            def f(v):
+                val, g = vg(v, x)
+                return float(val), np.asarray(g, np.float64)
+
+            res = optimize.minimize(f, screen.mode[i], jac=True, method="L-BFGS-B", options={"maxiter": max_iter})
+            if not np.isfinite(res.fun):
+                continue
+            w = np.linalg.eigvalsh(_hessian(vg, np.asarray(res.x, np.float64), x))
+            log_ev[d] = -res.fun - 0.5 * np.sum(np.log(np.maximum(w, 1.0)))
+        if not np.isfinite(log_ev).any():
+            raise FloatingPointError(f"{data.legs[i]}: no delay has a finite posterior density under {screen.model.name}")
+        out[i] = np.exp(log_ev - jax.scipy.special.logsumexp(log_ev))
+    return out
 
 
 def delta_elpd(a: LaplaceFit, b: LaplaceFit) -> tuple[float, float]:
