@@ -416,9 +416,8 @@ def fit_screen(cohort: Cohort, model: Model, settings: FitSettings, legs=None, n
 
     if not uses_screen(model, settings):
         return None
-    with jax.enable_x64(True):
-        return laplace_fit(cohort, model, trials=settings.trials, legs=legs, n_starts=n_starts,
-                           n_draws=max(settings.chains, 2), seed=settings.seed, loo=False)
+    return laplace_fit(cohort, model, trials=settings.trials, legs=legs, n_starts=n_starts,
+                       n_draws=max(settings.chains, 2), seed=settings.seed, loo=False)
 
 
 def screen_start(model: Model, data: LikelihoodData, settings: FitSettings, conditioned, arrays, scr):
