@@ -154,3 +154,28 @@ def test_recovery_reuses_a_finished_fit_of_the_same_truth_and_settings(tmp_path,
     assert calls == [0, 1, 0, 1]  # another truth: refitted
     run_recovery(tmp_path, **{**kw, "minutes": 0.3, "settings": FitSettings(chains=1, warmup=6, draws=5)})
     assert calls == [0, 1, 0, 1, 0, 1]  # other settings: refitted
+
+
+def test_coverage_table_names_delays_missed_and_wrong_modes_the_data_chose():
+    """The Sampling table names each fit's split chains and missed delays; the wrong-mode table lists
+    a leg whose data chose a delay (P(mode) ≥ 0.5) with P(true d) from the chains and the evidence,
+    and leaves out a flat P(d) whose argmax is no claim."""
+    from quadshank._recovery import coverage_markdown
+
+    fit = {"seed": 2, "rhat_max": 1.06, "ess_bulk_min": 32, "divergences": 0, "ok": False, "sampling_seconds": 30,
+           "delay_splits": {"TN-right": [4, 5]}, "delay_missed": {"JM-left": {"4": [0.25, 0.0]}}}
+    rows = [
+        {"model": "model3", "seed": 2, "leg": "JM-left", "param": "delay", "true": 4.0, "median": 3.0,
+         "covered": False, "p_mode": 1.0, "p_true": 0.0, "p_true_evidence": 0.25},
+        {"model": "model3", "seed": 2, "leg": "TN-left", "param": "delay", "true": 4.0, "median": 0.0,
+         "covered": False, "p_mode": 0.09, "p_true": 0.09, "p_true_evidence": 0.09},
+    ]  # fmt: skip
+    result = {"legs": ["JM-left", "TN-left"], "seeds": [2], "minutes": 1, "interval": 0.9,
+              "settings": {"chains": 2, "warmup": 300, "draws": 300}, "rows": rows,
+              "models": {"model3": {"truth_effects": [], "n_intervals": 0, "covered": 0, "coverage": float("nan"),
+                                    "expected_band_95": [0.8, 0.95], "by_param": {}, "fits": [fit],
+                                    "delay_mode_right": 0, "delay_legs": 2, "delay_seen_legs": 1}}}  # fmt: skip
+    md = coverage_markdown(result)
+    assert "| model3 | 2 | 1.060 | 32 | 0 | TN-right 4/5 | JM-left d = 4 (0.25) | 30 |" in md
+    assert "| model3 | 2 | JM-left | 4 | 3 | 0.00 | 0.25 |" in md
+    assert "| model3 | 2 | TN-left |" not in md

@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from ._cohort import Cohort
@@ -352,6 +353,8 @@ def run_fit(
               file=sys.stderr, flush=True)
     screen = fit_screen(cohort, m, settings, legs=legs)
     mcmc, data = fit(cohort, m, settings, legs=legs, progress=progress, log_delay_prior=log_prior, screen=screen)
+    # JAX dispatches asynchronously: the draws may still be computing when fit() returns
+    jax.block_until_ready(mcmc.get_samples(group_by_chain=True))
     sampling = time.perf_counter() - t0
     extra = {"sampling_seconds": sampling}
     evidence = None
