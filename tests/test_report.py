@@ -284,18 +284,21 @@ def test_a_discover_folder_shows_the_ranking_of_each_round(tmp_path):
 
 
 def test_the_diagnostics_table_shows_the_delay_checks_and_omits_them_for_older_fits():
-    """Split chains and delays the evidence weighs but no chain visited are rows of the checks table
-    (FAIL, naming the legs and delays); a fit saved before these checks existed shows no such rows."""
+    """Split chains (FAIL) and delays the evidence weighs but no chain visited (a warning) are rows of
+    the checks table, naming the legs and delays; the warnings follow the table; a fit saved before
+    these checks existed shows no such rows."""
     base = {"rhat_max": 1.0, "ess_bulk_min": 900.0, "ess_tail_min": 900.0, "divergences": 0, "bfmi_min": 0.9,
             "ok": True, "chains": 2, "draws": 500, "thresholds": {"rhat_max": 1.01, "ess_min": 200, "bfmi_min": 0.3}}
     failing = report._diagnostics_section({"diagnostics": {
-        **base, "ok": False, "delay_splits": {"TN-left": [4, 5]}, "delay_missed": {"JM-left": {"4": [0.25, 0.0]}}}})
+        **base, "ok": False, "delay_splits": {"TN-left": [4, 5]}, "delay_missed": {"JM-left": {"4": [0.25, 0.0]}},
+        "warnings": ["JM-left & d = 4 never visited"]}})
     row_split = failing[failing.index("settled at different delays"):]
     row_split = row_split[: row_split.index("</tr>")]
     assert "TN-left" in row_split and "FAIL" in row_split
     row_missed = failing[failing.index("no chain visited"):]
     row_missed = row_missed[: row_missed.index("</tr>")]
-    assert "JM-left: d = 4" in row_missed and "FAIL" in row_missed
+    assert "JM-left: d = 4" in row_missed and "look" in row_missed and "FAIL" not in row_missed  # a warning
+    assert "Warning: JM-left &amp; d = 4 never visited" in failing
     passing = report._diagnostics_section({"diagnostics": {**base, "delay_splits": {}, "delay_missed": {}}})
     assert "no chain visited" in passing and "FAIL" not in passing
     older = report._diagnostics_section({"diagnostics": base})

@@ -170,6 +170,8 @@ def cmd_fit(args) -> int:
         f"R-hat max {diag['rhat_max']:.3f}, bulk ESS min {diag['ess_bulk_min']:.0f}, "
         f"divergences {diag['divergences']}, E-BFMI min {diag['bfmi_min']:.2f}",
     )
+    for w in diag.get("warnings", []):
+        print(f"quadshank: warning: {w}", file=sys.stderr)
     if not diag["ok"]:
         print(f"quadshank: {summary['banner']}", file=sys.stderr)
         for a in diag["advice"]:
@@ -374,7 +376,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="with --start screen, adapt the metric in warm-up too (by default the screen's is kept)")
         sp.add_argument("--no-delay-evidence", dest="delay_evidence", action="store_false",
                         help="with --start screen, skip weighing each leg's delays by a Laplace approximation per "
-                             "delay (11 optimisations per leg, checked against the chains' P(d))")
+                             "delay (11 optimisations per leg, compared with the chains' P(d) in a warning)")
 
     def sim_options(sp, minutes_default):
         sp.add_argument("--minutes", type=float, default=minutes_default, help="length of each trial [min]")

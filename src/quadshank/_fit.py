@@ -130,7 +130,7 @@ class FitSettings:
     adapt_metric: bool = False
     #: With ``start="screen"``, weigh each leg's delays by a Laplace approximation per delay
     #: (:func:`quadshank._screen.delay_evidence`), stored in the fit and checked against the
-    #: chains' P(d): chains that never visit a delay holding ≥ 0.1 of that weight fail the fit.
+    #: chains' P(d): a delay holding ≥ 0.1 of that weight that no chain visits draws a warning.
     delay_evidence: bool = True
 
     def __post_init__(self):
