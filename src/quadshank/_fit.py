@@ -408,7 +408,7 @@ def uses_screen(model: Model, settings: FitSettings) -> bool:
     return settings.start == "screen" and settings.centred and all(p.level == "leg" for p in model_params(model))
 
 
-def fit_screen(cohort: Cohort, model: Model, settings: FitSettings, legs=None, n_starts: int = 3):
+def fit_screen(cohort: Cohort, model: Model, settings: FitSettings, legs=None, n_starts: int = 3, progress: bool = False):
     """The screen :func:`fit` starts its chains from (None where it starts otherwise, see
     :func:`uses_screen`); computed ahead so that :func:`quadshank._screen.delay_evidence` can
     start from it too."""
@@ -416,6 +416,9 @@ def fit_screen(cohort: Cohort, model: Model, settings: FitSettings, legs=None, n
 
     if not uses_screen(model, settings):
         return None
+    if progress:
+        print("fit: each leg's mode and Laplace covariance (the screen) for the chains' start and metric",
+              file=sys.stderr, flush=True)
     return laplace_fit(cohort, model, trials=settings.trials, legs=legs, n_starts=n_starts,
                        n_draws=max(settings.chains, 2), seed=settings.seed, loo=False)
 
@@ -568,10 +571,7 @@ def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen):
     init_params, imm = None, None
     if uses_screen(model, settings):
         if screen is None:
-            if progress:
-                print("fit: each leg's mode and Laplace covariance (the screen) for the chains' start and metric",
-                      file=sys.stderr, flush=True)
-            screen = fit_screen(cohort, model, settings, legs=data.legs)
+            screen = fit_screen(cohort, model, settings, legs=data.legs, progress=progress)
         init_params, imm = screen_start(model, data, settings, conditioned, arrays, screen)
         if not settings.dense_mass:
             imm = {k: jnp.diagonal(v) for k, v in imm.items()}

@@ -184,6 +184,13 @@ def delay_splits(idata) -> dict[str, list[int]]:
     return {leg: [int(m) for m in p[:, i].argmax(axis=-1)] for i, leg in enumerate(legs) if tv[i] > DELAY_SPLIT_TV}
 
 
+def stored_delay_evidence(idata) -> np.ndarray | None:
+    """(legs, 11) per-delay Laplace P(d) kept in the fit, or None (fits made without it, or before it)."""
+    if "constant_data" not in idata.groups() or "delay_evidence" not in idata.constant_data:
+        return None
+    return np.asarray(idata.constant_data["delay_evidence"], np.float64)
+
+
 def delay_missed(idata) -> dict[str, dict[int, list[float]]]:
     """Delays of a leg that hold weight by the per-delay Laplace evidence but that no chain
     visited: ``{leg: {d: [Laplace P(d), the chains' P(d)]}}`` (see :data:`DELAY_MISSED`).
@@ -191,9 +198,9 @@ def delay_missed(idata) -> dict[str, dict[int, list[float]]]:
     Chains that agree can still all sit in one mode of the delay, which is what
     :func:`delay_splits` cannot see: the evidence, one mode per delay, can.
     """
-    if "constant_data" not in idata.groups() or "delay_evidence" not in idata.constant_data:
+    ev = stored_delay_evidence(idata)  # (leg, D)
+    if ev is None:
         return {}
-    ev = np.asarray(idata.constant_data["delay_evidence"], np.float64)  # (leg, D)
     chains = np.exp(np.asarray(idata.posterior["delay_logp"], np.float64)).mean(axis=(0, 1))  # (leg, D)
     legs = [str(x) for x in idata.posterior["leg"].values]
     lo_ev, hi_chain = DELAY_MISSED
@@ -351,6 +358,7 @@ def fit_summary(idata) -> dict:
     post = idata.posterior
     flat = {v: np.asarray(post[v]).reshape(-1, *post[v].shape[2:]) for v in post.data_vars}
     delay_post = np.exp(flat["delay_logp"]).mean(axis=0)  # (legs, D)
+    evidence = stored_delay_evidence(idata)
     curves = [delay_angle_curve(idata, i) for i in range(len(desc["legs"]))] if "delay_shift_logp" in flat else None
     legs = {}
     for i, leg in enumerate(desc["legs"]):
@@ -366,8 +374,8 @@ def fit_summary(idata) -> dict:
             "delay_mode_samples": int(np.argmax(probs)),
             "params": params,
         }
-        if "constant_data" in idata.groups() and "delay_evidence" in idata.constant_data:
-            legs[leg]["delay_evidence"] = [float(p) for p in np.asarray(idata.constant_data["delay_evidence"][i])]
+        if evidence is not None:
+            legs[leg]["delay_evidence"] = [float(p) for p in evidence[i]]
         if curves:
             legs[leg]["delay_angle"] = delay_angle_summary(idata, i, curves[i])
     diag = diagnose_sampling(idata)

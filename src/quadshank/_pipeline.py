@@ -334,7 +334,7 @@ def run_fit(
     ``delay_from``: a fit folder whose delay posterior becomes this fit's delay prior
     (see :func:`quadshank._fit.delay_prior_from`).
     """
-    from ._fit import FitSettings, build_model, delay_prior_from, fit, fit_screen, uses_screen
+    from ._fit import FitSettings, build_model, delay_prior_from, fit, fit_screen
     from ._fitio import begin_fit, read_summary, save_fit, to_inference_data
     from ._screen import delay_evidence
 
@@ -348,10 +348,7 @@ def run_fit(
     out.mkdir(parents=True, exist_ok=True)
     begin_fit(out)
     t0 = time.perf_counter()
-    if progress and uses_screen(m, settings):
-        print("fit: each leg's mode and Laplace covariance (the screen) for the chains' start and metric",
-              file=sys.stderr, flush=True)
-    screen = fit_screen(cohort, m, settings, legs=legs)
+    screen = fit_screen(cohort, m, settings, legs=legs, progress=progress)
     mcmc, data = fit(cohort, m, settings, legs=legs, progress=progress, log_delay_prior=log_prior, screen=screen)
     # JAX dispatches asynchronously: the draws may still be computing when fit() returns
     jax.block_until_ready(mcmc.get_samples(group_by_chain=True))

@@ -35,7 +35,7 @@ import warnings
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy import optimize
+from scipy import optimize, special
 
 from ._cohort import Cohort
 from ._fit import NU_PRIOR, SIGMA_PRIOR, _with_discrete_axes, classical_start, log_shift_prior, model_params, sample_delays
@@ -197,6 +197,11 @@ def _neg_logpost_at_delay(joint):
     return f
 
 
+def _leg_arrays64(data: LikelihoodData) -> dict:
+    """The likelihood's per-leg arrays, floating ones in double precision (the screen optimises in it)."""
+    return {k: jnp.asarray(v, jnp.float64) if np.issubdtype(v.dtype, np.floating) else v for k, v in data.leg_arrays().items()}
+
+
 _COMPILED: dict = {}
 
 
@@ -290,7 +295,7 @@ def _laplace_fit(
     specs = _specs(model)
     R, K = data.response_length, data.max_shift
     joint, value_and_grad, joint_b, prior_b, pw, _ = _compiled(model, specs, R, K, data.n_segments)
-    arrays = {k: jnp.asarray(v, jnp.float64) if np.issubdtype(v.dtype, np.floating) else v for k, v in data.leg_arrays().items()}
+    arrays = _leg_arrays64(data)
     dim = sum(s.size for s in specs) + 2
     rng = np.random.default_rng(seed)
 
@@ -415,7 +420,7 @@ def delay_evidence(screen: LaplaceFit, max_iter: int = 400) -> np.ndarray:
 def _delay_evidence(screen: LaplaceFit, max_iter: int) -> np.ndarray:
     data = screen.data
     value_and_grad = _compiled(screen.model, list(screen.specs), data.response_length, data.max_shift, data.n_segments)[5]
-    arrays = {k: jnp.asarray(v, jnp.float64) if np.issubdtype(v.dtype, np.floating) else v for k, v in data.leg_arrays().items()}
+    arrays = _leg_arrays64(data)
     out = np.zeros((data.n_legs, N_DELAYS))
     for i in range(data.n_legs):
         x = {k: v[i] for k, v in arrays.items()}
@@ -437,7 +442,7 @@ def _delay_evidence(screen: LaplaceFit, max_iter: int) -> np.ndarray:
             log_ev[d] = -res.fun - 0.5 * np.sum(np.log(np.maximum(w, 1.0)))
         if not np.isfinite(log_ev).any():
             raise FloatingPointError(f"{data.legs[i]}: no delay has a finite posterior density under {screen.model.name}")
-        out[i] = np.exp(log_ev - jax.scipy.special.logsumexp(log_ev))
+        out[i] = np.exp(log_ev - special.logsumexp(log_ev))
     return out
 
 
