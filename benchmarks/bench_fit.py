@@ -160,10 +160,10 @@ def main(argv=None) -> int:
         chains=args.chains, warmup=args.warmup, draws=args.draws, seed=args.seed, chain_method=args.chain_method,
         start=args.start,
     )
-    # the per-delay Laplace evidence runs after sampling: its time (less its compilation, which
+    # the per-delay Laplace evidence runs before sampling: its time (less its compilation, which
     # the compilation row holds) is reported on its own, not as sampling
     evidence = {"wall": 0.0, "compile": 0.0}
-    evidence_fn = screen_module.delay_evidence
+    evidence_fn = screen_module.delay_modes
 
     def timed_evidence(*a, **k):
         c0, t0 = clock.seconds, time.perf_counter()
@@ -171,7 +171,7 @@ def main(argv=None) -> int:
         evidence.update(wall=time.perf_counter() - t0, compile=clock.seconds - c0)
         return out
 
-    screen_module.delay_evidence = timed_evidence  # run_fit imports it when called
+    screen_module.delay_modes = timed_evidence  # delay_start imports it when called
     with tempfile.TemporaryDirectory() as tmp:
         fit_dir = Path(tmp) / "fit"
         summary, wall, compile_s = clock.timed(run_fit, cohort, fit_dir, args.model, effects, settings, progress=True)

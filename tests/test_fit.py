@@ -464,3 +464,36 @@ def test_delay_evidence_weighs_each_delay_by_its_own_mode():
             assert ev[0, 4] > 0.99, ev.round(3)
         else:
             np.testing.assert_allclose(ev[0], 1.0 / N_DELAYS, atol=0.01)
+
+
+def test_a_screen_stuck_at_a_minor_delay_restarts_at_the_best_one():
+    """delay_start: a screen whose mode sits at a delay the per-delay evidence gives little
+    (here put there on purpose: the screen restarted at the mode of d = 6) is screened again
+    from the mode of the delay the evidence weighs most, which then holds the screen's P(d)
+    and a higher log density; where the fit's delay prior favours the delay the screen sits
+    at, the screen stays."""
+    from quadshank._fit import delay_start
+    from quadshank._recovery import simulate_matching
+    from quadshank._screen import delay_modes, laplace_fit, restart_screen
+
+    cohort, truth = simulate_matching("model3", ("TN-left",), 1.0, 2)
+    settings = FitSettings(chains=2, seed=0)
+    scr = laplace_fit(cohort, build_model("model3"), n_starts=1, loo=False)
+    dm = delay_modes(scr)
+    assert dm.modes.shape == (1, N_DELAYS, scr.mode.shape[1]) and np.all(np.isfinite(dm.log_evidence))
+    best = int(dm.probability[0].argmax())
+    assert scr.delay_posterior[0, best] > 0.5  # this screen found the best delay itself
+    stuck = restart_screen(scr, cohort, {"TN-left": dm.modes[0, 6]})
+    assert stuck.delay_posterior[0, 6] > 0.5 and dm.probability[0, 6] < 1e-6
+    assert stuck.neg_logpost[0] > scr.neg_logpost[0] + 10.0
+
+    new, evidence, moved = delay_start(cohort, settings, stuck)
+    assert moved == {"TN-left": (6, best)}
+    assert new.delay_posterior[0, best] > 0.5
+    assert new.neg_logpost[0] == pytest.approx(scr.neg_logpost[0], abs=1.0)
+    np.testing.assert_allclose(evidence, dm.probability, atol=0.02)
+
+    prior = np.log(np.full((1, N_DELAYS), 1e-12))
+    prior[0, 6] = 0.0
+    same, evidence6, moved6 = delay_start(cohort, settings, stuck, log_delay_prior=prior)
+    assert moved6 == {} and same is stuck and evidence6[0].argmax() == 6

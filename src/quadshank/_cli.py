@@ -376,7 +376,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="with --start screen, adapt the metric in warm-up too (by default the screen's is kept)")
         sp.add_argument("--no-delay-evidence", dest="delay_evidence", action="store_false",
                         help="with --start screen, skip weighing each leg's delays by a Laplace approximation per "
-                             "delay (11 optimisations per leg, compared with the chains' P(d) in a warning)")
+                             "delay (11 optimisations per leg: the screen restarts at the best delay where it missed "
+                             "it, and the chains' P(d) is compared with it in a warning)")
 
     def sim_options(sp, minutes_default):
         sp.add_argument("--minutes", type=float, default=minutes_default, help="length of each trial [min]")

@@ -45,7 +45,9 @@ conditional for the pointwise log-likelihood (so PSIS-LOO is over (θ, d)).
 Chains start at each leg's mode from the screen (:func:`screen_start`,
 :mod:`quadshank._screen`), whose Laplace covariances are also the metric:
 each d has its own mode in θ, the screen's multi-start optimisation of the
-marginal posterior finds the leading one, and each leg's block is narrow and
+marginal posterior finds one, restarted at the delay that a Laplace
+approximation per delay weighs most where that is another
+(:func:`delay_start`), and each leg's block is narrow and
 correlated in a way a short warm-up cannot estimate.  The classical
 least-squares start (:func:`classical_start`) and the prior median remain
 as options.
@@ -129,8 +131,9 @@ class FitSettings:
     #: is kept and only the step size adapts); the other starts always adapt it.
     adapt_metric: bool = False
     #: With ``start="screen"``, weigh each leg's delays by a Laplace approximation per delay
-    #: (:func:`quadshank._screen.delay_evidence`), stored in the fit and checked against the
-    #: chains' P(d): a delay holding ≥ 0.1 of that weight that no chain visits draws a warning.
+    #: before sampling (:func:`delay_start`): the screen restarts at the best delay where it
+    #: missed it, and the weights, stored in the fit, are checked against the chains' P(d):
+    #: a delay holding ≥ 0.1 of that weight that no chain visits draws a warning.
     delay_evidence: bool = True
 
     def __post_init__(self):
@@ -421,6 +424,41 @@ def fit_screen(cohort: Cohort, model: Model, settings: FitSettings, legs=None, n
               file=sys.stderr, flush=True)
     return laplace_fit(cohort, model, trials=settings.trials, legs=legs, n_starts=n_starts,
                        n_draws=max(settings.chains, 2), seed=settings.seed, loo=False)
+
+
+def delay_start(cohort: Cohort, settings: FitSettings, screen, log_delay_prior=None, progress: bool = False):
+    """Each leg's delays weighed by a Laplace approximation per delay, and the screen restarted
+    where it missed the best of them.  Returns ``(screen, evidence, moved)``.
+
+    The screen's L-BFGS of the marginal posterior settles in the basin it starts in, and
+    where each delay has its own mode in θ (model 3) that basin can be a delay's that
+    holds little mass: on 18 s of TN-left (model3s + angle_delay) the screen sat at
+    d = 3 while the mode at d = 4 had a log density 120 higher, and the chains, started
+    there, never left d = 3.  :func:`quadshank._screen.delay_modes` finds every delay's
+    mode; a leg whose best delay by that evidence (times ``log_delay_prior``, the fit's
+    delay prior) the screen gives less than ½ is screened again from that delay's mode.
+    ``evidence``: (legs, 11) P(d | data) of each leg alone; ``moved``: ``{leg: (d of the
+    old screen, d of the new)}``.
+    """
+    from ._screen import delay_modes, restart_screen
+
+    dm = delay_modes(screen)
+    evidence = dm.probability
+    if log_delay_prior is not None:  # the fit's delay prior, not the evidence's uniform one
+        evidence = evidence * np.exp(np.asarray(log_delay_prior, np.float64))
+        evidence = evidence / evidence.sum(axis=1, keepdims=True)
+    best = evidence.argmax(axis=1)
+    starts, moved = {}, {}
+    for i, leg in enumerate(screen.legs):
+        if screen.delay_posterior[i, best[i]] < 0.5:
+            starts[leg] = dm.modes[i, best[i]]
+            moved[leg] = (int(screen.delay_posterior[i].argmax()), int(best[i]))
+    if starts:
+        if progress:
+            print("fit: the screen restarted at the delay the evidence weighs most: "
+                  + ", ".join(f"{leg} d = {a} -> {b}" for leg, (a, b) in moved.items()), file=sys.stderr, flush=True)
+        screen = restart_screen(screen, cohort, starts, trials=settings.trials, seed=settings.seed)
+    return screen, evidence, moved
 
 
 def screen_start(model: Model, data: LikelihoodData, settings: FitSettings, conditioned, arrays, scr):

@@ -334,9 +334,8 @@ def run_fit(
     ``delay_from``: a fit folder whose delay posterior becomes this fit's delay prior
     (see :func:`quadshank._fit.delay_prior_from`).
     """
-    from ._fit import FitSettings, build_model, delay_prior_from, fit, fit_screen
+    from ._fit import FitSettings, build_model, delay_prior_from, delay_start, fit, fit_screen
     from ._fitio import begin_fit, read_summary, save_fit, to_inference_data
-    from ._screen import delay_evidence
 
     settings = settings or FitSettings()
     out = Path(out)
@@ -349,21 +348,18 @@ def run_fit(
     begin_fit(out)
     t0 = time.perf_counter()
     screen = fit_screen(cohort, m, settings, legs=legs, progress=progress)
-    mcmc, data = fit(cohort, m, settings, legs=legs, progress=progress, log_delay_prior=log_prior, screen=screen)
-    # JAX dispatches asynchronously: the draws may still be computing when fit() returns
-    jax.block_until_ready(mcmc.get_samples(group_by_chain=True))
-    sampling = time.perf_counter() - t0
-    extra = {"sampling_seconds": sampling}
-    evidence = None
+    extra, evidence = {}, None
     if screen is not None and settings.delay_evidence:
         if progress:
             print("fit: each leg's delays weighed by a Laplace approximation per delay", file=sys.stderr, flush=True)
         t1 = time.perf_counter()
-        evidence = delay_evidence(screen)
-        if log_prior is not None:  # the fit's delay prior, not the evidence's uniform one
-            evidence = evidence * np.exp(np.asarray(log_prior, np.float64))
-            evidence = evidence / evidence.sum(axis=1, keepdims=True)
+        screen, evidence, moved = delay_start(cohort, settings, screen, log_prior, progress=progress)
         extra["delay_evidence_seconds"] = time.perf_counter() - t1
+        extra["screen_restarted"] = {leg: {"from_delay": a, "to_delay": b} for leg, (a, b) in moved.items()}
+    mcmc, data = fit(cohort, m, settings, legs=legs, progress=progress, log_delay_prior=log_prior, screen=screen)
+    # JAX dispatches asynchronously: the draws may still be computing when fit() returns
+    jax.block_until_ready(mcmc.get_samples(group_by_chain=True))
+    extra["sampling_seconds"] = time.perf_counter() - t0 - extra.get("delay_evidence_seconds", 0.0)
     idata = to_inference_data(
         mcmc, m, data, settings, delay_source=None if delay_from is None else str(delay_from), log_delay_prior=log_prior,
         delay_evidence=evidence,
