@@ -447,6 +447,7 @@ def test_delay_evidence_weighs_each_delay_by_its_own_mode():
     has a mode at d = 3 and one at d = 4: the screen, near the first, puts all of P(d) on 3; the
     evidence gives 4 about a fifth.  Model 2 pins d (all on the truth), and model 1, whose window
     sums cannot see d, leaves it at the uniform prior."""
+    from quadshank._fit import delay_start
     from quadshank._recovery import simulate_matching
     from quadshank._screen import delay_evidence, laplace_fit
 
@@ -464,6 +465,8 @@ def test_delay_evidence_weighs_each_delay_by_its_own_mode():
             assert ev[0, 4] > 0.99, ev.round(3)
         else:
             np.testing.assert_allclose(ev[0], 1.0 / N_DELAYS, atol=0.01)
+            # delays the data do not tell apart move no screen (whichever d is the argmax)
+            assert delay_start(cohort, FitSettings(), scr)[2] == {}
 
 
 def test_a_screen_stuck_at_a_minor_delay_restarts_at_the_best_one():

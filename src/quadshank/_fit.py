@@ -435,8 +435,10 @@ def delay_start(cohort: Cohort, settings: FitSettings, screen, log_delay_prior=N
     holds little mass: on 18 s of TN-left (model3s + angle_delay) the screen sat at
     d = 3 while the mode at d = 4 had a log density 120 higher, and the chains, started
     there, never left d = 3.  :func:`quadshank._screen.delay_modes` finds every delay's
-    mode; a leg whose best delay by that evidence (times ``log_delay_prior``, the fit's
-    delay prior) the screen gives less than ½ is screened again from that delay's mode.
+    mode; where that evidence (times ``log_delay_prior``, the fit's delay prior) gives the
+    delay the screen sits at (its P(d)'s mode) less than half of what it gives the best
+    delay, the leg is screened again from the best delay's mode.  Where the data do not
+    tell the delays apart (model 1, whose window sums cannot see d) the screen stays.
     ``evidence``: (legs, 11) P(d | data) of each leg alone; ``moved``: ``{leg: (d of the
     old screen, d of the new)}``.
     """
@@ -448,11 +450,12 @@ def delay_start(cohort: Cohort, settings: FitSettings, screen, log_delay_prior=N
         evidence = evidence * np.exp(np.asarray(log_delay_prior, np.float64))
         evidence = evidence / evidence.sum(axis=1, keepdims=True)
     best = evidence.argmax(axis=1)
+    sits = screen.delay_posterior.argmax(axis=1)
     starts, moved = {}, {}
     for i, leg in enumerate(screen.legs):
-        if screen.delay_posterior[i, best[i]] < 0.5:
+        if evidence[i, sits[i]] < 0.5 * evidence[i, best[i]]:
             starts[leg] = dm.modes[i, best[i]]
-            moved[leg] = (int(screen.delay_posterior[i].argmax()), int(best[i]))
+            moved[leg] = (int(sits[i]), int(best[i]))
     if starts:
         if progress:
             print("fit: the screen restarted at the delay the evidence weighs most: "
