@@ -583,7 +583,8 @@ def fit(
     screen=None,
 ):
     """Run NUTS; returns (mcmc, data).  ``log_delay_prior``: see :func:`delay_prior_from`;
-    ``screen``: the chains' start (:func:`fit_screen`), made here when needed and not given.
+    ``screen``: the chains' start (:func:`fit_screen`, then :func:`delay_start`), made here
+    when needed and not given.
 
     Samples in double precision, as the screen optimises: the log density of five
     5-minute legs is ~1e6, where single precision rounds it to ~0.06, and NUTS,
@@ -613,6 +614,8 @@ def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen):
     if uses_screen(model, settings):
         if screen is None:
             screen = fit_screen(cohort, model, settings, legs=data.legs, progress=progress)
+            if settings.delay_evidence:
+                screen = delay_start(cohort, settings, screen, log_delay_prior, progress=progress)[0]
         init_params, imm = screen_start(model, data, settings, conditioned, arrays, screen)
         if not settings.dense_mass:
             imm = {k: jnp.diagonal(v) for k, v in imm.items()}
