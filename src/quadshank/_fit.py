@@ -67,7 +67,8 @@ import jax.numpy as jnp
 import numpy as np
 import numpyro
 import numpyro.distributions as dist
-from numpyro.infer import MCMC, NUTS, init_to_median
+from numpyro.infer import MCMC, NUTS, init_to_median, init_to_uniform
+from numpyro.util import is_prng_key
 
 from ._cohort import Cohort
 from ._effects import Param, get_effect
@@ -486,13 +487,17 @@ def screen_start(model: Model, data: LikelihoodData, settings: FitSettings, cond
     if scr.legs != data.legs or scr.draws.shape[1] < chains:
         raise ValueError(f"the screen is of legs {', '.join(scr.legs)} with {scr.draws.shape[1]} draws; "
                          f"the fit needs {', '.join(data.legs)} and {chains}: make it with fit_screen()")
-    trace = handlers.trace(handlers.seed(conditioned, settings.seed)).get_trace(arrays)
-    sites = {k: v for k, v in trace.items() if v["type"] == "sample" and not v["is_observed"]}
-    names = sorted(sites)  # numpyro's order of the flattened latent vector
+    def latent_values(arrays):
+        trace = handlers.trace(handlers.seed(conditioned, settings.seed)).get_trace(arrays)
+        return {k: v["value"] for k, v in trace.items() if v["type"] == "sample" and not v["is_observed"]}
+
+    # the latent sites' shapes, traced abstractly: nothing drawn, nothing compiled
+    shapes = {k: tuple(v.shape) for k, v in jax.eval_shape(latent_values, arrays).items()}
+    names = sorted(shapes)  # numpyro's order of the flattened latent vector
     offsets, n = {}, 0
     for k in names:
         offsets[k] = n
-        n += int(np.size(sites[k]["value"]))
+        n += math.prod(shapes[k])
     L = data.n_legs
 
     # a parameter the fit sums out (a step delay effect's threshold) has no site: its entries
@@ -517,12 +522,12 @@ def screen_start(model: Model, data: LikelihoodData, settings: FitSettings, cond
         inits[:, idx] = scr.draws[i, :chains][:, kept]
         covered[idx] = True
     if not covered.all():
-        missing = [k for k in names if not covered[offsets[k] : offsets[k] + int(np.size(sites[k]["value"]))].all()]
+        missing = [k for k in names if not covered[offsets[k] : offsets[k] + math.prod(shapes[k])].all()]
         raise ValueError(f"the screen gives no start for {', '.join(missing)}; use start='classical' or 'prior'")
     init_params = {}
     for k in names:
-        shape = np.shape(sites[k]["value"])
-        v = inits[:, offsets[k] : offsets[k] + int(np.prod(shape, dtype=int))].reshape((chains, *shape))
+        shape = shapes[k]
+        v = inits[:, offsets[k] : offsets[k] + math.prod(shape)].reshape((chains, *shape))
         init_params[k] = jnp.asarray(v if chains > 1 else v[0], jnp.result_type(float))
     return init_params, {tuple(names): jnp.asarray(imm, jnp.result_type(float))}
 
@@ -596,6 +601,24 @@ def fit(
         return _fit(cohort, model, settings, legs, progress, log_delay_prior, screen)
 
 
+class _StartedNUTS(NUTS):
+    """NUTS for chains whose starting points are given (the screen's).
+
+    numpyro initialises a model by tracing it and then searching for a valid start
+    per chain, compiling the log density and its gradient into a loop over the
+    chains, and it does that even when ``init_params`` replace the start it finds.
+    Here that search runs for one chain only (with ``init_strategy`` init_to_uniform,
+    which draws nothing from the prior), eagerly, and is discarded as before: the
+    model's transforms and potential are the same, and so are the draws; one
+    compilation of the gradient fewer.
+    """
+
+    def _init_state(self, rng_key, model_args, model_kwargs, init_params):
+        if init_params is not None and not is_prng_key(rng_key):
+            rng_key = rng_key[0]  # one chain's key: one eager search, not a compiled loop over chains
+        return super()._init_state(rng_key, model_args, model_kwargs, init_params)
+
+
 def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen):
     data = prepare(cohort, model, trials=settings.trials, legs=legs)
     arrays = {k: v.astype(jnp.float64) if jnp.issubdtype(v.dtype, jnp.floating) else v for k, v in data.leg_arrays().items()}
@@ -617,12 +640,13 @@ def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen):
             if settings.delay_evidence:
                 screen = delay_start(cohort, settings, screen, log_delay_prior, progress=progress)[0]
         init_params, imm = screen_start(model, data, settings, conditioned, arrays, screen)
+        init = init_to_uniform  # the start numpyro finds is replaced by init_params: no prior draws for it
         if not settings.dense_mass:
             imm = {k: jnp.diagonal(v) for k, v in imm.items()}
     elif settings.start in ("screen", "classical") and settings.centred:
         start = classical_start(cohort, model, data, settings.trials[0])
         init = functools.partial(_init_near, values=start, fallback=init)
-    kernel = NUTS(
+    kernel = (NUTS if init_params is None else _StartedNUTS)(
         conditioned,
         target_accept_prob=settings.target_accept,
         max_tree_depth=settings.max_tree_depth,
