@@ -226,7 +226,7 @@ class SpreadMixture(dist.Distribution):
         super().__init__(batch_shape=tuple(batch_shape), event_shape=(len(self.leg_subject),), validate_args=validate_args)
 
     def log_prob(self, value):
-        return jax.scipy.special.logsumexp(spread_log_weights(value, self.leg_subject), axis=-1)
+        return _spread_log_prob(value, self.leg_subject)
 
     def sample(self, key, sample_shape=()):
         log_w, _, _, _, _, chol = spread_grid(self.leg_subject)
@@ -235,6 +235,12 @@ class SpreadMixture(dist.Distribution):
         g = jax.random.categorical(k1, jnp.asarray(log_w, jnp.float32), shape=shape)
         z = jax.random.normal(k2, shape + self.event_shape)
         return jnp.einsum("...lm,...m->...l", jnp.asarray(chol, jnp.float32)[g], z)
+
+
+@functools.partial(jax.jit, static_argnames=("leg_subject",))
+def _spread_log_prob(value, leg_subject: tuple[int, ...]):
+    """SpreadMixture's log density, jitted (numpyro evaluates the model eagerly to initialise)."""
+    return jax.scipy.special.logsumexp(spread_log_weights(value, leg_subject), axis=-1)
 
 
 def _hierarchical(p: Param, n_legs: int, n_subjects: int, leg_subject, centred: bool = True):
@@ -302,18 +308,33 @@ def numpyro_model(
         nu = numpyro.sample("nu", dist.Gamma(*NU_PRIOR))
     stacked = _with_discrete_axes(model.with_params(values), (n_legs,))
     R, K = data.response_length, data.max_shift
-    if step is None:
-        ll = cohort_loglik_by_delay(stacked, sigma, nu, x, R, K)
-    else:
-        ll = jax.scipy.special.logsumexp(cohort_loglik_by_threshold(stacked, sigma, nu, x, R, K, *step.prior[1:3]), axis=-1)
     d_prior = jnp.full((n_legs, N_DELAYS), -math.log(N_DELAYS)) if log_delay_prior is None else jnp.asarray(log_delay_prior)
-    logp = ll + d_prior[:, :, None] + jnp.asarray(log_shift_prior(K))[None]  # (L, D, K + 1)
-    total = jax.scipy.special.logsumexp(logp, axis=(-2, -1))
-    joint = logp - total[:, None, None]
-    numpyro.deterministic("delay_logp", jax.scipy.special.logsumexp(joint, axis=-1))
+    step_prior = None if step is None else tuple(float(v) for v in step.prior[1:3])
+    delay_logp, joint, total = cohort_delay_terms(stacked, sigma, nu, x, d_prior, R, K, step_prior)
+    numpyro.deterministic("delay_logp", delay_logp)
     if K:
         numpyro.deterministic("delay_shift_logp", joint)
     numpyro.factor("likelihood", jnp.sum(total))
+
+
+@functools.partial(jax.jit, static_argnames=("R", "K", "step_prior"))
+def cohort_delay_terms(stacked: Model, sigma, nu, x: dict, d_prior, R: int, K: int, step_prior=None):
+    """The likelihood's terms of every leg with the delay (and its shift) summed out:
+    log P(d | θ, y) (L, D), log P(d, shift | θ, y) (L, D, K + 1) and log p(y | θ) (L,).
+
+    ``d_prior`` (L, D): log π(d); ``step_prior`` (loc, scale) of a step delay effect's
+    threshold, which is summed out too, or None.  Jitted as a whole: numpyro runs the
+    model eagerly to initialise, under its gradient and mapped over chains, and each
+    of the primitives here would be compiled on its own for each.
+    """
+    if step_prior is None:
+        ll = cohort_loglik_by_delay(stacked, sigma, nu, x, R, K)
+    else:
+        ll = jax.scipy.special.logsumexp(cohort_loglik_by_threshold(stacked, sigma, nu, x, R, K, *step_prior), axis=-1)
+    logp = ll + d_prior[:, :, None] + jnp.asarray(log_shift_prior(K))[None]  # (L, D, K + 1)
+    total = jax.scipy.special.logsumexp(logp, axis=(-2, -1))
+    joint = logp - total[:, None, None]
+    return jax.scipy.special.logsumexp(joint, axis=-1), joint, total
 
 
 @functools.partial(jax.jit, static_argnames=("R", "K"))
