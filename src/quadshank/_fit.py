@@ -634,10 +634,13 @@ class _StartedNUTS(NUTS):
     compilation of the gradient fewer.
     """
 
-    def _init_state(self, rng_key, model_args, model_kwargs, init_params):
+    # numpyro's private hook, (rng_key, model_args, model_kwargs, init_params) for many releases;
+    # the test that compares this kernel's first state with NUTS's watches it
+    def _init_state(self, rng_key, *args, **kwargs):
+        init_params = kwargs.get("init_params", args[2] if len(args) > 2 else None)
         if init_params is not None and not is_prng_key(rng_key):
             rng_key = rng_key[0]  # one chain's key: one eager search, not a compiled loop over chains
-        return super()._init_state(rng_key, model_args, model_kwargs, init_params)
+        return super()._init_state(rng_key, *args, **kwargs)
 
 
 def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen):
