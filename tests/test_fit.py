@@ -332,11 +332,15 @@ def test_chains_start_at_the_classical_estimate_of_the_leading_delay_mode():
     assert init({**site, "name": "sigma"}) == 0.0  # other sites: the fallback
 
 
-@pytest.fixture(scope="module")
-def screened():
-    """model3s on two legs of 18 s, its numpyro model and the screen its chains start from."""
-    from quadshank._fit import fit_screen, numpyro_model
+def test_screen_start_puts_each_chain_at_a_laplace_draw_with_the_laplace_metric():
+    """screen_start maps each leg's screen vector (z per parameter, log σ, log ν) onto numpyro's
+    sites: chain c of leg i starts at the leg's c-th Laplace draw, and the metric's block of the
+    leg is the Laplace covariance.  model3s has vector parameters (a, b), whose site is (C, L)."""
+    from numpyro.infer.util import constrain_fn
+
+    from quadshank._fit import fit_screen, numpyro_model, screen_start
     from quadshank._likelihood import prepare
+    from quadshank._screen import _values_np
 
     cohort, _ = simulate_cohort(legs=["TN-left", "JM-left"], minutes=0.3, seed=4, trials=(1,))
     model = build_model("model3s")
@@ -348,19 +352,6 @@ def screened():
         return numpyro_model(model, data, arrays)
 
     scr = fit_screen(cohort, model, settings, legs=data.legs)
-    return model, settings, data, arrays, conditioned, scr
-
-
-def test_screen_start_puts_each_chain_at_a_laplace_draw_with_the_laplace_metric(screened):
-    """screen_start maps each leg's screen vector (z per parameter, log σ, log ν) onto numpyro's
-    sites: chain c of leg i starts at the leg's c-th Laplace draw, and the metric's block of the
-    leg is the Laplace covariance.  model3s has vector parameters (a, b), whose site is (C, L)."""
-    from numpyro.infer.util import constrain_fn
-
-    from quadshank._fit import screen_start
-    from quadshank._screen import _values_np
-
-    model, settings, data, arrays, conditioned, scr = screened
     init, imm = screen_start(model, data, settings, conditioned, arrays, scr)
     (names, metric), = imm.items()
     metric = np.asarray(metric, np.float64)
@@ -410,12 +401,11 @@ def _peaked(mode, spread=0.05):
     return out
 
 
-
 def test_started_chains_begin_where_numpyros_own_nuts_would_put_them():
     """Given starts (the screen's), the fit's kernel skips numpyro's search for a start of its
-    own (one chain's key, no prior draws, nothing compiled for it); the state the chains begin
-    in, momentum and adaptation included, is numpyro's NUTS's exactly, so the draws are too.
-    The kernel knows nothing of the model: a small one shows it."""
+    own (one chain's key, no prior draws, no compiled loop over the chains); the state the
+    chains begin in, momentum and adaptation included, is numpyro's NUTS's exactly, so the
+    draws are too.  The kernel knows nothing of the model: a small one shows it."""
     import numpyro
     import numpyro.distributions as dist
     from numpyro.infer import NUTS, init_to_median
@@ -441,6 +431,7 @@ def test_started_chains_begin_where_numpyros_own_nuts_would_put_them():
     for a, b in zip(*states):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert np.asarray(states[1][0]).shape[0] == chains
+
 
 def test_chains_at_different_delays_fail_the_checks_and_name_the_leg():
     """Chains that agree on everything continuous but sit at different delays of one leg (as model 3's
