@@ -337,14 +337,9 @@ def cohort_delay_terms(stacked: Model, sigma, nu, x: dict, d_prior, R: int, K: i
     return jax.scipy.special.logsumexp(joint, axis=-1), joint, total
 
 
-@functools.partial(jax.jit, static_argnames=("R", "K"))
 def cohort_loglik_by_delay(stacked: Model, sigma, nu, x: dict, R: int, K: int):
-    """log p(y_leg | θ_leg, d, shift) of every leg, (L, D, K + 1).
-
-    Jitted on its own: numpyro runs the model eagerly to initialise (and to find
-    a valid start), where this one call replaces thousands of primitives, each
-    dispatched and compiled one at a time.
-    """
+    """log p(y_leg | θ_leg, d, shift) of every leg, (L, D, K + 1) (traced inside
+    :func:`cohort_delay_terms`, which is jitted whole)."""
     return jax.vmap(lambda m, s, n, xi: leg_loglik_by_delay(m, {"sigma": s, "nu": n}, xi, R, K))(stacked, sigma, nu, x)
 
 
