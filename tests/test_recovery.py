@@ -179,3 +179,43 @@ def test_coverage_table_names_delays_missed_and_wrong_modes_the_data_chose():
     assert "| model3 | 2 | 1.060 | 32 | 0 | TN-right 4/5 | JM-left d = 4 (0.25) | 30 |" in md
     assert "| model3 | 2 | JM-left | 4 | 3 | 0.00 | 0.25 |" in md
     assert "| model3 | 2 | TN-left |" not in md
+
+
+def test_likelihood_check_command_finds_the_likelihood_calibrated(tmp_path):
+    # model 3 on one leg, 1 min: 40 noise replicates of one trajectory, maximum likelihood at the true d
+    out = tmp_path / "lc"
+    code = main(["-q", "likelihood-check", "--models", "model3", "--seeds", "1", "--legs", "TN-right",
+                 "--minutes", "1", "--replicates", "40", "--out", str(out)])  # fmt: skip
+    assert code == 0
+    (run,) = json.loads((out / "likelihood.json").read_text())["runs"]
+    leg = run["legs"]["TN-right"]
+    assert leg["converged"] >= 36 and leg["intervals"] == 7 * leg["converged"]
+    # at 1 min the twitch-window noise model is somewhat overconfident (z sd up to ~1.3 for the
+    # gain; results/likelihood-check): coverage a little below the band, far above a biased one
+    assert 0.78 <= run["coverage"] <= 0.97, run["coverage"]
+    for name in ("damping", "gain", "gamma_angle", "gamma_velocity"):  # the well-determined ones
+        p = leg["params"][name]
+        assert abs(p["z_mean"]) < 3.5 * p["z_se"], (name, p)
+        assert 0.7 < p["z_sd"] < 1.45, (name, p)
+    md = (out / "likelihood.md").read_text()
+    assert "Regenerate: `quadshank" in md and "| model3 | 1 |" in md
+
+
+def test_likelihood_check_sees_a_bias(monkeypatch):
+    # the same check told a gain 4 % above the one that made the data: z of the gain far below 0
+    import quadshank._recovery as rec
+
+    simulate = rec.simulate_matching
+
+    def off_truth(*args, **kwargs):
+        cohort, truth = simulate(*args, **kwargs)
+        for true in truth["legs"].values():
+            true["params"]["gain"] *= 1.04
+        return cohort, truth
+
+    monkeypatch.setattr(rec, "simulate_matching", off_truth)
+    run = rec.likelihood_calibration("model3", legs=["TN-right"], minutes=1.0, seed=1, replicates=12)
+    gain = run["legs"]["TN-right"]["params"]["gain"]
+    assert run["legs"]["TN-right"]["converged"] >= 10
+    assert gain["z_mean"] < -5.0 and gain["coverage"] < 0.3, gain
+    assert run["coverage"] < run["expected_band_95"][0]
