@@ -94,6 +94,11 @@ def test_recovery_command_writes_the_coverage_table(tmp_path):
     assert m["covered"] == sum(r["covered"] for r in result["rows"] if r["param"] != "delay")
     lo, hi = m["expected_band_95"]
     assert lo < 0.9 < hi
+    # each parameter row has the leg's own maximum likelihood at the true delay, close to the truth
+    # (its data were made by it), and the posterior median's pull from it
+    for r in (r for r in result["rows"] if r["param"] != "delay"):
+        assert abs(r["ml"] - r["true"]) < 4.0 * r["ml_se"], r
+        assert r["pull"] == pytest.approx((r["median"] - r["ml"]) / r["ml_se"])
     assert (out / "model1-seed3" / "fit.nc").exists() and (out / "model1-seed3" / "truth.json").exists()
     md = (out / "coverage.md").read_text()
     assert "quadshank" in md and "| model1 |" in md
@@ -174,8 +179,11 @@ def test_coverage_table_names_delays_missed_and_wrong_modes_the_data_chose():
               "settings": {"chains": 2, "warmup": 300, "draws": 300}, "rows": rows,
               "models": {"model3": {"truth_effects": [], "n_intervals": 0, "covered": 0, "coverage": float("nan"),
                                     "expected_band_95": [0.8, 0.95], "by_param": {}, "fits": [fit],
-                                    "delay_mode_right": 0, "delay_legs": 2, "delay_seen_legs": 1}}}  # fmt: skip
+                                    "delay_mode_right": 0, "delay_legs": 2, "delay_seen_legs": 1,
+                                    "pull": [{"param": "k1", "leg": "JM-left", "fits": 4, "median_abs": 0.57,
+                                              "max_abs": 0.95, "mean": 0.5}]}}}  # fmt: skip
     md = coverage_markdown(result)
+    assert "| model3 | k1 | JM-left | 4 | 0.57 | 0.95 | +0.50 |" in md
     assert "| model3 | 2 | 1.060 | 32 | 0 | TN-right 4/5 | JM-left d = 4 (0.25) | 30 |" in md
     assert "| model3 | 2 | JM-left | 4 | 3 | 0.00 | 0.25 |" in md
     assert "| model3 | 2 | TN-left |" not in md

@@ -212,6 +212,23 @@ def coverage_rows(summary: dict, truth: dict) -> list[dict]:
     return rows
 
 
+def _add_pulls(rows: list[dict], ml: "LegMaximumLikelihood", cohort: Cohort, truth: dict) -> None:
+    """Add to each parameter row the leg's own maximum likelihood at the true delay (``ml``,
+    ``ml_se``) and ``pull`` = (posterior median − ml) / ml_se: how far the prior and the
+    pooling of legs moved the posterior from what the leg's data say.  Nothing where no
+    maximum is found."""
+    for leg, true in truth["legs"].items():
+        found = ml.fit(cohort, leg, true, trials=truth.get("trials", (1,)))
+        if found is None:
+            continue
+        names, _ = _flat_truth(true["params"])
+        by_name = {n: (float(e), float(se)) for n, e, se in zip(names, *found)}
+        for r in rows:
+            if r["leg"] == leg and r["param"] in by_name:
+                e, se = by_name[r["param"]]
+                r.update(ml=e, ml_se=se, pull=(r["median"] - e) / se)
+
+
 def _binomial_band(n: int, p: float = 0.9) -> tuple[float, float]:
     """Where the covered fraction of n intervals at true rate p falls 95 % of the time (normal approximation)."""
     if n == 0:
@@ -269,6 +286,7 @@ def run_recovery(
     """
     from ._fit import FitSettings, build_model
     from ._io import atomic_write_text, write_json
+    from ._likelihood import max_shift
     from ._pipeline import run_fit
 
     out = Path(out)
@@ -280,7 +298,10 @@ def run_recovery(
     per_model: dict[str, dict] = {}
     all_rows = []
     for model in models:
-        name = build_model(model, add_effects).name
+        fitted = build_model(model, add_effects)
+        name = fitted.name
+        # the posterior against each leg's own likelihood (needs the truth's parameters in the fitted model)
+        ml = LegMaximumLikelihood(fitted, MATCHING_NOISE) if not max_shift(fitted) and truth_effects == add_effects else None
         rows, diags = [], []
         for seed in seeds:
             cohort, truth = simulate_matching(model, legs, minutes, seed, add_effects=truth_effects)
@@ -301,7 +322,10 @@ def run_recovery(
                 info["threshold_deg"] = {leg: s["delay_angle"]["threshold_deg"] for leg, s in summary["legs"].items()
                                          if "delay_angle" in s}  # fmt: skip
             diags.append(info)
-            for r in coverage_rows(summary, truth):
+            seed_rows = coverage_rows(summary, truth)
+            if ml is not None:
+                _add_pulls(seed_rows, ml, cohort, truth)
+            for r in seed_rows:
                 rows.append({"model": name, "seed": seed, **r})
         params = [r for r in rows if r["param"] not in ("delay", "shift")]
         n_cov = sum(r["covered"] for r in params)
@@ -322,6 +346,18 @@ def run_recovery(
             if hits:
                 per_model[name][f"{discrete}_mode_right"] = int(sum(hits))
                 per_model[name][f"{discrete}_legs"] = len(hits)
+        right = {(r["seed"], r["leg"]) for r in rows if r["param"] == "delay" and r["covered"]}
+        pulls: dict[tuple[str, str], list[float]] = {}
+        for r in params:
+            if "pull" in r and (r["seed"], r["leg"]) in right:
+                pulls.setdefault((r["param"], r["leg"]), []).append(r["pull"])
+        if pulls:
+            order = list(dict.fromkeys(r["param"] for r in params))
+            per_model[name]["pull"] = [
+                {"param": k, "leg": leg, "fits": len(v), "median_abs": float(np.median(np.abs(v))),
+                 "max_abs": float(np.max(np.abs(v))), "mean": float(np.mean(v))}
+                for (k, leg), v in sorted(pulls.items(), key=lambda kv: (order.index(kv[0][0]), legs.index(kv[0][1])))
+            ]  # fmt: skip
         # a mode of a flat P(d) means nothing: count the legs whose data chose a delay at all
         per_model[name]["delay_seen_legs"] = sum(r.get("p_mode", 0.0) >= DELAY_SEEN for r in rows if r["param"] == "delay")
         all_rows.extend(rows)
@@ -383,6 +419,18 @@ def coverage_markdown(result: dict) -> str:
     for model, m in result["models"].items():
         cells = ", ".join(f"{k} {v['covered']}/{v['n']}" for k, v in m["by_param"].items())
         lines.append(f"- **{model}**: {cells}")
+    pulled = [(model, m["pull"]) for model, m in result["models"].items() if m.get("pull")]
+    if pulled:
+        lines += ["", "## The posterior against each leg's own likelihood", "",
+                  "pull = (posterior median − the leg's maximum likelihood at the true delay) / its standard error, "
+                  "over the legs whose posterior mode of d is right: how far the prior and the pooling of legs "
+                  "moved each parameter from what the leg's data say (`likelihood-check` calibrates the "
+                  "likelihood itself).", "",
+                  "| model | parameter | leg | fits | median abs(pull) | max abs(pull) | mean pull |", "|---|---|---|---|---|---|---|"]
+        for model, pull in pulled:
+            for v in pull:
+                lines.append(f"| {model} | {v['param']} | {v['leg']} | {v['fits']} | {v['median_abs']:.2f} | "
+                             f"{v['max_abs']:.2f} | {v['mean']:+.2f} |")
     lines += ["", "## Sampling", "", "| model | seed | R-hat max | bulk ESS min | divergences | chains at different delays "
               "| delays weighed but not visited | sampling [s] |", "|---|---|---|---|---|---|---|---|"]
     for model, m in result["models"].items():
@@ -452,71 +500,30 @@ def likelihood_calibration(
     reported, not counted).  Models with an angle-dependent delay are not
     supported (the fit sums its threshold out; see :func:`quadshank._fit.step_param`).
     """
-    import jax
-    import jax.numpy as jnp
-
     from ._fit import build_model
-    from ._likelihood import leg_loglik_by_delay, max_shift, prepare, response_length
     from ._progress import progress_bar
 
     if replicates < 2:
         raise ValueError(f"replicates must be at least 2, got {replicates}")
     noise = dict(MATCHING_NOISE if noise is None else noise)
-    base = build_model(model)
-    if max_shift(base):
-        raise ValueError(f"{base.name}: the likelihood check takes models without an angle-dependent delay")
-    R = response_length(base)
+    ml = LegMaximumLikelihood(build_model(model), noise)
     clean, truth = simulate_matching(model, legs, minutes, seed, noise={**noise, "sigma": 0.0})
     result_legs = {}
     for leg in truth["legs"]:
         true = truth["legs"][leg]
         trial = next(t for t in clean.trials_of(leg) if t.trial == 1)
-        names, t0, shapes = [], [], {}
-        for name, value in true["params"].items():
-            v = np.atleast_1d(np.asarray(value, np.float64))
-            shapes[name] = np.shape(value)
-            names += [name if not shapes[name] else f"{name}[{i}]" for i in range(v.size)]
-            t0.append(v)
-        t0 = np.concatenate(t0)
-        # Newton steps in units of 5 % of each true value (a zero truth: 0.05 in its own units)
-        unit = np.where(t0 != 0.0, 0.05 * np.abs(t0), 0.05)
-        P = t0.size
+        names, t0 = _flat_truth(true["params"])
         rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(LEGS.index(leg), 1, 13)))
-        with jax.enable_x64(True):
-
-            def values(z):
-                flat = jnp.asarray(t0) + jnp.asarray(unit) * z[:P]
-                out, i = {}, 0
-                for name, shape in shapes.items():
-                    k = int(np.prod(shape)) if shape else 1
-                    out[name] = flat[i] if not shape else flat[i : i + k].reshape(shape)
-                    i += k
-                return out
-
-            def nll(z, x):
-                m = base.with_params(values(z))
-                scale = {"sigma": noise["sigma"] * jnp.exp(z[P]), "nu": noise["nu"] * jnp.exp(z[P + 1])}
-                return -leg_loglik_by_delay(m, scale, x, R, 0)[true["delay"], 0]
-
-            f = jax.jit(nll)
-            grad = jax.jit(jax.grad(nll))
-            hess = jax.jit(jax.hessian(nll))
-            zs, ses = [], []
-            for _ in progress_bar(range(replicates), desc=f"likelihood check {leg}", enabled=progress):
-                acc = trial.acceleration_deg_s2 + noise["sigma"] * rng.standard_t(noise["nu"], size=trial.n_samples)
-                one = Cohort((dataclasses.replace(trial, acceleration_deg_s2=acc),), clean.attrs)
-                x = {k: jnp.asarray(v[0], jnp.float64 if v.dtype.kind == "f" else v.dtype)
-                     for k, v in prepare(one, base).leg_arrays().items()}  # fmt: skip
-                z = _newton(f, grad, hess, jnp.zeros(P + 2), x)
-                H = np.asarray(hess(z, x)) if z is not None else None
-                if H is None or not np.all(np.isfinite(H)) or np.linalg.eigvalsh(H).min() <= 0.0:
-                    continue  # no maximum found (a flat or non-concave likelihood): not counted
-                se = np.sqrt(np.diag(np.linalg.inv(H)))
-                zs.append(np.asarray(z) / se)
-                ses.append(se)
-        zs = np.asarray(zs).reshape(-1, P + 2)
-        n = zs.shape[0]
-        covered = np.abs(zs) < 1.6448536269514722
+        zs = []
+        for _ in progress_bar(range(replicates), desc=f"likelihood check {leg}", enabled=progress):
+            acc = trial.acceleration_deg_s2 + noise["sigma"] * rng.standard_t(noise["nu"], size=trial.n_samples)
+            found = ml.fit(Cohort((dataclasses.replace(trial, acceleration_deg_s2=acc),), clean.attrs), leg, true)
+            if found is not None:  # else no maximum (a flat or non-concave likelihood): not counted
+                est, se = found
+                zs.append((est - np.concatenate([t0, [noise["sigma"], noise["nu"]]])) / se)
+        zs = np.asarray(zs).reshape(-1, len(names) + 2)
+        n, P = zs.shape[0], len(names)
+        covered = np.abs(zs) < Z90
         params = {}
         for j, name in enumerate([*names, "sigma", "nu"]):
             params[name] = {
@@ -529,26 +536,106 @@ def likelihood_calibration(
     n_cov = sum(v["covered"] for v in result_legs.values())
     n_int = sum(v["intervals"] for v in result_legs.values())
     return {
-        "model": base.name, "seed": int(seed), "minutes": float(minutes), "replicates": int(replicates), "noise": noise,
+        "model": ml.model.name, "seed": int(seed), "minutes": float(minutes), "replicates": int(replicates), "noise": noise,
         "legs": result_legs, "covered": n_cov, "intervals": n_int,
         "coverage": n_cov / n_int if n_int else math.nan, "expected_band_95": list(_binomial_band(n_int)),
     }  # fmt: skip
 
 
-def _newton(f, grad, hess, z, x):
-    """The maximum of the log likelihood from ``z``, or None: Newton's method, its Hessian
-    damped (Levenberg–Marquardt) where a full step does not lower the negative log likelihood."""
+#: The two-sided 90 % point of the standard normal.
+Z90 = 1.6448536269514722
+
+
+def _flat_truth(params: dict) -> tuple[list[str], np.ndarray]:
+    """Parameter labels (vector components as ``name[i]``) and values, flattened in order."""
+    names, values = [], []
+    for name, value in params.items():
+        v = np.atleast_1d(np.asarray(value, np.float64))
+        names += [name] if np.ndim(value) == 0 else [f"{name}[{i}]" for i in range(v.size)]
+        values.append(v)
+    return names, np.concatenate(values)
+
+
+class LegMaximumLikelihood:
+    """One leg's maximum likelihood at a given delay, with σ and ν free, and its Hessian
+    standard errors (float64; no prior, no other legs).
+
+    The parameters are moved in steps of 5 % of a reference value (the truth; a zero
+    reference: 0.05 in its own units), starting from it.  Compiled once per data shape.
+    """
+
+    def __init__(self, model, noise: dict):
+        import jax
+        import jax.numpy as jnp
+
+        from ._likelihood import leg_loglik_by_delay, max_shift, response_length
+
+        if max_shift(model):
+            raise ValueError(f"{model.name}: the single-leg maximum likelihood takes models without an angle-dependent delay")
+        self.model, self.noise = model, dict(noise)
+        R = response_length(model)
+
+        def nll(z, ref, unit, d, x, shapes):
+            flat = ref + unit * z[: ref.size]
+            values, i = {}, 0
+            for name, shape in shapes:
+                k = int(np.prod(shape)) if shape else 1
+                values[name] = flat[i] if not shape else flat[i : i + k].reshape(shape)
+                i += k
+            scale = {"sigma": self.noise["sigma"] * jnp.exp(z[-2]), "nu": self.noise["nu"] * jnp.exp(z[-1])}
+            ll = leg_loglik_by_delay(model.with_params(values), scale, x, R, 0)
+            return -jnp.take(ll[:, 0], d)
+
+        static = {"static_argnames": ("shapes",)}
+        self._f = jax.jit(nll, **static)
+        self._grad = jax.jit(jax.grad(nll), **static)
+        self._hess = jax.jit(jax.hessian(nll), **static)
+
+    def fit(self, cohort: Cohort, leg: str, true: dict, trials=(1,)):
+        """(estimate, standard error) of the flattened parameters then σ and ν for ``leg`` of
+        ``cohort`` at the delay ``true["delay"]``, starting from ``true["params"]``; None where
+        no maximum is found."""
+        import jax
+        import jax.numpy as jnp
+
+        from ._likelihood import prepare
+
+        _, ref = _flat_truth(true["params"])
+        shapes = tuple((k, tuple(np.shape(v))) for k, v in true["params"].items())
+        unit = np.where(ref != 0.0, 0.05 * np.abs(ref), 0.05)
+        data = prepare(cohort, self.model, trials=trials, legs=[leg])
+        with jax.enable_x64(True):
+            x = {k: jnp.asarray(v[0], jnp.float64 if v.dtype.kind == "f" else v.dtype) for k, v in data.leg_arrays().items()}
+            args = (jnp.asarray(ref), jnp.asarray(unit), jnp.asarray(int(true["delay"])), x, shapes)
+            z = _newton(
+                lambda z: self._f(z, *args), lambda z: self._grad(z, *args), lambda z: self._hess(z, *args),
+                jnp.zeros(ref.size + 2, jnp.float64),
+            )  # fmt: skip
+            H = None if z is None else np.asarray(self._hess(z, *args))
+        if H is None or not np.all(np.isfinite(H)) or np.linalg.eigvalsh(H).min() <= 0.0:
+            return None
+        se = np.sqrt(np.diag(np.linalg.inv(H)))
+        z = np.asarray(z)
+        scale = np.array([self.noise["sigma"], self.noise["nu"]])
+        est = np.concatenate([ref + unit * z[: ref.size], scale * np.exp(z[-2:])])
+        # σ and ν were moved on the log scale: their standard errors by the delta method
+        return est, np.concatenate([unit * se[: ref.size], est[-2:] * se[-2:]])
+
+
+def _newton(f, grad, hess, z):
+    """The minimum of ``f`` from ``z``, or None: Newton's method, its Hessian damped
+    (Levenberg–Marquardt) where a full step does not lower ``f``."""
     import jax.numpy as jnp
 
     eye = jnp.eye(z.size, dtype=z.dtype)
     lam = 0.0
     for _ in range(_NEWTON_STEPS):
-        f0, g, H = f(z, x), grad(z, x), hess(z, x)
+        f0, g, H = f(z), grad(z), hess(z)
         if not bool(jnp.isfinite(f0) & jnp.all(jnp.isfinite(g))):
             return None
         while True:
             step = jnp.linalg.solve(H + lam * eye, g)
-            if bool(jnp.all(jnp.isfinite(step))) and f(z - step, x) <= f0:
+            if bool(jnp.all(jnp.isfinite(step))) and f(z - step) <= f0:
                 break
             lam = max(1e-3, 10.0 * lam)
             if lam > 1e8:
