@@ -26,6 +26,17 @@ Matching truth, per leg
 The noise parameters are not in the coverage count: the twitch-window likelihood
 of models 1 and 3 treats a window sum of t-distributed samples as t-distributed,
 an approximation that leaves σ and ν without a true value to cover.
+
+Where a shortfall comes from
+----------------------------
+A posterior interval can miss the truth through the likelihood, the prior and
+the pooling of legs, a wrong delay or a sampler that has not mixed.  Two checks
+take these apart.  :func:`likelihood_calibration` (``quadshank
+likelihood-check``) fits noise replicates of one trajectory by maximum
+likelihood, each leg alone at its true delay, and asks whether the likelihood
+itself is calibrated.  :func:`run_recovery` sets each leg's own maximum
+likelihood beside its posterior (``pull``), which shows what the prior and
+the pooling moved.
 """
 
 from __future__ import annotations
@@ -465,6 +476,8 @@ def coverage_markdown(result: dict) -> str:
 
 #: Newton's method on the log likelihood: at most this many steps, stopping below this step.
 _NEWTON_STEPS, _NEWTON_TOL = 60, 1e-7
+#: The two-sided 90 % point of the standard normal.
+Z90 = 1.6448536269514722
 
 
 def likelihood_calibration(
@@ -497,8 +510,8 @@ def likelihood_calibration(
     {"converged", "params": {name: {"z_mean", "z_se", "z_sd", "coverage"}},
     "covered", "intervals"}}, "covered", "intervals", "coverage",
     "expected_band_95"}`` (vector parameters by component, ``name[i]``; σ and ν
-    reported, not counted).  Models with an angle-dependent delay are not
-    supported (the fit sums its threshold out; see :func:`quadshank._fit.step_param`).
+    reported, not counted).  ``model`` is one of the paper's models as it stands (an
+    angle-dependent delay's threshold is summed out by the fit, not maximised).
     """
     from ._fit import build_model
     from ._progress import progress_bar
@@ -540,10 +553,6 @@ def likelihood_calibration(
         "legs": result_legs, "covered": n_cov, "intervals": n_int,
         "coverage": n_cov / n_int if n_int else math.nan, "expected_band_95": list(_binomial_band(n_int)),
     }  # fmt: skip
-
-
-#: The two-sided 90 % point of the standard normal.
-Z90 = 1.6448536269514722
 
 
 def _flat_truth(params: dict) -> tuple[list[str], np.ndarray]:
