@@ -16,6 +16,11 @@ __all__ = ["main"]
 EXPECTED_ERRORS: tuple[type[BaseException], ...] = (FileNotFoundError, KeyError, ValueError, NotADirectoryError)
 
 
+def _command_line(args) -> str:
+    """The command as typed, quoted for a shell: written beside the figures it made."""
+    return "quadshank " + " ".join(shlex.quote(a) for a in args.argv)
+
+
 def _csv_list(text: str) -> list[str]:
     return [x.strip() for x in text.split(",") if x.strip()]
 
@@ -186,7 +191,7 @@ def cmd_recovery(args) -> int:
     from ._fit import FitSettings
     from ._recovery import run_recovery
 
-    command = "quadshank " + " ".join(shlex.quote(a) for a in args.argv)
+    command = _command_line(args)
     settings = FitSettings(
         chains=args.chains, warmup=args.warmup, draws=args.draws, start=args.start, adapt_metric=args.adapt_metric,
         delay_evidence=args.delay_evidence,
@@ -217,7 +222,7 @@ def cmd_recovery(args) -> int:
 def cmd_likelihood_check(args) -> int:
     from ._recovery import run_likelihood_calibration
 
-    command = "quadshank " + " ".join(shlex.quote(a) for a in args.argv)
+    command = _command_line(args)
     result = run_likelihood_calibration(
         args.out,
         models=_csv_list(args.models),
@@ -265,7 +270,7 @@ def cmd_diagnose(args) -> int:
     fit_summary = read_summary(args.fitdir)
     _, model, desc = load_fit(args.fitdir)
     cohort, _ = _loop_data(args, fit_summary)
-    command = "quadshank " + " ".join(shlex.quote(a) for a in args.argv)
+    command = _command_line(args)
     if args.confirm < 0:
         raise ValueError(f"--confirm must be a number of leaders, at least 0, not {args.confirm}")
     summary = run_diagnose(
@@ -282,7 +287,7 @@ def cmd_discover(args) -> int:
     from ._diagnose import run_discover
 
     cohort, data = _loop_data(args)
-    command = "quadshank " + " ".join(shlex.quote(a) for a in args.argv)
+    command = _command_line(args)
     trials = tuple(int(t) for t in _csv_list(args.trials))
     confirm = None
     if args.confirm:
@@ -339,7 +344,7 @@ def cmd_reproduce(args, default_out: str | None = None) -> int:
     from ._pipeline import run_reproduce
 
     out = Path(args.out or default_out)
-    command = "quadshank " + " ".join(shlex.quote(a) for a in args.argv)
+    command = _command_line(args)
     t0 = time.perf_counter()
     summary = run_reproduce(
         out,
@@ -365,7 +370,7 @@ def cmd_reproduce(args, default_out: str | None = None) -> int:
 def cmd_demo(args) -> int:
     from ._demo import run_demo
 
-    command = "quadshank " + " ".join(shlex.quote(a) for a in args.argv)
+    command = _command_line(args)
     t0 = time.perf_counter()
     summary = run_demo(
         args.out, minutes=args.minutes, seed=args.seed, effects=_csv_list(args.effects) if args.effects else (),
