@@ -200,8 +200,7 @@ def coverage_rows(summary: dict, truth: dict) -> list[dict]:
                 raise KeyError(f"parameter {name!r} of the truth is not in the fit of {leg}")
             p = s["params"][name]
             vals, med, lo, hi = (np.atleast_1d(np.asarray(v, np.float64)) for v in (value, p["median"], p["lo"], p["hi"]))
-            for i in range(vals.size):
-                label = name if vals.size == 1 else f"{name}[{i}]"
+            for i, label in enumerate(_component_labels(name, vals.size)):
                 rows.append({
                     "leg": leg, "param": label, "true": float(vals[i]), "median": float(med[i]),
                     "lo": float(lo[i]), "hi": float(hi[i]), "covered": bool(lo[i] <= vals[i] <= hi[i]),
@@ -555,12 +554,17 @@ def likelihood_calibration(
     }  # fmt: skip
 
 
+def _component_labels(name: str, size: int) -> list[str]:
+    """Row labels of a parameter's components: the name, or ``name[i]`` for a vector."""
+    return [name] if size == 1 else [f"{name}[{i}]" for i in range(size)]
+
+
 def _flat_truth(params: dict) -> tuple[list[str], np.ndarray]:
-    """Parameter labels (vector components as ``name[i]``) and values, flattened in order."""
+    """Parameter labels (as :func:`coverage_rows` gives them) and values, flattened in order."""
     names, values = [], []
     for name, value in params.items():
         v = np.atleast_1d(np.asarray(value, np.float64))
-        names += [name] if np.ndim(value) == 0 else [f"{name}[{i}]" for i in range(v.size)]
+        names += _component_labels(name, v.size)
         values.append(v)
     return names, np.concatenate(values)
 
