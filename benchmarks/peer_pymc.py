@@ -84,8 +84,11 @@ def _leg_marginal(pt, data, i, v, sigma, nu, R, K, shift_prior, angle_delay):
     e = pt.switch(mask, data.acceleration[i] - passive, 0.0)
     W = data.window_len.shape[-1]
     E = pt.zeros(W)[data.window[i]].inc(e)
-    scale = sigma * np.sqrt(data.window_len[i])
-    lp0 = pt.switch(data.window_mask[i], _t_logpdf(pt, E, nu, scale), 0.0)
+    n = data.window_len[i]  # a window's sum as quadshank's window_noise: the sum's variance and kurtosis
+    x = pt.maximum(nu - 4.0, 0.0)
+    nu_w = nu + (n - 1.0) * x * x / (x + 0.5)
+    scale = sigma * pt.sqrt(n * nu / nu_w * (1.0 + (nu_w - nu) / pt.maximum(nu - 2.0, 1.0)))
+    lp0 = pt.switch(data.window_mask[i], _t_logpdf(pt, E, nu_w, scale), 0.0)
     F = 1.0
     if "gamma_angle" in v:
         F = F * (1.0 + v["gamma_angle"] * angle)
@@ -105,7 +108,7 @@ def _leg_marginal(pt, data, i, v, sigma, nu, R, K, shift_prior, angle_delay):
     a_long = amplitudes(0)
     M = pt.zeros(D * U)[flat_pos].inc(a_long.ravel()).reshape((D, U))
     r0 = E[tw] - M
-    lp = _t_logpdf(pt, r0, nu, scale[tw]) - lp0[tw]
+    lp = _t_logpdf(pt, r0, nu_w[tw], scale[tw]) - lp0[tw]
     ell_long = pt.sum(lp0) + pt.sum(pt.switch(tm, lp, 0.0), axis=1)  # (D,)
     if not (K and angle_delay):
         return pt.logsumexp(ell_long - math.log(N_DELAYS) + shift_prior[:, 0])
@@ -118,6 +121,7 @@ def _leg_marginal(pt, data, i, v, sigma, nu, R, K, shift_prior, angle_delay):
     flat_pulse = (data.step_pair_pulse[i] + rows_d * P).ravel()
     r_pair = r0[rows_d, pair_window]
     s_pair = scale[tw][rows_d, pair_window]
+    nu_pair = nu_w[tw][rows_d, pair_window]
     keep = data.step_pair_mask[i] & tm[rows_d, pair_window]
     order, valid_order = data.step_order[i], data.step_pulse_valid[i]
     a = angle[data.pulse_sample[i][order]]
@@ -131,7 +135,7 @@ def _leg_marginal(pt, data, i, v, sigma, nu, R, K, shift_prior, angle_delay):
 
     def kernel(x):
         zz = x / s_pair
-        return -0.5 * (nu + 1.0) * pt.log1p(zz * zz / nu)
+        return -0.5 * (nu_pair + 1.0) * pt.log1p(zz * zz / nu_pair)
 
     cols = [pt.logsumexp(ell_long[:, None] + log_mass[None, :], axis=1)]  # shift 0: every state alike
     for shift in range(1, K + 1):

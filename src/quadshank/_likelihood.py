@@ -29,8 +29,12 @@ At what resolution
     what model 2's shaped twitch measures, as in the paper (Table I).
 
 Noise
-    Student-t with per-leg scale σ (per sample; a window of n samples has
-    scale σ√n) and degrees of freedom ν.  The accelerometers' skin-motion
+    Student-t with per-leg scale σ and degrees of freedom ν per sample.  A
+    window's sum of n samples is not Student-t; it is compared as one
+    (:func:`window_noise`) with the sum's variance and, for ν > 4, its
+    kurtosis, so its tails thin with n as the sum's do.  Scaling σ√n with ν
+    alone would make a twitch window's sum too heavy-tailed and too narrow in
+    its middle, and the active parameters' intervals too narrow with it.  The accelerometers' skin-motion
     resonance (the paper's discussion, ref. [35]) shows as bursts of large
     residual after sudden motions, i.e. heavy tails; the paper's answer, a
     whitening filter estimated jointly with the input dynamics (eq. 10), it
@@ -95,6 +99,7 @@ __all__ = [
     "leg_pointwise",
     "leg_active_output",
     "student_t_logpdf",
+    "window_noise",
     "max_shift",
     "response_length",
     "SEGMENT_SAMPLES",
@@ -574,17 +579,33 @@ def gain_factors(model: Model, angle, velocity, stimulation):
     return F
 
 
+def window_noise(sigma, nu, n):
+    """Scale and degrees of freedom of the Student-t that stands for a sum of ``n`` samples of σ·t_ν.
+
+    The sum's variance n σ² ν/(ν − 2) is matched exactly; for ν > 4 its excess
+    kurtosis 6/(n(ν − 4)) is matched by ν_n = ν + (n − 1)(ν − 4), smoothed near
+    ν = 4 as ν + (n − 1) x₊²/(x₊ + ½) with x = ν − 4 so that its gradient is
+    continuous.  For ν ≤ 4 (no finite kurtosis) and for n = 1 it is σ√n and ν.
+    """
+    x = jnp.maximum(nu - 4.0, 0.0)
+    nu_n = nu + (jnp.maximum(n, 1.0) - 1.0) * x * x / (x + 0.5)
+    # ν(ν_n − 2) / ((ν − 2) ν_n), written so that ν ≤ 4 (where ν_n = ν) gives exactly 1
+    ratio = nu / nu_n * (1.0 + (nu_n - nu) / jnp.maximum(nu - 2.0, 1.0))
+    return sigma * jnp.sqrt(n * ratio), nu_n
+
+
 def _window_terms(model: Model, noise: dict, x: dict):
-    """Window sums of the equivalent acceleration, their scales and base log densities."""
+    """Window sums of the equivalent acceleration, their scales, base log densities and degrees
+    of freedom (:func:`window_noise`)."""
     W = x["window_len"].shape[-1]
     # x["angle"] is already the true angle (see _sensed)
     passive = jnp.where(x["sample_mask"], _passive_acc(model, x["angle"], x["velocity"]), 0.0)
     e = x["acceleration"] - measured_acceleration(model, passive)
     e = jnp.where(x["sample_mask"], e, 0.0)
     E = jax.ops.segment_sum(e, x["window"], num_segments=W)
-    scale = noise["sigma"] * jnp.sqrt(x["window_len"])
-    lp0 = jnp.where(x["window_mask"], student_t_logpdf(E, noise["nu"], scale), 0.0)
-    return E, scale, lp0
+    scale, nu = window_noise(noise["sigma"], noise["nu"], x["window_len"])
+    lp0 = jnp.where(x["window_mask"], student_t_logpdf(E, nu, scale), 0.0)
+    return E, scale, lp0, nu
 
 
 def _pulse_q(model: Model, x: dict):
@@ -646,13 +667,13 @@ def _contributions(model: Model, x: dict, R: int, K: int, shift, d, F, uq, valid
 
 def _leg_terms(model: Model, noise: dict, x: dict):
     """What every delay of one leg shares: the arrays with the true angle, the window sums of
-    the equivalent acceleration with their scales and base log densities, the gain and output
+    the equivalent acceleration with their scales, base log densities and degrees of freedom, the gain and output
     factors at every sample, and each pulse's u·q."""
     x = _sensed(model, x)
-    E, scale, lp0 = _window_terms(model, noise, x)
+    E, scale, lp0, nu = _window_terms(model, noise, x)
     F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
     G = output_factors(model, x["angle"], x["velocity"], x["stimulation"])
-    return x, E, scale, lp0, F, G, _pulse_q(model, x)
+    return x, E, scale, lp0, nu, F, G, _pulse_q(model, x)
 
 
 def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
@@ -662,7 +683,7 @@ def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
     """
     if "pulse_slot" in x:
         return _by_delay_pulses(model, noise, x, R, K)
-    x, E, scale, lp0, F, G, uq = _leg_terms(model, noise, x)
+    x, E, scale, lp0, nu, F, G, uq = _leg_terms(model, noise, x)
     base = jnp.sum(lp0)
     U = x["touch_window"].shape[-1]
     delays = jnp.arange(x["touch_sample"].shape[0])
@@ -672,7 +693,7 @@ def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
         def one(d, valid, samples, pos, tw, tm, shift=shift):
             c = _contributions(model, x, R, K, shift, d, F, uq, valid, samples, G)
             M = jax.ops.segment_sum(c, pos, num_segments=U)
-            lp = student_t_logpdf(E[tw] - M, noise["nu"], scale[tw]) - lp0[tw]
+            lp = student_t_logpdf(E[tw] - M, nu[tw], scale[tw]) - lp0[tw]
             return jnp.sum(jnp.where(tm, lp, 0.0))
 
         out.append(jax.vmap(one)(delays, x["touch_valid"], x["touch_sample"], x["touch_pos"], x["touch_window"], x["touch_mask"]))
@@ -702,8 +723,8 @@ def _pair_deltas(b, first, r, s, keep, nu):
     """Along the last axis, (window, pulse) pairs in window order and, within a window, in angle
     order: the change of each pair's window log density when its pulse takes the shorter delay
     after the window's pulses before it have.  ``b`` is each pair's change of the window's model
-    sum, ``first`` the position of its window's first pair, ``r`` and ``s`` the window's residual
-    (every pulse at the long delay) and scale; 0 where ``keep`` is False."""
+    sum, ``first`` the position of its window's first pair, ``r``, ``s`` and ``nu`` the window's
+    residual (every pulse at the long delay), scale and degrees of freedom; 0 where ``keep`` is False."""
     cs = _cumsum(b)
     incl = cs - (jnp.take(cs, first, axis=-1) - jnp.take(b, first, axis=-1))  # this pair and the window's earlier ones
     excl = incl - b
@@ -727,7 +748,7 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
     """
     if "pulse_slot" in x:
         return _by_threshold_pulses(model, noise, x, R, K)
-    x, E, scale, lp0, F, G, uq = _leg_terms(model, noise, x)
+    x, E, scale, lp0, nu, F, G, uq = _leg_terms(model, noise, x)
     base = jnp.sum(lp0)
     U = x["touch_window"].shape[-1]
     Q = x["step_pair_mask"].shape[-1]
@@ -735,7 +756,6 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
     h_pad = _padded_response(model, R, K)
     p = x["pulse_sample"]
     last = F.shape[-1] - 1
-    nu = noise["nu"]
 
     def one(d, valid, samples, pos, tw, tm, entry_pair, pair_window, pair_pulse, pair_first, pair_mask):
         def amplitudes(shift):
@@ -747,15 +767,16 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
         a_long = amplitudes(0)
         M = jax.ops.segment_sum(a_long, pos, num_segments=U)
         r0 = E[tw] - M
-        lp_long = jnp.where(tm, _t_kernel(r0, nu, scale[tw]) - _t_kernel(E[tw], nu, scale[tw]), 0.0)
+        lp_long = jnp.where(tm, _t_kernel(r0, nu[tw], scale[tw]) - _t_kernel(E[tw], nu[tw], scale[tw]), 0.0)
         ell_long = base + jnp.sum(lp_long)
         rows = [jnp.full((P + 1,), ell_long)]
         r_pair = r0[pair_window]
         s_pair = scale[tw][pair_window]
+        nu_pair = nu[tw][pair_window]
         keep = pair_mask & tm[pair_window]
         for shift in range(1, K + 1):
             b = jax.ops.segment_sum(amplitudes(shift) - a_long, entry_pair, num_segments=Q)  # per (window, pulse)
-            delta = _pair_deltas(b, pair_first, r_pair, s_pair, keep, nu)
+            delta = _pair_deltas(b, pair_first, r_pair, s_pair, keep, nu_pair)
             per_pulse = jax.ops.segment_sum(delta, pair_pulse, num_segments=P)
             steps = jnp.where(x["step_pulse_valid"], per_pulse[x["step_order"]], 0.0)
             rows.append(_state_rows(ell_long, steps))
@@ -773,11 +794,11 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
 
 def _pulse_terms(model: Model, noise: dict, x: dict, R: int, K: int):
     """What the pulse-level path shares (see :func:`pulse_tables`): the arrays with the true
-    angle, the base log-likelihood, the slots' window sums and scales, and each pulse's
+    angle, the base log-likelihood, the slots' window sums, scales and degrees of freedom, and each pulse's
     whole-twitch output (K + 1, D, P) at delay d when it takes shift s,
     u_i q_i F(p_i + d − s) Σh, the gain factors evaluated at those samples only."""
     x = _sensed(model, x)
-    E, scale, lp0 = _window_terms(model, noise, x)
+    E, scale, lp0, nu = _window_terms(model, noise, x)
     p = x["pulse_sample"]
     last = x["angle"].shape[-1] - 1
     at = jnp.clip(p[None, :] + jnp.arange(-K, N_DELAYS)[:, None], 0, last)  # (K + D, P): p + j, j = −K … MAX_DELAY
@@ -786,7 +807,7 @@ def _pulse_terms(model: Model, noise: dict, x: dict, R: int, K: int):
     whole = uq * jnp.sum(model_response(model, R).astype(uq.dtype))  # summed at the data's precision
     amp = jnp.stack([whole * F[K - s : K - s + N_DELAYS] for s in range(K + 1)])
     sw = x["slot_window"]
-    return x, jnp.sum(lp0), E[sw], scale[sw], x["slot_mask"] & x["window_mask"][sw], amp
+    return x, jnp.sum(lp0), E[sw], scale[sw], nu[sw], x["slot_mask"] & x["window_mask"][sw], amp
 
 
 def _slot_sums(a, slot, V: int):
@@ -798,31 +819,29 @@ def _slot_sums(a, slot, V: int):
 
 def _by_delay_pulses(model: Model, noise: dict, x: dict, R: int, K: int):
     """:func:`leg_loglik_by_delay` on the pulse-level path."""
-    x, base, Es, ss, keep, amp = _pulse_terms(model, noise, x, R, K)
+    x, base, Es, ss, nu, keep, amp = _pulse_terms(model, noise, x, R, K)
     if K:
         w = model.delay_effect.pulse_weight(x["angle"][x["pulse_sample"]])
         amp = (1.0 - w) * amp[:1] + w * amp  # shift 0 is the plain response
     M = _slot_sums(jnp.moveaxis(amp, 0, 1), x["pulse_slot"], x["slot_window"].shape[-1])  # (D, K + 1, V)
-    nu = noise["nu"]
     lp = _t_kernel(Es - M, nu, ss) - _t_kernel(Es, nu, ss)
     return base + jnp.sum(jnp.where(keep, lp, 0.0), axis=-1)
 
 
 def _by_threshold_pulses(model: Model, noise: dict, x: dict, R: int, K: int):
     """:func:`leg_loglik_by_threshold` on the pulse-level path: a (window, pulse) pair is a pulse."""
-    x, base, Es, ss, keep, amp = _pulse_terms(model, noise, x, R, K)
+    x, base, Es, ss, nu, keep, amp = _pulse_terms(model, noise, x, R, K)
     V = x["slot_window"].shape[-1]
     P = x["pulse_sample"].shape[-1]
-    nu = noise["nu"]
     r0 = Es - _slot_sums(amp[0], x["pulse_slot"], V)  # (D, V): every pulse at its long delay
     ell_long = base + jnp.sum(jnp.where(keep, _t_kernel(r0, nu, ss) - _t_kernel(Es, nu, ss), 0.0), axis=-1)
     order, first = x["step_slot_order"], x["step_slot_first"]
     slot = x["pulse_slot"][order]
-    r_pair, s_pair, keep_pair = r0[:, slot], ss[slot], keep[slot]
+    r_pair, s_pair, nu_pair, keep_pair = r0[:, slot], ss[slot], nu[slot], keep[slot]
     rows = [jnp.broadcast_to(ell_long[:, None], (N_DELAYS, P + 1))]
     for shift in range(1, K + 1):
         b = (amp[shift] - amp[0])[:, order]  # (D, P) by slot, then angle
-        delta = _pair_deltas(b, first, r_pair, s_pair, keep_pair, nu)
+        delta = _pair_deltas(b, first, r_pair, s_pair, keep_pair, nu_pair)
         steps = jnp.where(x["step_pulse_valid"], delta[:, x["step_rank_pos"]], 0.0)  # by angle
         rows.append(_state_rows(ell_long, steps))
     return jnp.stack(rows, axis=1)  # (D, K + 1, P + 1)
@@ -873,18 +892,18 @@ def leg_window_cdf(model: Model, noise: dict, x: dict, d_index, R: int, K: int =
     """The predictive CDF of each likelihood window's measured equivalent acceleration at
     (θ, d, shift): P(E_rep ≤ E | θ) under the Student-t noise model (the LOO-PIT's ingredient)."""
     x = _sensed(model, x)
-    E, scale, _ = _window_terms(model, noise, x)
+    E, scale, _, nu = _window_terms(model, noise, x)
     M = jax.ops.segment_sum(_active_output(model, x, d_index, R, K, shift), x["window"], num_segments=E.shape[-1])
-    return student_t_cdf((E - M) / scale, noise["nu"])
+    return student_t_cdf((E - M) / scale, nu)
 
 
 def leg_pointwise(model: Model, noise: dict, x: dict, d_index, R: int, n_segments: int, K: int = 0, shift=0):
     """log p(y_segment | θ, d, shift) per PSIS-LOO segment of one leg."""
     x = _sensed(model, x)
-    E, scale, _ = _window_terms(model, noise, x)
+    E, scale, _, nu = _window_terms(model, noise, x)
     W = E.shape[-1]
     M_sample = _active_output(model, x, d_index, R, K, shift)
     M = jax.ops.segment_sum(M_sample, x["window"], num_segments=W)
-    lp = jnp.where(x["window_mask"], student_t_logpdf(E - M, noise["nu"], scale), 0.0)
+    lp = jnp.where(x["window_mask"], student_t_logpdf(E - M, nu, scale), 0.0)
     seg = jnp.where(x["window_mask"], x["window_segment"], n_segments)
     return jax.ops.segment_sum(lp, seg, num_segments=n_segments + 1)[:n_segments]
