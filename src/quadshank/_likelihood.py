@@ -144,6 +144,8 @@ class LikelihoodData:
     sample_mask: np.ndarray  # (L, N) bool
     window: np.ndarray  # (L, N) window of each sample (padding -> last, masked window)
     window_len: np.ndarray  # (L, W) samples per window
+    window_lengths: np.ndarray  # (L, Z) the leg's distinct window lengths (padding: 1)
+    window_length_index: np.ndarray  # (L, W) each window's length in window_lengths
     window_mask: np.ndarray  # (L, W) bool
     window_segment: np.ndarray  # (L, W) PSIS-LOO unit of each window
     n_segments: int
@@ -181,7 +183,8 @@ class LikelihoodData:
     def leg_arrays(self) -> dict[str, jnp.ndarray]:
         """The arrays the JAX functions need, keyed by name, leading axis = leg."""
         names = (
-            "angle velocity acceleration stimulation sample_mask window window_len window_mask window_segment "
+            "angle velocity acceleration stimulation sample_mask window window_lengths window_length_index window_mask "
+            "window_segment "
             "segment_mask pulse_sample pulse_u pulse_ipi_s pulse_count pulse_time_s touch_sample touch_valid touch_pos touch_window touch_mask"
         ).split()
         names += [f.name for f in dataclasses.fields(self) if f.name.startswith("step_") or f.name in PULSE_LEVEL_FIELDS]
@@ -327,6 +330,13 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         first = np.flatnonzero(starts[i] & m)
         window_segment[i, window[i][first]] = sample_segment[i][first]
     window_len = np.maximum(window_len, 1.0)
+    # the noise of a window depends on its length alone (window_noise): computed once per length
+    distinct = [np.unique(window_len[i]) for i in range(L)]
+    window_lengths = np.ones((L, _bucket(max(d.size for d in distinct))), np.float32)
+    window_length_index = np.zeros((L, W), np.int64)
+    for i, d in enumerate(distinct):
+        window_lengths[i, : d.size] = d
+        window_length_index[i] = np.searchsorted(d, window_len[i])
     S = max(x["n_segments"] for x in per_leg)
     segment_mask = np.zeros((L, S), bool)
     for i, x in enumerate(per_leg):
@@ -402,6 +412,8 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         sample_mask=sample_mask,
         window=window,
         window_len=window_len,
+        window_lengths=window_lengths,
+        window_length_index=window_length_index,
         window_mask=window_mask,
         window_segment=window_segment,
         n_segments=S,
@@ -530,13 +542,12 @@ def step_tables(angle, pulse_sample, pulse_u, touch_valid, touch_pos, RK: int) -
 
 def student_t_logpdf(x, nu, scale):
     """log density of a Student-t with ``nu`` degrees of freedom and ``scale`` at ``x``."""
-    return (
-        jax.scipy.special.gammaln(0.5 * (nu + 1.0))
-        - jax.scipy.special.gammaln(0.5 * nu)
-        - 0.5 * jnp.log(nu * math.pi)
-        - jnp.log(scale)
-        + _t_kernel(x, nu, scale)
-    )
+    return _t_norm(nu, scale) + _t_kernel(x, nu, scale)
+
+
+def _t_norm(nu, scale):
+    """The Student-t log density's normalising term (the part that does not depend on x)."""
+    return jax.scipy.special.gammaln(0.5 * (nu + 1.0)) - jax.scipy.special.gammaln(0.5 * nu) - 0.5 * jnp.log(nu * math.pi) - jnp.log(scale)
 
 
 def _sensed(model: Model, x: dict) -> dict:
@@ -594,18 +605,35 @@ def window_noise(sigma, nu, n):
     return sigma * jnp.sqrt(n * ratio), nu_n
 
 
+def _at(v, i):
+    """``v[i]`` for a per-window array, ``v`` itself for a scalar shared by every window."""
+    return v if jnp.ndim(v) == 0 else v[i]
+
+
 def _window_terms(model: Model, noise: dict, x: dict):
-    """Window sums of the equivalent acceleration, their scales, base log densities and degrees
-    of freedom (:func:`window_noise`)."""
-    W = x["window_len"].shape[-1]
+    """Window sums E of the equivalent acceleration; their scales and degrees of freedom
+    (:func:`window_noise`); their log density's normalising term and its E-dependent part with
+    no active output; and the two summed over the windows, the base log-likelihood.  The noise
+    is computed once per distinct window length, not per window: its log-gamma terms would
+    otherwise cost more than the rest of the likelihood.  Where every window is one sample
+    (``resolution = "sample"``) the scale, degrees of freedom and normalising term are σ, ν and
+    one scalar: :func:`_at` indexes them."""
+    W = x["window_length_index"].shape[-1]
     # x["angle"] is already the true angle (see _sensed)
     passive = jnp.where(x["sample_mask"], _passive_acc(model, x["angle"], x["velocity"]), 0.0)
     e = x["acceleration"] - measured_acceleration(model, passive)
     e = jnp.where(x["sample_mask"], e, 0.0)
     E = jax.ops.segment_sum(e, x["window"], num_segments=W)
-    scale, nu = window_noise(noise["sigma"], noise["nu"], x["window_len"])
-    lp0 = jnp.where(x["window_mask"], student_t_logpdf(E, nu, scale), 0.0)
-    return E, scale, lp0, nu
+    if getattr(model.activation, "resolution", "sample") == "sample":  # one-sample windows: σ t_ν as it is
+        scale, nu = noise["sigma"], noise["nu"]
+        norm = _t_norm(nu, scale)
+    else:
+        scale_z, nu_z = window_noise(noise["sigma"], noise["nu"], x["window_lengths"])
+        idx = x["window_length_index"]
+        scale, nu, norm = scale_z[idx], nu_z[idx], _t_norm(nu_z, scale_z)[idx]
+    k0 = _t_kernel(E, nu, scale)
+    base = jnp.sum(jnp.where(x["window_mask"], norm + k0, 0.0))
+    return E, scale, nu, norm, k0, base
 
 
 def _pulse_q(model: Model, x: dict):
@@ -667,13 +695,14 @@ def _contributions(model: Model, x: dict, R: int, K: int, shift, d, F, uq, valid
 
 def _leg_terms(model: Model, noise: dict, x: dict):
     """What every delay of one leg shares: the arrays with the true angle, the window sums of
-    the equivalent acceleration with their scales, base log densities and degrees of freedom, the gain and output
+    the equivalent acceleration with their scales, degrees of freedom and log density kernels
+    with no active output, the base log-likelihood, the gain and output
     factors at every sample, and each pulse's u·q."""
     x = _sensed(model, x)
-    E, scale, lp0, nu = _window_terms(model, noise, x)
+    E, scale, nu, _, k0, base = _window_terms(model, noise, x)
     F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
     G = output_factors(model, x["angle"], x["velocity"], x["stimulation"])
-    return x, E, scale, lp0, nu, F, G, _pulse_q(model, x)
+    return x, E, scale, nu, k0, base, F, G, _pulse_q(model, x)
 
 
 def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
@@ -683,8 +712,7 @@ def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
     """
     if "pulse_slot" in x:
         return _by_delay_pulses(model, noise, x, R, K)
-    x, E, scale, lp0, nu, F, G, uq = _leg_terms(model, noise, x)
-    base = jnp.sum(lp0)
+    x, E, scale, nu, k0, base, F, G, uq = _leg_terms(model, noise, x)
     U = x["touch_window"].shape[-1]
     delays = jnp.arange(x["touch_sample"].shape[0])
     out = []
@@ -693,7 +721,7 @@ def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
         def one(d, valid, samples, pos, tw, tm, shift=shift):
             c = _contributions(model, x, R, K, shift, d, F, uq, valid, samples, G)
             M = jax.ops.segment_sum(c, pos, num_segments=U)
-            lp = student_t_logpdf(E[tw] - M, nu[tw], scale[tw]) - lp0[tw]
+            lp = _t_kernel(E[tw] - M, _at(nu, tw), _at(scale, tw)) - k0[tw]
             return jnp.sum(jnp.where(tm, lp, 0.0))
 
         out.append(jax.vmap(one)(delays, x["touch_valid"], x["touch_sample"], x["touch_pos"], x["touch_window"], x["touch_mask"]))
@@ -748,8 +776,7 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
     """
     if "pulse_slot" in x:
         return _by_threshold_pulses(model, noise, x, R, K)
-    x, E, scale, lp0, nu, F, G, uq = _leg_terms(model, noise, x)
-    base = jnp.sum(lp0)
+    x, E, scale, nu, k0, base, F, G, uq = _leg_terms(model, noise, x)
     U = x["touch_window"].shape[-1]
     Q = x["step_pair_mask"].shape[-1]
     P = x["pulse_sample"].shape[-1]
@@ -767,12 +794,12 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
         a_long = amplitudes(0)
         M = jax.ops.segment_sum(a_long, pos, num_segments=U)
         r0 = E[tw] - M
-        lp_long = jnp.where(tm, _t_kernel(r0, nu[tw], scale[tw]) - _t_kernel(E[tw], nu[tw], scale[tw]), 0.0)
+        lp_long = jnp.where(tm, _t_kernel(r0, _at(nu, tw), _at(scale, tw)) - k0[tw], 0.0)
         ell_long = base + jnp.sum(lp_long)
         rows = [jnp.full((P + 1,), ell_long)]
         r_pair = r0[pair_window]
-        s_pair = scale[tw][pair_window]
-        nu_pair = nu[tw][pair_window]
+        s_pair = _at(_at(scale, tw), pair_window)
+        nu_pair = _at(_at(nu, tw), pair_window)
         keep = pair_mask & tm[pair_window]
         for shift in range(1, K + 1):
             b = jax.ops.segment_sum(amplitudes(shift) - a_long, entry_pair, num_segments=Q)  # per (window, pulse)
@@ -794,11 +821,11 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
 
 def _pulse_terms(model: Model, noise: dict, x: dict, R: int, K: int):
     """What the pulse-level path shares (see :func:`pulse_tables`): the arrays with the true
-    angle, the base log-likelihood, the slots' window sums, scales and degrees of freedom, and each pulse's
+    angle, the base log-likelihood, the slots' window sums, scales, degrees of freedom and kernels with no active output, and each pulse's
     whole-twitch output (K + 1, D, P) at delay d when it takes shift s,
     u_i q_i F(p_i + d − s) Σh, the gain factors evaluated at those samples only."""
     x = _sensed(model, x)
-    E, scale, lp0, nu = _window_terms(model, noise, x)
+    E, scale, nu, _, k0, base = _window_terms(model, noise, x)
     p = x["pulse_sample"]
     last = x["angle"].shape[-1] - 1
     at = jnp.clip(p[None, :] + jnp.arange(-K, N_DELAYS)[:, None], 0, last)  # (K + D, P): p + j, j = −K … MAX_DELAY
@@ -807,7 +834,7 @@ def _pulse_terms(model: Model, noise: dict, x: dict, R: int, K: int):
     whole = uq * jnp.sum(model_response(model, R).astype(uq.dtype))  # summed at the data's precision
     amp = jnp.stack([whole * F[K - s : K - s + N_DELAYS] for s in range(K + 1)])
     sw = x["slot_window"]
-    return x, jnp.sum(lp0), E[sw], scale[sw], nu[sw], x["slot_mask"] & x["window_mask"][sw], amp
+    return x, base, E[sw], _at(scale, sw), _at(nu, sw), k0[sw], x["slot_mask"] & x["window_mask"][sw], amp
 
 
 def _slot_sums(a, slot, V: int):
@@ -819,25 +846,25 @@ def _slot_sums(a, slot, V: int):
 
 def _by_delay_pulses(model: Model, noise: dict, x: dict, R: int, K: int):
     """:func:`leg_loglik_by_delay` on the pulse-level path."""
-    x, base, Es, ss, nu, keep, amp = _pulse_terms(model, noise, x, R, K)
+    x, base, Es, ss, nu, k0, keep, amp = _pulse_terms(model, noise, x, R, K)
     if K:
         w = model.delay_effect.pulse_weight(x["angle"][x["pulse_sample"]])
         amp = (1.0 - w) * amp[:1] + w * amp  # shift 0 is the plain response
     M = _slot_sums(jnp.moveaxis(amp, 0, 1), x["pulse_slot"], x["slot_window"].shape[-1])  # (D, K + 1, V)
-    lp = _t_kernel(Es - M, nu, ss) - _t_kernel(Es, nu, ss)
+    lp = _t_kernel(Es - M, nu, ss) - k0
     return base + jnp.sum(jnp.where(keep, lp, 0.0), axis=-1)
 
 
 def _by_threshold_pulses(model: Model, noise: dict, x: dict, R: int, K: int):
     """:func:`leg_loglik_by_threshold` on the pulse-level path: a (window, pulse) pair is a pulse."""
-    x, base, Es, ss, nu, keep, amp = _pulse_terms(model, noise, x, R, K)
+    x, base, Es, ss, nu, k0, keep, amp = _pulse_terms(model, noise, x, R, K)
     V = x["slot_window"].shape[-1]
     P = x["pulse_sample"].shape[-1]
     r0 = Es - _slot_sums(amp[0], x["pulse_slot"], V)  # (D, V): every pulse at its long delay
-    ell_long = base + jnp.sum(jnp.where(keep, _t_kernel(r0, nu, ss) - _t_kernel(Es, nu, ss), 0.0), axis=-1)
+    ell_long = base + jnp.sum(jnp.where(keep, _t_kernel(r0, nu, ss) - k0, 0.0), axis=-1)
     order, first = x["step_slot_order"], x["step_slot_first"]
     slot = x["pulse_slot"][order]
-    r_pair, s_pair, nu_pair, keep_pair = r0[:, slot], ss[slot], nu[slot], keep[slot]
+    r_pair, s_pair, nu_pair, keep_pair = r0[:, slot], _at(ss, slot), _at(nu, slot), keep[slot]
     rows = [jnp.broadcast_to(ell_long[:, None], (N_DELAYS, P + 1))]
     for shift in range(1, K + 1):
         b = (amp[shift] - amp[0])[:, order]  # (D, P) by slot, then angle
@@ -892,7 +919,7 @@ def leg_window_cdf(model: Model, noise: dict, x: dict, d_index, R: int, K: int =
     """The predictive CDF of each likelihood window's measured equivalent acceleration at
     (θ, d, shift): P(E_rep ≤ E | θ) under the Student-t noise model (the LOO-PIT's ingredient)."""
     x = _sensed(model, x)
-    E, scale, _, nu = _window_terms(model, noise, x)
+    E, scale, nu, *_ = _window_terms(model, noise, x)
     M = jax.ops.segment_sum(_active_output(model, x, d_index, R, K, shift), x["window"], num_segments=E.shape[-1])
     return student_t_cdf((E - M) / scale, nu)
 
@@ -900,10 +927,10 @@ def leg_window_cdf(model: Model, noise: dict, x: dict, d_index, R: int, K: int =
 def leg_pointwise(model: Model, noise: dict, x: dict, d_index, R: int, n_segments: int, K: int = 0, shift=0):
     """log p(y_segment | θ, d, shift) per PSIS-LOO segment of one leg."""
     x = _sensed(model, x)
-    E, scale, _, nu = _window_terms(model, noise, x)
+    E, scale, nu, norm, *_ = _window_terms(model, noise, x)
     W = E.shape[-1]
     M_sample = _active_output(model, x, d_index, R, K, shift)
     M = jax.ops.segment_sum(M_sample, x["window"], num_segments=W)
-    lp = jnp.where(x["window_mask"], student_t_logpdf(E - M, nu, scale), 0.0)
+    lp = jnp.where(x["window_mask"], norm + _t_kernel(E - M, nu, scale), 0.0)
     seg = jnp.where(x["window_mask"], x["window_segment"], n_segments)
     return jax.ops.segment_sum(lp, seg, num_segments=n_segments + 1)[:n_segments]
