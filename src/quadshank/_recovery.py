@@ -24,8 +24,10 @@ Matching truth, per leg
   independent Student-t noise per sample (``MATCHING_NOISE``).
 
 The noise parameters are not in the coverage count: the twitch-window likelihood
-of models 1 and 3 treats a window sum of t-distributed samples as t-distributed,
-an approximation that leaves σ and ν without a true value to cover.
+of models 1 and 3 treats a window sum of t-distributed samples as t-distributed
+with the sum's variance and kurtosis (:func:`quadshank._likelihood.window_noise`),
+an approximation under which σ and ν are close to, not exactly, the values that
+drew the noise.
 
 Where a shortfall comes from
 ----------------------------
@@ -715,5 +717,9 @@ def likelihood_markdown(result: dict) -> str:
         for leg, v in r["legs"].items():
             cells = [f"{p['z_mean']:+.2f} ± {p['z_se']:.2f} / {p['z_sd']:.2f} / {p['coverage']:.2f}" for p in v["params"].values()]
             lines.append(f"| {leg} | " + " | ".join(cells) + " |")
-    lines += ["", "σ and ν are shown, not counted in the coverage (on twitch windows, models 1 and 3, they have no true value)."]
+    lines += [
+        "",
+        "σ and ν are shown, not counted in the coverage: on twitch windows (models 1 and 3) the likelihood takes a "
+        "window's sum of Student-t samples as a Student-t with the sum's variance and kurtosis, an approximation.",
+    ]
     return "\n".join(lines) + "\n"
