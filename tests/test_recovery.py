@@ -198,13 +198,14 @@ def test_likelihood_check_command_finds_the_likelihood_calibrated(tmp_path):
     (run,) = json.loads((out / "likelihood.json").read_text())["runs"]
     leg = run["legs"]["TN-right"]
     assert leg["converged"] >= 36 and leg["intervals"] == 7 * leg["converged"]
-    # at 1 min the twitch-window noise model is somewhat overconfident (z sd up to ~1.3 for the
-    # gain; results/likelihood-check): coverage a little below the band, far above a biased one
-    assert 0.78 <= run["coverage"] <= 0.97, run["coverage"]
-    for name in ("damping", "gain", "gamma_angle", "gamma_velocity"):  # the well-determined ones
+    # a twitch window's noise with the sum's variance and kurtosis (window_noise): the well-determined
+    # parameters' z has mean 0 and sd 1 within the spread of 40 replicates (sd of z sd ≈ 0.11), and
+    # σ is unbiased; scaled as σ√n·t_ν instead, the gain's z sd was 1.1–1.3 (results/likelihood-check)
+    assert 0.80 <= run["coverage"] <= 0.97, run["coverage"]
+    for name in ("damping", "gain", "gamma_angle", "gamma_velocity", "sigma"):
         p = leg["params"][name]
         assert abs(p["z_mean"]) < 3.5 * p["z_se"], (name, p)
-        assert 0.7 < p["z_sd"] < 1.45, (name, p)
+        assert 0.7 < p["z_sd"] < 1.3, (name, p)
     md = (out / "likelihood.md").read_text()
     assert "Regenerate: `quadshank" in md and "| model3 | 1 |" in md
 
