@@ -34,12 +34,13 @@ Noise
     (:func:`window_noise`) with the sum's variance and, for ν > 4, its
     kurtosis, so its tails thin with n as the sum's do.  Scaling σ√n with ν
     alone would make a twitch window's sum too heavy-tailed and too narrow in
-    its middle, and the active parameters' intervals too narrow with it.  The accelerometers' skin-motion
-    resonance (the paper's discussion, ref. [35]) shows as bursts of large
-    residual after sudden motions, i.e. heavy tails; the paper's answer, a
-    whitening filter estimated jointly with the input dynamics (eq. 10), it
-    found "troublesome" when the disturbance correlates with the input.  ν is
-    fitted, so clean data give a large ν (close to Gaussian).
+    its middle, and the active parameters' intervals too narrow with it.
+    The accelerometers' skin-motion resonance (the paper's discussion, ref.
+    [35]) shows as bursts of large residual after sudden motions, i.e. heavy
+    tails; the paper's answer, a whitening filter estimated jointly with the
+    input dynamics (eq. 10), it found "troublesome" when the disturbance
+    correlates with the input.  ν is fitted, so clean data give a large ν
+    (close to Gaussian).
 
 The delay
     d ∈ {0 … MAX_DELAY} per leg is summed out exactly:
@@ -547,7 +548,8 @@ def student_t_logpdf(x, nu, scale):
 
 def _t_norm(nu, scale):
     """The Student-t log density's normalising term (the part that does not depend on x)."""
-    return jax.scipy.special.gammaln(0.5 * (nu + 1.0)) - jax.scipy.special.gammaln(0.5 * nu) - 0.5 * jnp.log(nu * math.pi) - jnp.log(scale)
+    gammaln = jax.scipy.special.gammaln
+    return gammaln(0.5 * (nu + 1.0)) - gammaln(0.5 * nu) - 0.5 * jnp.log(nu * math.pi) - jnp.log(scale)
 
 
 def _sensed(model: Model, x: dict) -> dict:
@@ -821,8 +823,8 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
 
 def _pulse_terms(model: Model, noise: dict, x: dict, R: int, K: int):
     """What the pulse-level path shares (see :func:`pulse_tables`): the arrays with the true
-    angle, the base log-likelihood, the slots' window sums, scales, degrees of freedom and kernels with no active output, and each pulse's
-    whole-twitch output (K + 1, D, P) at delay d when it takes shift s,
+    angle, the base log-likelihood, the slots' window sums, scales, degrees of freedom and
+    log density kernels with no active output, and each pulse's whole-twitch output (K + 1, D, P) at delay d when it takes shift s,
     u_i q_i F(p_i + d − s) Σh, the gain factors evaluated at those samples only."""
     x = _sensed(model, x)
     E, scale, nu, _, k0, base = _window_terms(model, noise, x)
