@@ -112,6 +112,25 @@ def test_twitch_windows_hold_whole_bursts():
         L._windows(stim, "minute")
 
 
+@pytest.mark.parametrize("number", [1, 2])
+def test_windows_split_into_one_sample_and_longer(cohort_truth, number):
+    """The base takes one-sample windows with scalar σ, ν and only the longer ones from the
+    noise table: the two sets must cover every compared window once."""
+    cohort, truth = cohort_truth
+    data = L.prepare(cohort, _true_model(number, truth, "TN-left"), trials=(1, 2))
+    for i in range(data.n_legs):
+        multi = np.zeros_like(data.window_mask[i])
+        multi[data.multi_window[i][data.multi_mask[i]]] = True
+        assert data.multi_mask[i].sum() == multi.sum()  # no window twice
+        assert not (multi & data.single_mask[i]).any()
+        np.testing.assert_array_equal(multi | data.single_mask[i], data.window_mask[i])
+        np.testing.assert_array_equal(multi, data.window_mask[i] & (data.window_len[i] > 1))
+    if number == 2:  # sample resolution: no table at all
+        assert data.multi_window.shape[-1] == 0
+    else:
+        assert data.multi_mask.any(axis=1).all()
+
+
 @pytest.mark.parametrize("tail", [2, MAX_DELAY + TWITCH_SAMPLES - 1, MAX_DELAY + TWITCH_SAMPLES + 5])
 def test_model1_likelihood_does_not_see_the_delay_even_at_the_end_of_a_trial(cohort_truth, tail):
     """Model 1's twitch lies whole in its window for every d, also when the trial ends soon after a pulse."""

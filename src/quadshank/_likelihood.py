@@ -35,6 +35,9 @@ Noise
     kurtosis, so its tails thin with n as the sum's do.  Scaling σ√n with ν
     alone would make a twitch window's sum too heavy-tailed and too narrow in
     its middle, and the active parameters' intervals too narrow with it.
+    Most windows are one sample (outside the twitch windows, and all of them
+    at ``resolution = "sample"``); they keep σ and ν as scalars, and only the
+    longer windows take theirs from a table of the leg's window lengths.
     The accelerometers' skin-motion resonance (the paper's discussion, ref.
     [35]) shows as bursts of large residual after sudden motions, i.e. heavy
     tails; the paper's answer, a whitening filter estimated jointly with the
@@ -148,6 +151,9 @@ class LikelihoodData:
     window_lengths: np.ndarray  # (L, Z) the leg's distinct window lengths (padding: 1)
     window_length_index: np.ndarray  # (L, W) each window's length in window_lengths
     window_mask: np.ndarray  # (L, W) bool
+    single_mask: np.ndarray  # (L, W) bool: compared windows of one sample
+    multi_window: np.ndarray  # (L, T) compared windows of more than one sample (T = 0 where there are none)
+    multi_mask: np.ndarray  # (L, T) bool
     window_segment: np.ndarray  # (L, W) PSIS-LOO unit of each window
     n_segments: int
     segment_mask: np.ndarray  # (L, S) bool
@@ -185,7 +191,7 @@ class LikelihoodData:
         """The arrays the JAX functions need, keyed by name, leading axis = leg."""
         names = (
             "angle velocity acceleration stimulation sample_mask window window_lengths window_length_index window_mask "
-            "window_segment "
+            "single_mask multi_window multi_mask window_segment "
             "segment_mask pulse_sample pulse_u pulse_ipi_s pulse_count pulse_time_s touch_sample touch_valid touch_pos touch_window touch_mask"
         ).split()
         names += [f.name for f in dataclasses.fields(self) if f.name.startswith("step_") or f.name in PULSE_LEVEL_FIELDS]
@@ -338,6 +344,16 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
     for i, d in enumerate(distinct):
         window_lengths[i, : d.size] = d
         window_length_index[i] = np.searchsorted(d, window_len[i])
+    # one-sample windows (most of them) take σ and ν as scalars; only the longer ones need the table
+    single_mask = window_mask & (window_len == 1.0)
+    multi = [np.flatnonzero(window_mask[i] & (window_len[i] > 1.0)) for i in range(L)]
+    T = max(m.size for m in multi)
+    T = _bucket(T) if T else 0
+    multi_window = np.full((L, T), W - 1, np.int64)
+    multi_mask = np.zeros((L, T), bool)
+    for i, m in enumerate(multi):
+        multi_window[i, : m.size] = m
+        multi_mask[i, : m.size] = True
     S = max(x["n_segments"] for x in per_leg)
     segment_mask = np.zeros((L, S), bool)
     for i, x in enumerate(per_leg):
@@ -416,6 +432,9 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         window_lengths=window_lengths,
         window_length_index=window_length_index,
         window_mask=window_mask,
+        single_mask=single_mask,
+        multi_window=multi_window,
+        multi_mask=multi_mask,
         window_segment=window_segment,
         n_segments=S,
         segment_mask=segment_mask,
@@ -612,30 +631,56 @@ def _at(v, i):
     return v if jnp.ndim(v) == 0 else v[i]
 
 
+def _noise_table(noise: dict, x: dict):
+    """Scale and degrees of freedom (:func:`window_noise`) per distinct window length of the
+    leg, computed once per length: their log-gamma terms would otherwise cost more than the
+    rest of the likelihood.  None where every window is one sample."""
+    if x["multi_window"].shape[-1] == 0:
+        return None
+    return window_noise(noise["sigma"], noise["nu"], x["window_lengths"])
+
+
+def _noise_at(noise: dict, table, x: dict, windows):
+    """Scale and degrees of freedom of the sums of ``windows`` (an index array into the leg's
+    windows): from the table, or σ and ν themselves (scalars) where every window is one sample."""
+    if table is None:
+        return noise["sigma"], noise["nu"]
+    i = x["window_length_index"][windows]
+    return table[0][i], table[1][i]
+
+
 def _window_terms(model: Model, noise: dict, x: dict):
-    """Window sums E of the equivalent acceleration; their scales and degrees of freedom
-    (:func:`window_noise`); their log density's normalising term and its E-dependent part with
-    no active output; and the two summed over the windows, the base log-likelihood.  The noise
-    is computed once per distinct window length, not per window: its log-gamma terms would
-    otherwise cost more than the rest of the likelihood.  Where every window is one sample
-    (``resolution = "sample"``) the scale, degrees of freedom and normalising term are σ, ν and
-    one scalar: :func:`_at` indexes them."""
+    """Window sums E of the equivalent acceleration, the noise table (:func:`_noise_table`) and
+    the base log-likelihood: every compared window's log density with no active output.  A
+    one-sample window's density is σ t_ν as it is, with scalar σ and ν; only the windows of
+    more than one sample (twitch windows) take theirs from the table."""
     W = x["window_length_index"].shape[-1]
     # x["angle"] is already the true angle (see _sensed)
     passive = jnp.where(x["sample_mask"], _passive_acc(model, x["angle"], x["velocity"]), 0.0)
     e = x["acceleration"] - measured_acceleration(model, passive)
     e = jnp.where(x["sample_mask"], e, 0.0)
     E = jax.ops.segment_sum(e, x["window"], num_segments=W)
-    if getattr(model.activation, "resolution", "sample") == "sample":  # one-sample windows: σ t_ν as it is
+    sigma, nu = noise["sigma"], noise["nu"]
+    base = jnp.sum(jnp.where(x["single_mask"], _t_kernel(E, nu, sigma), 0.0))
+    base = base + jnp.sum(x["single_mask"]) * _t_norm(nu, sigma)
+    table = _noise_table(noise, x)
+    if table is not None:
+        mw = x["multi_window"]
+        s, n = _noise_at(noise, table, x, mw)
+        base = base + jnp.sum(jnp.where(x["multi_mask"], _t_norm(n, s) + _t_kernel(E[mw], n, s), 0.0))
+    return E, table, base
+
+
+def _all_windows(model: Model, noise: dict, x: dict):
+    """Window sums E of the equivalent acceleration with every window's scale, degrees of
+    freedom and log density's normalising term (for the LOO-PIT and the pointwise values)."""
+    E, table, _ = _window_terms(model, noise, x)
+    if table is None:
         scale, nu = noise["sigma"], noise["nu"]
-        norm = _t_norm(nu, scale)
-    else:
-        scale_z, nu_z = window_noise(noise["sigma"], noise["nu"], x["window_lengths"])
-        idx = x["window_length_index"]
-        scale, nu, norm = scale_z[idx], nu_z[idx], _t_norm(nu_z, scale_z)[idx]
-    k0 = _t_kernel(E, nu, scale)
-    base = jnp.sum(jnp.where(x["window_mask"], norm + k0, 0.0))
-    return E, scale, nu, norm, k0, base
+        return E, scale, nu, _t_norm(nu, scale)
+    scale_z, nu_z = table
+    i = x["window_length_index"]
+    return E, scale_z[i], nu_z[i], _t_norm(nu_z, scale_z)[i]
 
 
 def _pulse_q(model: Model, x: dict):
@@ -701,10 +746,10 @@ def _leg_terms(model: Model, noise: dict, x: dict):
     with no active output, the base log-likelihood, the gain and output
     factors at every sample, and each pulse's u·q."""
     x = _sensed(model, x)
-    E, scale, nu, _, k0, base = _window_terms(model, noise, x)
+    E, table, base = _window_terms(model, noise, x)
     F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
     G = output_factors(model, x["angle"], x["velocity"], x["stimulation"])
-    return x, E, scale, nu, k0, base, F, G, _pulse_q(model, x)
+    return x, E, table, base, F, G, _pulse_q(model, x)
 
 
 def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
@@ -714,7 +759,7 @@ def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
     """
     if "pulse_slot" in x:
         return _by_delay_pulses(model, noise, x, R, K)
-    x, E, scale, nu, k0, base, F, G, uq = _leg_terms(model, noise, x)
+    x, E, table, base, F, G, uq = _leg_terms(model, noise, x)
     U = x["touch_window"].shape[-1]
     delays = jnp.arange(x["touch_sample"].shape[0])
     out = []
@@ -723,7 +768,8 @@ def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
         def one(d, valid, samples, pos, tw, tm, shift=shift):
             c = _contributions(model, x, R, K, shift, d, F, uq, valid, samples, G)
             M = jax.ops.segment_sum(c, pos, num_segments=U)
-            lp = _t_kernel(E[tw] - M, _at(nu, tw), _at(scale, tw)) - k0[tw]
+            s, n = _noise_at(noise, table, x, tw)
+            lp = _t_kernel(E[tw] - M, n, s) - _t_kernel(E[tw], n, s)
             return jnp.sum(jnp.where(tm, lp, 0.0))
 
         out.append(jax.vmap(one)(delays, x["touch_valid"], x["touch_sample"], x["touch_pos"], x["touch_window"], x["touch_mask"]))
@@ -778,7 +824,7 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
     """
     if "pulse_slot" in x:
         return _by_threshold_pulses(model, noise, x, R, K)
-    x, E, scale, nu, k0, base, F, G, uq = _leg_terms(model, noise, x)
+    x, E, table, base, F, G, uq = _leg_terms(model, noise, x)
     U = x["touch_window"].shape[-1]
     Q = x["step_pair_mask"].shape[-1]
     P = x["pulse_sample"].shape[-1]
@@ -796,12 +842,13 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
         a_long = amplitudes(0)
         M = jax.ops.segment_sum(a_long, pos, num_segments=U)
         r0 = E[tw] - M
-        lp_long = jnp.where(tm, _t_kernel(r0, _at(nu, tw), _at(scale, tw)) - k0[tw], 0.0)
+        s, n = _noise_at(noise, table, x, tw)
+        lp_long = jnp.where(tm, _t_kernel(r0, n, s) - _t_kernel(E[tw], n, s), 0.0)
         ell_long = base + jnp.sum(lp_long)
         rows = [jnp.full((P + 1,), ell_long)]
         r_pair = r0[pair_window]
-        s_pair = _at(_at(scale, tw), pair_window)
-        nu_pair = _at(_at(nu, tw), pair_window)
+        s_pair = _at(s, pair_window)
+        nu_pair = _at(n, pair_window)
         keep = pair_mask & tm[pair_window]
         for shift in range(1, K + 1):
             b = jax.ops.segment_sum(amplitudes(shift) - a_long, entry_pair, num_segments=Q)  # per (window, pulse)
@@ -827,7 +874,7 @@ def _pulse_terms(model: Model, noise: dict, x: dict, R: int, K: int):
     log density kernels with no active output, and each pulse's whole-twitch output (K + 1, D, P) at delay d when it takes shift s,
     u_i q_i F(p_i + d − s) Σh, the gain factors evaluated at those samples only."""
     x = _sensed(model, x)
-    E, scale, nu, _, k0, base = _window_terms(model, noise, x)
+    E, table, base = _window_terms(model, noise, x)
     p = x["pulse_sample"]
     last = x["angle"].shape[-1] - 1
     at = jnp.clip(p[None, :] + jnp.arange(-K, N_DELAYS)[:, None], 0, last)  # (K + D, P): p + j, j = −K … MAX_DELAY
@@ -836,7 +883,9 @@ def _pulse_terms(model: Model, noise: dict, x: dict, R: int, K: int):
     whole = uq * jnp.sum(model_response(model, R).astype(uq.dtype))  # summed at the data's precision
     amp = jnp.stack([whole * F[K - s : K - s + N_DELAYS] for s in range(K + 1)])
     sw = x["slot_window"]
-    return x, base, E[sw], _at(scale, sw), _at(nu, sw), k0[sw], x["slot_mask"] & x["window_mask"][sw], amp
+    ss, nu = _noise_at(noise, table, x, sw)
+    Es = E[sw]
+    return x, base, Es, ss, nu, _t_kernel(Es, nu, ss), x["slot_mask"] & x["window_mask"][sw], amp
 
 
 def _slot_sums(a, slot, V: int):
@@ -921,7 +970,7 @@ def leg_window_cdf(model: Model, noise: dict, x: dict, d_index, R: int, K: int =
     """The predictive CDF of each likelihood window's measured equivalent acceleration at
     (θ, d, shift): P(E_rep ≤ E | θ) under the Student-t noise model (the LOO-PIT's ingredient)."""
     x = _sensed(model, x)
-    E, scale, nu, *_ = _window_terms(model, noise, x)
+    E, scale, nu, _ = _all_windows(model, noise, x)
     M = jax.ops.segment_sum(_active_output(model, x, d_index, R, K, shift), x["window"], num_segments=E.shape[-1])
     return student_t_cdf((E - M) / scale, nu)
 
@@ -929,7 +978,7 @@ def leg_window_cdf(model: Model, noise: dict, x: dict, d_index, R: int, K: int =
 def leg_pointwise(model: Model, noise: dict, x: dict, d_index, R: int, n_segments: int, K: int = 0, shift=0):
     """log p(y_segment | θ, d, shift) per PSIS-LOO segment of one leg."""
     x = _sensed(model, x)
-    E, scale, nu, norm, *_ = _window_terms(model, noise, x)
+    E, scale, nu, norm = _all_windows(model, noise, x)
     W = E.shape[-1]
     M_sample = _active_output(model, x, d_index, R, K, shift)
     M = jax.ops.segment_sum(M_sample, x["window"], num_segments=W)
