@@ -17,6 +17,7 @@ from quadshank._fit import FitSettings, build_model, fit
 from quadshank._fitio import FitFolderError, load_fit, posterior_models
 from quadshank._interchange import load_cohort
 from quadshank._likelihood import N_DELAYS
+from quadshank._provenance import code_provenance
 from quadshank._simulate import simulate_cohort
 
 TINY = ["--chains", "2", "--warmup", "40", "--draws", "30"]
@@ -52,6 +53,7 @@ def test_fit_folder_holds_a_complete_reloadable_fit(fitted):
     for key in ("rhat_max", "ess_bulk_min", "divergences", "ess_tail_min", "bfmi_min", "delay_splits", "delay_missed"):
         assert key in summary["diagnostics"]
     assert summary["delay_evidence_seconds"] > 0
+    assert summary["code"] == code_provenance()  # which code made the fit (recovery reuses only its own)
     idata, model, desc = load_fit(out)
     np.testing.assert_allclose(idata.constant_data["delay_evidence"].sel(leg="JM-left"),
                                summary["legs"]["JM-left"]["delay_evidence"])

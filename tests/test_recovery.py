@@ -129,11 +129,11 @@ def test_the_angle_delay_likelihood_finds_the_step_of_matching_data(with_step):
         assert ll[:, 1].max() - ll[0, 0] < 2.0 and ll[:, 2].max() - ll[0, 0] < 2.0
 
 
-def test_recovery_reuses_a_finished_fit_of_the_same_truth_and_settings(tmp_path, monkeypatch):
+def test_recovery_reuses_a_finished_fit_of_the_same_truth_settings_and_code(tmp_path, monkeypatch):
     import quadshank._pipeline as pipeline
+    import quadshank._provenance as provenance
+    import quadshank._recovery as recovery
     from quadshank._fit import FitSettings
-    from quadshank._recovery import run_recovery
-
     calls = []
 
     def fake_run_fit(cohort, out, model, add_effects, settings, progress=False):
@@ -142,6 +142,7 @@ def test_recovery_reuses_a_finished_fit_of_the_same_truth_and_settings(tmp_path,
         legs = {leg: {"params": {k: {"median": v, "lo": v, "hi": v} for k, v in t["params"].items()},
                       "delay_posterior": [0.0] * 4 + [1.0] + [0.0] * 6} for leg, t in truth["legs"].items()}  # fmt: skip
         summary = {"legs": legs, "diagnostics": {"rhat_max": 1.0, "ess_bulk_min": 500.0, "divergences": 0, "ok": True},
+                   "code": provenance.code_provenance(),
                    "settings": json.loads(json.dumps({k: list(v) if isinstance(v, tuple) else v
                                                       for k, v in settings.__dict__.items()}))}  # fmt: skip
         (out / "summary.json").write_text(json.dumps(summary))
@@ -149,16 +150,24 @@ def test_recovery_reuses_a_finished_fit_of_the_same_truth_and_settings(tmp_path,
         return summary
 
     monkeypatch.setattr(pipeline, "run_fit", fake_run_fit)
+    monkeypatch.setattr(recovery, "_add_pulls", lambda *a: None)  # the legs' own likelihood: not tested here
     settings = FitSettings(chains=1, warmup=5, draws=5)
     kw = dict(models=["model1"], seeds=[0, 1], legs=["TN-left"], minutes=0.2, settings=settings)
-    run_recovery(tmp_path, **kw)
+    run_recovery = recovery.run_recovery
+    result = run_recovery(tmp_path, **kw)
     assert calls == [0, 1]
-    run_recovery(tmp_path, **kw)
+    assert [f["reused"] for f in result["models"]["model1"]["fits"]] == [False, False]
+    result = run_recovery(tmp_path, **kw)
     assert calls == [0, 1]  # both reused
+    assert [f["reused"] for f in result["models"]["model1"]["fits"]] == [True, True]
+    with monkeypatch.context() as m:
+        m.setattr(provenance, "code_fingerprint", lambda: "another-code")
+        run_recovery(tmp_path, **kw)
+    assert calls == [0, 1, 0, 1]  # the package changed: refitted
     run_recovery(tmp_path, **{**kw, "minutes": 0.3})
-    assert calls == [0, 1, 0, 1]  # another truth: refitted
+    assert calls == [0, 1] * 3  # another truth: refitted
     run_recovery(tmp_path, **{**kw, "minutes": 0.3, "settings": FitSettings(chains=1, warmup=6, draws=5)})
-    assert calls == [0, 1, 0, 1, 0, 1]  # other settings: refitted
+    assert calls == [0, 1] * 4  # other settings: refitted
 
 
 def test_coverage_table_names_delays_missed_and_wrong_modes_the_data_chose():

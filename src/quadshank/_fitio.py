@@ -397,10 +397,14 @@ def fit_summary(idata) -> dict:
 
 
 def save_fit(idata, folder: str | os.PathLike, extra: dict | None = None) -> dict:
-    """Write fit.nc then summary.json (with ``extra`` entries) atomically; returns the summary."""
+    """Write fit.nc then summary.json (with ``extra`` entries and ``code``, the package's version
+    and source fingerprint, :func:`quadshank._provenance.code_provenance`) atomically; returns the
+    summary."""
+    from ._provenance import code_provenance
+
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    summary = {**fit_summary(idata), **(extra or {})}
+    summary = {**fit_summary(idata), "code": code_provenance(), **(extra or {})}
     with atomic_path(folder / "fit.nc") as tmp:
         idata.to_netcdf(tmp)
     write_json(folder / "summary.json", summary)

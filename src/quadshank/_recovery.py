@@ -250,19 +250,23 @@ def _binomial_band(n: int, p: float = 0.9) -> tuple[float, float]:
 
 
 def _finished_fit(fit_dir: Path, truth: dict, settings) -> dict | None:
-    """The summary of a complete earlier fit of the same truth with the same settings, else None.
+    """The summary of a complete earlier fit of the same truth with the same settings by the
+    same code (its source fingerprint, :func:`quadshank._provenance.code_fingerprint`), else None.
 
-    A recovery run that was interrupted, or whose table is rebuilt, reuses such fits.
+    A recovery run that was interrupted, or whose table is rebuilt, reuses such fits; after
+    any change to the package the fits are made again.
     """
     from ._fitio import read_summary
     from ._io import read_json
+    from ._provenance import code_fingerprint
 
     try:
         summary = read_summary(fit_dir)
         same_truth = read_json(fit_dir / "truth.json") == json.loads(json.dumps(truth))
     except (FileNotFoundError, ValueError, KeyError):
         return None
-    return summary if same_truth and summary.get("settings") == _settings_json(settings) else None
+    same_code = summary.get("code", {}).get("fingerprint") == code_fingerprint()
+    return summary if same_truth and same_code and summary.get("settings") == _settings_json(settings) else None
 
 
 def _settings_json(settings) -> dict:
@@ -290,7 +294,7 @@ def run_recovery(
     (default: the same effects, so the truth matches; ``()`` asks whether a fit with
     an effect claims it on data without it).  Writes ``out/{name}-seed{S}/``
     (truth.json, fit.nc, summary.json; a complete fit already there of the same truth
-    with the same settings is reused), then ``out/coverage.json`` (every row, and per
+    with the same settings by the same code is reused), then ``out/coverage.json`` (every row, and per
     model the covered fraction of the 90 % intervals with the band expected of a
     calibrated posterior, whether the posterior mode of d — and of an angle delay's
     shift — was right for every leg, and an angle delay's change probability per leg)
@@ -320,12 +324,13 @@ def run_recovery(
             fit_dir = out / f"{name}-seed{seed}"
             fs = dataclasses.replace(settings, seed=seed)
             summary = _finished_fit(fit_dir, truth, fs)
+            reused = summary is not None
             if summary is None:
                 fit_dir.mkdir(parents=True, exist_ok=True)
                 write_json(fit_dir / "truth.json", truth)
                 summary = run_fit(cohort, fit_dir, model, add_effects, fs, progress=progress)
             diag = summary["diagnostics"]
-            info = {"seed": seed, **{k: diag[k] for k in ("rhat_max", "ess_bulk_min", "divergences", "ok")},
+            info = {"seed": seed, "reused": reused, **{k: diag[k] for k in ("rhat_max", "ess_bulk_min", "divergences", "ok")},
                     "sampling_seconds": summary.get("sampling_seconds"), "delay_splits": diag.get("delay_splits", {}),
                     "delay_missed": diag.get("delay_missed", {})}  # fmt: skip
             changes = {leg: s["delay_angle"]["change_probability"] for leg, s in summary["legs"].items() if "delay_angle" in s}
