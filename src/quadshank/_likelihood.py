@@ -742,9 +742,8 @@ def _contributions(model: Model, x: dict, R: int, K: int, shift, d, F, uq, valid
 
 def _leg_terms(model: Model, noise: dict, x: dict):
     """What every delay of one leg shares: the arrays with the true angle, the window sums of
-    the equivalent acceleration with their scales, degrees of freedom and log density kernels
-    with no active output, the base log-likelihood, the gain and output
-    factors at every sample, and each pulse's u·q."""
+    the equivalent acceleration, the noise table (:func:`_noise_table`), the base
+    log-likelihood, the gain and output factors at every sample, and each pulse's u·q."""
     x = _sensed(model, x)
     E, table, base = _window_terms(model, noise, x)
     F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
