@@ -650,10 +650,12 @@ def _noise_at(noise: dict, table, x: dict, windows):
 
 
 def _window_terms(model: Model, noise: dict, x: dict):
-    """Window sums E of the equivalent acceleration, the noise table (:func:`_noise_table`) and
-    the base log-likelihood: every compared window's log density with no active output.  A
-    one-sample window's density is σ t_ν as it is, with scalar σ and ν; only the windows of
-    more than one sample (twitch windows) take theirs from the table."""
+    """Window sums E of the equivalent acceleration, the noise table (:func:`_noise_table`),
+    the base log-likelihood (every compared window's log density with no active output) and
+    each window's log density kernel with no active output (W,), which the (pulse, lag) path
+    subtracts for the windows a delay's pulses reach.  A one-sample window's density is σ t_ν
+    as it is, with scalar σ and ν; only the windows of more than one sample (twitch windows)
+    take theirs from the table."""
     W = x["window_length_index"].shape[-1]
     # x["angle"] is already the true angle (see _sensed)
     passive = jnp.where(x["sample_mask"], _passive_acc(model, x["angle"], x["velocity"]), 0.0)
@@ -661,20 +663,24 @@ def _window_terms(model: Model, noise: dict, x: dict):
     e = jnp.where(x["sample_mask"], e, 0.0)
     E = jax.ops.segment_sum(e, x["window"], num_segments=W)
     sigma, nu = noise["sigma"], noise["nu"]
-    base = jnp.sum(jnp.where(x["single_mask"], _t_kernel(E, nu, sigma), 0.0))
+    k0 = _t_kernel(E, nu, sigma)
+    base = jnp.sum(jnp.where(x["single_mask"], k0, 0.0))
     base = base + jnp.sum(x["single_mask"]) * _t_norm(nu, sigma)
     table = _noise_table(noise, x)
     if table is not None:
         mw = x["multi_window"]
         s, n = _noise_at(noise, table, x, mw)
-        base = base + jnp.sum(jnp.where(x["multi_mask"], _t_norm(n, s) + _t_kernel(E[mw], n, s), 0.0))
-    return E, table, base
+        k_multi = _t_kernel(E[mw], n, s)
+        base = base + jnp.sum(jnp.where(x["multi_mask"], _t_norm(n, s) + k_multi, 0.0))
+        # padding entries name the spare window W − 1, which holds no sample (E = 0, kernel 0)
+        k0 = k0.at[mw].set(k_multi)
+    return E, table, base, k0
 
 
 def _all_windows(model: Model, noise: dict, x: dict):
     """Window sums E of the equivalent acceleration with every window's scale, degrees of
     freedom and log density's normalising term (for the LOO-PIT and the pointwise values)."""
-    E, table, _ = _window_terms(model, noise, x)
+    E, table, _, _ = _window_terms(model, noise, x)
     if table is None:
         scale, nu = noise["sigma"], noise["nu"]
         return E, scale, nu, _t_norm(nu, scale)
@@ -743,12 +749,13 @@ def _contributions(model: Model, x: dict, R: int, K: int, shift, d, F, uq, valid
 def _leg_terms(model: Model, noise: dict, x: dict):
     """What every delay of one leg shares: the arrays with the true angle, the window sums of
     the equivalent acceleration, the noise table (:func:`_noise_table`), the base
-    log-likelihood, the gain and output factors at every sample, and each pulse's u·q."""
+    log-likelihood, each window's kernel with no active output, the gain and output factors
+    at every sample, and each pulse's u·q."""
     x = _sensed(model, x)
-    E, table, base = _window_terms(model, noise, x)
+    E, table, base, k0 = _window_terms(model, noise, x)
     F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
     G = output_factors(model, x["angle"], x["velocity"], x["stimulation"])
-    return x, E, table, base, F, G, _pulse_q(model, x)
+    return x, E, table, base, k0, F, G, _pulse_q(model, x)
 
 
 def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
@@ -758,7 +765,7 @@ def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
     """
     if "pulse_slot" in x:
         return _by_delay_pulses(model, noise, x, R, K)
-    x, E, table, base, F, G, uq = _leg_terms(model, noise, x)
+    x, E, table, base, k0, F, G, uq = _leg_terms(model, noise, x)
     U = x["touch_window"].shape[-1]
     delays = jnp.arange(x["touch_sample"].shape[0])
     out = []
@@ -768,7 +775,7 @@ def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
             c = _contributions(model, x, R, K, shift, d, F, uq, valid, samples, G)
             M = jax.ops.segment_sum(c, pos, num_segments=U)
             s, n = _noise_at(noise, table, x, tw)
-            lp = _t_kernel(E[tw] - M, n, s) - _t_kernel(E[tw], n, s)
+            lp = _t_kernel(E[tw] - M, n, s) - k0[tw]
             return jnp.sum(jnp.where(tm, lp, 0.0))
 
         out.append(jax.vmap(one)(delays, x["touch_valid"], x["touch_sample"], x["touch_pos"], x["touch_window"], x["touch_mask"]))
@@ -823,7 +830,7 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
     """
     if "pulse_slot" in x:
         return _by_threshold_pulses(model, noise, x, R, K)
-    x, E, table, base, F, G, uq = _leg_terms(model, noise, x)
+    x, E, table, base, k0, F, G, uq = _leg_terms(model, noise, x)
     U = x["touch_window"].shape[-1]
     Q = x["step_pair_mask"].shape[-1]
     P = x["pulse_sample"].shape[-1]
@@ -842,7 +849,7 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
         M = jax.ops.segment_sum(a_long, pos, num_segments=U)
         r0 = E[tw] - M
         s, n = _noise_at(noise, table, x, tw)
-        lp_long = jnp.where(tm, _t_kernel(r0, n, s) - _t_kernel(E[tw], n, s), 0.0)
+        lp_long = jnp.where(tm, _t_kernel(r0, n, s) - k0[tw], 0.0)
         ell_long = base + jnp.sum(lp_long)
         rows = [jnp.full((P + 1,), ell_long)]
         r_pair = r0[pair_window]
@@ -873,7 +880,7 @@ def _pulse_terms(model: Model, noise: dict, x: dict, R: int, K: int):
     log density kernels with no active output, and each pulse's whole-twitch output (K + 1, D, P) at delay d when it takes shift s,
     u_i q_i F(p_i + d − s) Σh, the gain factors evaluated at those samples only."""
     x = _sensed(model, x)
-    E, table, base = _window_terms(model, noise, x)
+    E, table, base, _ = _window_terms(model, noise, x)
     p = x["pulse_sample"]
     last = x["angle"].shape[-1] - 1
     at = jnp.clip(p[None, :] + jnp.arange(-K, N_DELAYS)[:, None], 0, last)  # (K + D, P): p + j, j = −K … MAX_DELAY
