@@ -131,6 +131,93 @@ def run_peer(cohort, model_name: str, effects, settings) -> dict:
     }
 
 
+def _ratio(x: float) -> str:
+    return f"{x:.0f}" if abs(x) >= 100 else f"{x:.3g}"
+
+
+def _converged(rhat: float, ess: float, divergences: int, chains: int) -> bool:
+    """The fit's own checks on R-hat, bulk ESS (100 per chain) and divergences, for the peer."""
+    return rhat < 1.01 and ess >= 100 * chains and divergences == 0
+
+
+def render(record: dict, section: str) -> str:
+    """The section of results/benchmarks.md for one run, from its JSON record alone."""
+    r = record
+    effects, legs, peer = r["effects"], r["legs"], r["peer"]
+    sampling, compile_s, evidence_s = r["fit_sampling_s"], r["fit_compile_s"], r["delay_evidence_s"]
+    ess_per_s = r["ess_bulk_min_per_s"]
+    full = (len(legs), r["minutes"], r["chains"], r["warmup"], r["draws"]) == (5, 5.0, 4, 1000, 1000)
+    t = [
+        "## Hierarchical fit and posterior J bands",
+        "",
+        f"Command: `{r['command']}`",
+        "",
+        f"Machine: {r['machine']}; measured {r['date']}. Record: `{section}.json` beside this file "
+        f"(`python benchmarks/bench_fit.py --from-record results/{section}.json` writes this section again from it).",
+        "",
+        f"{r['model']} + {', '.join(effects) or 'nothing'} on the simulated cohort ({len(legs)} legs, trial 1 of "
+        f"{r['minutes']:g} min, data simulated with {', '.join(effects) or 'no hidden effect'}), "
+        f"{r['chains']} chains ({r['chain_method']}) × {r['draws']} draws after {r['warmup']} warm-up, "
+        f"chains started from the {r['start']} (`--start {r['start']}`)"
+        + ("" if full else " — **smaller than the issue's configuration (5 legs × 5 min, 4 × 1000 + 1000)**")
+        + ".",
+        "",
+        "| measure | value | target |",
+        "|---|---|---|",
+        f"| fit wall time less compilation (sampling; also finding the start and saving) | {sampling:.0f} s | ≤ 60 s (full size) |",
+        f"| compilation | {compile_s:.0f} s | reported separately |",
+        f"| each leg's delays weighed by a Laplace approximation per delay (after sampling, less compilation) | "
+        f"{evidence_s:.0f} s | – |",
+        f"| R-hat max | {r['rhat_max']:.3f} | < 1.01 |",
+        f"| bulk ESS min | {r['ess_bulk_min']:.0f} | ≥ 400 |",
+        f"| divergences | {r['divergences']} | 0 |",
+        f"| bulk ESS min per second of sampling | {ess_per_s:.3g} | ≥ the peer's |",
+    ]
+    if r["j_wall_s"] is not None:
+        t.append(
+            f"| posterior J: {r['j_draws']} draws × {r['j_trials']} trials, every start, 4 horizons | "
+            f"{r['j_wall_s'] - r['j_compile_s']:.0f} s (+ {r['j_compile_s']:.0f} s compilation) | ≤ 30 s (full size) |"
+        )
+    t.append("")
+    if peer is None:
+        t.append("Peer (the same model in PyMC sampled by nutpie): not run (`--no-peer`).")
+    elif "error" in peer:
+        t.append(f"Peer (the same model in PyMC sampled by nutpie): not run: {peer['error']}.")
+    else:
+        ratio = ess_per_s / peer["ess_bulk_min_per_s"] if peer["ess_bulk_min_per_s"] > 0 else float("nan")
+        t += [
+            f"Peer: the same model in PyMC {peer['pymc']} sampled by nutpie {peer['nutpie']} ({peer['backend']} backend, "
+            f"chains in parallel threads), same data, chains, warm-up and draws. Log densities at a common point: "
+            f"quadshank {peer['density_check'][1]:.3f}, PyMC {peer['density_check'][0]:.3f}.",
+            "",
+            "| | quadshank (numpyro NUTS) | PyMC + nutpie |",
+            "|---|---|---|",
+            f"| compilation | {compile_s:.0f} s | {peer['compile_s']:.0f} s |",
+            f"| sampling wall time | {sampling:.0f} s | {peer['sampling_s']:.0f} s |",
+            f"| R-hat max | {r['rhat_max']:.3f} | {peer['rhat_max']:.3f} |",
+            f"| bulk ESS min | {r['ess_bulk_min']:.0f} | {peer['ess_bulk_min']:.0f} |",
+            f"| divergences | {r['divergences']} | {peer['divergences']} |",
+            f"| bulk ESS min per second | {ess_per_s:.3g} | {peer['ess_bulk_min_per_s']:.3g} |",
+            "",
+            f"quadshank's ESS per second is {_ratio(ratio)}× the peer's (target: ≥ 1).",
+        ]
+        peer_ok = _converged(peer["rhat_max"], peer["ess_bulk_min"], peer["divergences"], r["chains"])
+        if not peer_ok:
+            both = "" if r["ok"] else " Neither fit has converged."
+            t.append(
+                f"The peer's fit fails the same checks (R-hat < 1.01, bulk ESS ≥ {100 * r['chains']}, no divergences): "
+                "its chains have not mixed, so the ratio compares against a sample that does not describe the "
+                f"posterior and measures little.{both}"
+            )
+    t += [
+        "",
+        "The fit " + ("passed its checks." if r["ok"] else "FAILED its checks: " + "; ".join(r["problems"]) + "."),
+        "",
+        "Delay mode per leg [samples]: " + ", ".join(f"{k} {v}" for k, v in r["delay_mode"].items()) + ".",
+    ]
+    return "\n".join(t)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", default="model3")
@@ -149,7 +236,14 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="results/benchmarks.md")
     ap.add_argument("--section", default=None,
                     help="name of the section (and JSON record) written; default bench_fit[_backend][_start]")
+    ap.add_argument("--from-record", default=None, metavar="JSON",
+                    help="write the section again from a run's JSON record (its name is the section's), "
+                         "without running anything")
     args = ap.parse_args(argv)
+    if args.from_record:
+        path = Path(args.from_record)
+        write_section(args.out, path.stem, render(json.loads(path.read_text()), path.stem))
+        return 0
     effects = args.add_effect if args.add_effect is not None else ["angle_delay"]
     legs = [x for x in args.legs.split(",") if x]
     command = "python benchmarks/bench_fit.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
@@ -223,67 +317,7 @@ def main(argv=None) -> int:
     section = args.section or section
     write_json(Path(args.out).with_name(f"{section}.json"), record)
 
-    full = (len(legs), args.minutes, args.chains, args.warmup, args.draws) == (5, 5.0, 4, 1000, 1000)
-    t = [
-        "## Hierarchical fit and posterior J bands",
-        "",
-        f"Command: `{command}`",
-        "",
-        f"Machine: {record['machine']}; measured {record['date']}.",
-        "",
-        f"{args.model} + {', '.join(effects) or 'nothing'} on the simulated cohort ({len(legs)} legs, trial 1 of "
-        f"{args.minutes:g} min, data simulated with {', '.join(effects) or 'no hidden effect'}), "
-        f"{args.chains} chains ({args.chain_method}) × {args.draws} draws after {args.warmup} warm-up, "
-        f"chains started from the {args.start} (`--start {args.start}`)"
-        + ("" if full else " — **smaller than the issue's configuration (5 legs × 5 min, 4 × 1000 + 1000)**")
-        + ".",
-        "",
-        "| measure | value | target |",
-        "|---|---|---|",
-        f"| fit wall time less compilation (sampling; also finding the start and saving) | {sampling:.0f} s | ≤ 60 s (full size) |",
-        f"| compilation | {compile_s:.0f} s | reported separately |",
-        f"| each leg's delays weighed by a Laplace approximation per delay (after sampling, less compilation) | "
-        f"{evidence_s:.0f} s | – |",
-        f"| R-hat max | {diag['rhat_max']:.3f} | < 1.01 |",
-        f"| bulk ESS min | {diag['ess_bulk_min']:.0f} | ≥ 400 |",
-        f"| divergences | {diag['divergences']} | 0 |",
-        f"| bulk ESS min per second of sampling | {ess_per_s:.2f} | ≥ the peer's |",
-    ]
-    if j_wall is not None:
-        t.append(
-            f"| posterior J: {args.j_draws} draws × {n_trials} trials, every start, 4 horizons | "
-            f"{j_wall - j_compile:.0f} s (+ {j_compile:.0f} s compilation) | ≤ 30 s (full size) |"
-        )
-    t.append("")
-    if peer is None:
-        t.append("Peer (the same model in PyMC sampled by nutpie): not run (`--no-peer`).")
-    elif "error" in peer:
-        t.append(f"Peer (the same model in PyMC sampled by nutpie): not run: {peer['error']}.")
-    else:
-        ratio = ess_per_s / peer["ess_bulk_min_per_s"] if peer["ess_bulk_min_per_s"] > 0 else float("nan")
-        t += [
-            f"Peer: the same model in PyMC {peer['pymc']} sampled by nutpie {peer['nutpie']} ({peer['backend']} backend, "
-            f"chains in parallel threads), same data, chains, warm-up and draws. Log densities at a common point: "
-            f"quadshank {peer['density_check'][1]:.3f}, PyMC {peer['density_check'][0]:.3f}.",
-            "",
-            "| | quadshank (numpyro NUTS) | PyMC + nutpie |",
-            "|---|---|---|",
-            f"| compilation | {compile_s:.0f} s | {peer['compile_s']:.0f} s |",
-            f"| sampling wall time | {sampling:.0f} s | {peer['sampling_s']:.0f} s |",
-            f"| R-hat max | {diag['rhat_max']:.3f} | {peer['rhat_max']:.3f} |",
-            f"| bulk ESS min | {diag['ess_bulk_min']:.0f} | {peer['ess_bulk_min']:.0f} |",
-            f"| divergences | {diag['divergences']} | {peer['divergences']} |",
-            f"| bulk ESS min per second | {ess_per_s:.2f} | {peer['ess_bulk_min_per_s']:.2f} |",
-            "",
-            f"quadshank's ESS per second is {ratio:.2f}× the peer's (target: ≥ 1).",
-        ]
-    t += [
-        "",
-        "The fit " + ("passed its checks." if diag["ok"] else "FAILED its checks: " + "; ".join(diag["problems"]) + "."),
-        "",
-        "Delay mode per leg [samples]: " + ", ".join(f"{k} {v}" for k, v in record["delay_mode"].items()) + ".",
-    ]
-    write_section(args.out, section, "\n".join(t))
+    write_section(args.out, section, render(record, section))
     print(json.dumps(record, indent=1))
     return 0
 
