@@ -38,6 +38,7 @@ import jax
 import numpy as np
 
 from quadshank._fit import STARTS, FitSettings
+from quadshank._fitio import THRESHOLDS
 from quadshank._io import write_json
 from quadshank._paper import LEGS
 import quadshank._screen as screen_module
@@ -136,8 +137,9 @@ def _ratio(x: float) -> str:
 
 
 def _converged(rhat: float, ess: float, divergences: int, chains: int) -> bool:
-    """The fit's own checks on R-hat, bulk ESS (100 per chain) and divergences, for the peer."""
-    return rhat < 1.01 and ess >= 100 * chains and divergences == 0
+    """The fit's own thresholds (``_fitio.THRESHOLDS``) on R-hat, bulk ESS and divergences, for the peer."""
+    th = THRESHOLDS
+    return rhat < th["rhat_max"] and ess >= th["ess_per_chain"] * chains and divergences <= th["divergences"]
 
 
 def render(record: dict, section: str) -> str:
@@ -205,7 +207,8 @@ def render(record: dict, section: str) -> str:
         if not peer_ok:
             both = "" if r["ok"] else " Neither fit has converged."
             t.append(
-                f"The peer's fit fails the same checks (R-hat < 1.01, bulk ESS ≥ {100 * r['chains']}, no divergences): "
+                f"The peer's fit fails the same checks (R-hat < {THRESHOLDS['rhat_max']}, "
+                f"bulk ESS ≥ {THRESHOLDS['ess_per_chain'] * r['chains']}, no divergences): "
                 "its chains have not mixed, so the ratio compares against a sample that does not describe the "
                 f"posterior and measures little.{both}"
             )
