@@ -34,6 +34,7 @@ import time
 from datetime import date
 from pathlib import Path
 
+import arviz as az
 import jax
 import numpy as np
 
@@ -41,6 +42,7 @@ from quadshank._fit import STARTS, FitSettings
 from quadshank._fitio import THRESHOLDS
 from quadshank._io import write_json
 from quadshank._paper import LEGS
+import quadshank._fit as fit_module
 import quadshank._screen as screen_module
 from quadshank._pipeline import run_fit
 from quadshank._posterior_eval import load_fits, posterior_j
@@ -79,14 +81,48 @@ class CompileClock:
         return out, time.perf_counter() - t0, self.seconds
 
 
-def run_peer(cohort, model_name: str, effects, settings) -> dict:
-    """The same model in PyMC sampled by nutpie: timings and diagnostics, or the reason it could not run."""
+def _start_at(compiled, starts: dict, chains: int):
+    """``compiled`` with its chains started at ``starts`` (unconstrained values per chain, keyed by
+    numpyro's site names, as :func:`quadshank._fit.screen_start` gives them) in place of nutpie's
+    jittered default.  nutpie asks for one start per chain (again where a start's density is not
+    finite); the k-th request gets chain k mod ``chains``'s values, so the peer's chains start at
+    the points the fit's chains started at."""
+    import dataclasses
+    import threading
+
+    # shape_info lists the unconstrained values (the first n_dim entries, in the order nutpie's
+    # start vector takes them), then the constrained values it also stores
+    free = [(n, shape) for n, sl, shape in zip(*compiled.shape_info, strict=True) if sl.stop <= compiled.n_dim]
+    rows = []
+    for c in range(chains):
+        parts = []
+        for name, shape in free:
+            v = np.asarray(starts[name.removesuffix("_log__")][c], np.float64)
+            if v.size != int(np.prod(shape)):
+                raise ValueError(f"the fit's start for {name} has shape {v.shape}, the PyMC model's {tuple(shape)}")
+            parts.append(v.ravel())
+        rows.append(np.concatenate(parts))
+    if rows[0].size != compiled.n_dim:
+        raise ValueError(f"the fit's start has {rows[0].size} values, the PyMC model {compiled.n_dim}")
+    lock, asked = threading.Lock(), [0]
+
+    def start(seed=None):
+        with lock:
+            k, asked[0] = asked[0], asked[0] + 1
+        return rows[k % chains].copy()
+
+    return dataclasses.replace(compiled, initial_point_func=start)
+
+
+def run_peer(cohort, model_name: str, effects, settings, starts: dict | None = None) -> dict:
+    """The same model in PyMC sampled by nutpie: timings and diagnostics, or the reason it could not run.
+
+    ``starts``: the fit's starting points (see :func:`_start_at`); None leaves nutpie's own start."""
     try:
         import nutpie
         import pymc
     except ImportError as exc:
         return {"error": f"{exc.name} is not installed (pip install -e '.[bench]')"}
-    import arviz as az
     from numpyro.infer import init_to_median
     from numpyro.infer.util import initialize_model
 
@@ -110,6 +146,8 @@ def run_peer(cohort, model_name: str, effects, settings) -> dict:
     t0 = time.perf_counter()
     compiled = nutpie.compile_pymc_model(pm_model, backend="numba")
     compile_s = time.perf_counter() - t0
+    if starts is not None:
+        compiled = _start_at(compiled, starts, settings.chains)
     t0 = time.perf_counter()
     trace = nutpie.sample(compiled, draws=settings.draws, tune=settings.warmup, chains=settings.chains,
                           seed=settings.seed, progress_bar=False)  # fmt: skip
@@ -129,6 +167,8 @@ def run_peer(cohort, model_name: str, effects, settings) -> dict:
         "ess_bulk_min": ess,
         "divergences": int(trace.sample_stats["diverging"].sum()),
         "ess_bulk_min_per_s": ess / sampling_s,
+        "start": "nutpie" if starts is None else "fit",
+        "steps_per_draw": float(trace.sample_stats["n_steps"].mean()),
     }
 
 
@@ -189,7 +229,10 @@ def render(record: dict, section: str) -> str:
         ratio = ess_per_s / peer["ess_bulk_min_per_s"] if peer["ess_bulk_min_per_s"] > 0 else float("nan")
         t += [
             f"Peer: the same model in PyMC {peer['pymc']} sampled by nutpie {peer['nutpie']} ({peer['backend']} backend, "
-            f"chains in parallel threads), same data, chains, warm-up and draws. Log densities at a common point: "
+            f"chains in parallel threads), same data, chains, warm-up and draws, "
+            + ("its chains started at the points the fit's chains started at (`--peer-start fit`). "
+               if peer.get("start") == "fit" else "its chains started at nutpie's own jittered defaults. ")
+            + "Log densities at a common point: "
             f"quadshank {peer['density_check'][1]:.3f}, PyMC {peer['density_check'][0]:.3f}.",
             "",
             "| | quadshank (numpyro NUTS) | PyMC + nutpie |",
@@ -200,6 +243,10 @@ def render(record: dict, section: str) -> str:
             f"| bulk ESS min | {r['ess_bulk_min']:.0f} | {peer['ess_bulk_min']:.0f} |",
             f"| divergences | {r['divergences']} | {peer['divergences']} |",
             f"| bulk ESS min per second | {ess_per_s:.3g} | {peer['ess_bulk_min_per_s']:.3g} |",
+        ]
+        if r.get("steps_per_draw") is not None and "steps_per_draw" in peer:
+            t.append(f"| leapfrog steps per draw (after warm-up) | {r['steps_per_draw']:.1f} | {peer['steps_per_draw']:.1f} |")
+        t += [
             "",
             f"quadshank's ESS per second is {_ratio(ratio)}× the peer's (target: ≥ 1).",
         ]
@@ -233,6 +280,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--j-draws", type=int, default=200, help="posterior draws for the J bands (0: skip)")
     ap.add_argument("--no-peer", action="store_true", help="skip the PyMC + nutpie peer")
+    ap.add_argument("--peer-start", default="fit", choices=("fit", "nutpie"),
+                    help="where the peer's chains start: where the fit's chains started (fit: with --start screen), "
+                         "or nutpie's own jittered default")
     ap.add_argument("--start", default="screen", choices=STARTS,
                     help="where the chains start (quadshank fit --start); each start has its own section")
     ap.add_argument("--chain-method", default=FitSettings.chain_method, choices=("sequential", "vectorized", "parallel"))
@@ -269,17 +319,32 @@ def main(argv=None) -> int:
         return out
 
     screen_module.delay_modes = timed_evidence  # delay_start imports it when called
+    # the fit's starting points, for the peer's chains (--peer-start fit)
+    fit_starts = {}
+    screen_start = fit_module.screen_start
+
+    def kept_start(*a, **k):
+        init_params, imm = screen_start(*a, **k)
+        fit_starts.update({name: np.asarray(v) for name, v in init_params.items()})
+        return init_params, imm
+
+    fit_module.screen_start = kept_start
     with tempfile.TemporaryDirectory() as tmp:
         fit_dir = Path(tmp) / "fit"
         summary, wall, compile_s = clock.timed(run_fit, cohort, fit_dir, args.model, effects, settings, progress=True)
         diag = summary["diagnostics"]
+        stats = az.from_netcdf(fit_dir / "fit.nc").sample_stats
+        steps_per_draw = float(stats["n_steps"].mean()) if "n_steps" in stats else None
         evidence_s = evidence["wall"] - evidence["compile"]
         sampling = wall - compile_s - evidence_s
         j_wall = j_compile = None
         if args.j_draws:
             fits = load_fits([fit_dir])
             _, j_wall, j_compile = clock.timed(posterior_j, fits, cohort, n_draws=args.j_draws, progress=True)
-    peer = None if args.no_peer else run_peer(cohort, args.model, effects, settings)
+    if args.peer_start == "fit" and not fit_starts:
+        ap.error("--peer-start fit needs the fit's chains to start from the screen (--start screen)")
+    starts = fit_starts if args.peer_start == "fit" else None
+    peer = None if args.no_peer else run_peer(cohort, args.model, effects, settings, starts)
     n_trials = len(cohort.trials)
     ess_per_s = diag["ess_bulk_min"] / sampling if sampling > 0 else float("nan")
     record = {
@@ -306,6 +371,7 @@ def main(argv=None) -> int:
         "ess_tail_min": diag.get("ess_tail_min"),
         "divergences": diag["divergences"],
         "ess_bulk_min_per_s": ess_per_s,
+        "steps_per_draw": steps_per_draw,
         "delay_mode": {leg: s["delay_mode_samples"] for leg, s in summary["legs"].items()},
         "j_draws": args.j_draws,
         "j_trials": n_trials,
