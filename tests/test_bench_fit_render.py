@@ -4,6 +4,7 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -56,3 +57,39 @@ def test_from_record_rewrites_only_its_section(tmp_path, failed_ours):
     assert "sampling wall time | 784 s | 4920 s" in text
     assert ("Neither fit has converged." in text) == failed_ours
     assert ("FAILED its checks: R-hat 1.8" in text) == failed_ours
+
+
+def test_peer_start_and_steps_are_rendered():
+    rec = _record(1.003, 2000.0)
+    assert "nutpie's own jittered defaults" in bench_fit.render(rec, "s")  # an old record: no start, no steps
+    assert "leapfrog steps" not in bench_fit.render(rec, "s")
+    rec["peer"].update(start="fit", steps_per_draw=63.25)
+    rec["steps_per_draw"] = 11.94
+    text = bench_fit.render(rec, "s")
+    assert "started at the points the fit's chains started at" in text
+    assert "| leapfrog steps per draw (after warm-up) | 11.9 | 63.2 |" in text
+
+
+def test_peer_chains_start_where_the_fits_did():
+    """The start vector follows nutpie's order of unconstrained values (the constrained ones after
+    n_dim are left out), PyMC's ``_log__`` names map to numpyro's sites, and chain k's values go
+    to nutpie's k-th request."""
+    import dataclasses
+
+    @dataclasses.dataclass(frozen=True)
+    class Compiled:  # the fields of nutpie's compiled model that _start_at reads
+        shape_info: tuple
+        n_dim: int
+        initial_point_func: object = None
+
+    names = ["gain_s_leg", "sigma_log__", "sigma"]
+    slices = [slice(0, 3), slice(3, 6), slice(6, 9)]
+    shapes = [(3,), (3,), (3,)]
+    starts = {"gain_s_leg": np.arange(6.0).reshape(2, 3), "sigma": 10 + np.arange(6.0).reshape(2, 3)}
+    c = bench_fit._start_at(Compiled((names, slices, shapes), 6), starts, chains=2)
+    got = [c.initial_point_func(seed) for seed in (7, 7, 7)]
+    np.testing.assert_array_equal(got[0], [0, 1, 2, 10, 11, 12])
+    np.testing.assert_array_equal(got[1], [3, 4, 5, 13, 14, 15])
+    np.testing.assert_array_equal(got[2], got[0])  # a retried start cycles through the chains
+    with pytest.raises(ValueError, match="sigma_log__"):
+        bench_fit._start_at(Compiled((names, slices, [(3,), (4,), (3,)]), 7), starts, chains=2)
