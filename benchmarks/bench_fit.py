@@ -231,7 +231,7 @@ def render(record: dict, section: str) -> str:
             f"Peer: the same model in PyMC {peer['pymc']} sampled by nutpie {peer['nutpie']} ({peer['backend']} backend, "
             f"chains in parallel threads), same data, chains, warm-up and draws, "
             + ("its chains started at the points the fit's chains started at (`--peer-start fit`). "
-               if peer.get("start") == "fit" else "its chains started at nutpie's own jittered defaults. ")
+               if peer.get("start") == "fit" else "its chains started at nutpie's own jittered defaults (`--peer-start nutpie`). ")
             + "Log densities at a common point: "
             f"quadshank {peer['density_check'][1]:.3f}, PyMC {peer['density_check'][0]:.3f}.",
             "",
@@ -297,6 +297,9 @@ def main(argv=None) -> int:
         path = Path(args.from_record)
         write_section(args.out, path.stem, render(json.loads(path.read_text()), path.stem))
         return 0
+    if args.peer_start == "fit" and args.start != "screen" and not args.no_peer:
+        ap.error("--peer-start fit needs the fit's chains to start from the screen (--start screen); "
+                 "use --peer-start nutpie")
     effects = args.add_effect if args.add_effect is not None else ["angle_delay"]
     legs = [x for x in args.legs.split(",") if x]
     command = "python benchmarks/bench_fit.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
@@ -341,9 +344,11 @@ def main(argv=None) -> int:
         if args.j_draws:
             fits = load_fits([fit_dir])
             _, j_wall, j_compile = clock.timed(posterior_j, fits, cohort, n_draws=args.j_draws, progress=True)
-    if args.peer_start == "fit" and not fit_starts:
-        ap.error("--peer-start fit needs the fit's chains to start from the screen (--start screen)")
     starts = fit_starts if args.peer_start == "fit" else None
+    if starts == {} and not args.no_peer:
+        print("bench_fit: the fit's chains did not start from the screen (its model has parameters above "
+              "the legs); the peer starts at nutpie's own default", file=sys.stderr)
+        starts = None
     peer = None if args.no_peer else run_peer(cohort, args.model, effects, settings, starts)
     n_trials = len(cohort.trials)
     ess_per_s = diag["ess_bulk_min"] / sampling if sampling > 0 else float("nan")
