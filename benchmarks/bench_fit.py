@@ -38,7 +38,7 @@ import arviz as az
 import jax
 import numpy as np
 
-from quadshank._fit import STARTS, FitSettings
+from quadshank._fit import STARTS, FitSettings, build_model, uses_screen
 from quadshank._fitio import THRESHOLDS
 from quadshank._io import write_json
 from quadshank._paper import LEGS
@@ -128,7 +128,7 @@ def run_peer(cohort, model_name: str, effects, settings, starts: dict | None = N
 
     from peer_pymc import build_pymc_model, check_same_density
 
-    from quadshank._fit import build_model, numpyro_model
+    from quadshank._fit import numpyro_model
     from quadshank._likelihood import prepare
 
     m = build_model(model_name, effects)
@@ -297,9 +297,6 @@ def main(argv=None) -> int:
         path = Path(args.from_record)
         write_section(args.out, path.stem, render(json.loads(path.read_text()), path.stem))
         return 0
-    if args.peer_start == "fit" and args.start != "screen" and not args.no_peer:
-        ap.error("--peer-start fit needs the fit's chains to start from the screen (--start screen); "
-                 "use --peer-start nutpie")
     effects = args.add_effect if args.add_effect is not None else ["angle_delay"]
     legs = [x for x in args.legs.split(",") if x]
     command = "python benchmarks/bench_fit.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
@@ -310,6 +307,9 @@ def main(argv=None) -> int:
         chains=args.chains, warmup=args.warmup, draws=args.draws, seed=args.seed, chain_method=args.chain_method,
         start=args.start,
     )
+    if args.peer_start == "fit" and not args.no_peer and not uses_screen(build_model(args.model, effects), settings):
+        ap.error("--peer-start fit needs the fit's chains to start from the screen (--start screen, and every "
+                 "parameter at the leg level); use --peer-start nutpie")
     # the per-delay Laplace evidence runs before sampling: its time (less its compilation, which
     # the compilation row holds) is reported on its own, not as sampling
     evidence = {"wall": 0.0, "compile": 0.0}
@@ -345,10 +345,6 @@ def main(argv=None) -> int:
             fits = load_fits([fit_dir])
             _, j_wall, j_compile = clock.timed(posterior_j, fits, cohort, n_draws=args.j_draws, progress=True)
     starts = fit_starts if args.peer_start == "fit" else None
-    if starts == {} and not args.no_peer:
-        print("bench_fit: the fit's chains did not start from the screen (its model has parameters above "
-              "the legs); the peer starts at nutpie's own default", file=sys.stderr)
-        starts = None
     peer = None if args.no_peer else run_peer(cohort, args.model, effects, settings, starts)
     n_trials = len(cohort.trials)
     ess_per_s = diag["ess_bulk_min"] / sampling if sampling > 0 else float("nan")
