@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from quadshank import _likelihood as L
-from quadshank._effects import Effect, register_pytree, registered_effects
+from quadshank._effects import Effect, register_pytree, registered_effects, sin_deg
 from quadshank._model import active_output, measured_acceleration, paper_model, simulate_angles
 from quadshank._simulate import simulate_cohort
 
@@ -269,3 +269,23 @@ def test_loo_pit_of_the_screen_is_uniform_on_data_from_the_model():
     seconds = elpd_in_time(fit, cohort, "JM-left")
     assert [r["trial"] for r in seconds] == [1] * 30 + [3] * 30 and seconds[-1]["start_s"] == 29.0
     np.testing.assert_allclose(sum(r["elpd"] for r in seconds), fit.elpd, rtol=1e-9)
+
+
+def test_single_precision_sine_is_as_accurate_as_xlas():
+    """The rollouts' float32 sine (:func:`sin_deg`) against float64: no worse than
+    ``jnp.sin(jnp.deg2rad(·))`` in float32 anywhere on ±1000°, exact signs at the
+    multiples of 90°, the cosine as its gradient, and float64 left to ``jnp.sin``."""
+    x = np.linspace(-1000.0, 1000.0, 200_001).astype(np.float32)
+    ref = np.sin(np.deg2rad(x.astype(np.float64)))
+    ours = np.asarray(sin_deg(jnp.asarray(x)), np.float64)
+    xla = np.asarray(jnp.sin(jnp.deg2rad(jnp.asarray(x))), np.float64)
+    assert np.abs(ours - ref).max() <= max(np.abs(xla - ref).max(), 2.4e-7)
+    assert np.abs(ours - ref).max() < 2.4e-7  # two float32 ulps of 1
+    quarter = jnp.asarray([-270.0, -90.0, 90.0, 270.0, 450.0], jnp.float32)
+    np.testing.assert_allclose(np.asarray(sin_deg(quarter)), [1, -1, 1, -1, 1], atol=1.2e-7)
+    np.testing.assert_array_equal(np.asarray(sin_deg(jnp.asarray([-180.0, 0.0, 180.0, 360.0], jnp.float32))), 0.0)
+    grad = jax.vmap(jax.grad(sin_deg))(jnp.asarray(x[::997]))
+    np.testing.assert_allclose(np.asarray(grad), np.cos(np.deg2rad(x[::997].astype(np.float64))) * np.pi / 180, atol=1e-8)
+    with jax.enable_x64(True):
+        a = jnp.asarray(x[::997], jnp.float64)
+        np.testing.assert_array_equal(np.asarray(sin_deg(a)), np.asarray(jnp.sin(jnp.deg2rad(a))))

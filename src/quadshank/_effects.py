@@ -81,6 +81,7 @@ import jax
 import jax.numpy as jnp
 
 __all__ = [
+    "sin_deg",
     "Param",
     "Effect",
     "StepContext",
@@ -480,7 +481,37 @@ class Gravity(Effect):
     gravity: Any = 1800.0
 
     def acceleration(self, angle, velocity):
-        return -self.gravity * jnp.sin(jnp.deg2rad(angle))
+        return -self.gravity * sin_deg(angle)
+
+
+#: Taylor coefficients of sin(r)/r − 1 in r², highest first: on |r| ≤ π/2 the remainder is below 1e-9.
+_SIN_TAYLOR = tuple(float((-1) ** n / math.factorial(2 * n + 1)) for n in range(6, 0, -1))
+
+
+def sin_deg(angle):
+    """sin of an angle in degrees.
+
+    In single precision (the rollouts of J_φ,p) XLA's CPU sine costs about as
+    much as the rest of an RK4 step of the pendulum together, so there the angle
+    is reduced to r = angle − 180°·k in [−90°, 90°] (exact in float32 below
+    2²⁴°), turned into radians with one rounding, and sin r = r(1 + r²·P(r²))
+    with P the Taylor polynomial of degree 12 in r (remainder < 1e-9), times
+    (−1)^k.  Its error is no larger than that of ``jnp.sin(jnp.deg2rad(angle))``
+    in float32 (``tests/test_effects.py`` checks both against float64), and
+    round's zero derivative leaves its gradient the cosine.  Other precisions
+    (the fit samples in float64) use ``jnp.sin`` as it is.
+    """
+    angle = jnp.asarray(angle)
+    if angle.dtype != jnp.float32:
+        return jnp.sin(jnp.deg2rad(angle))
+    k = jnp.round(angle * (1.0 / 180.0))
+    r = (angle - 180.0 * k) * (math.pi / 180.0)
+    r2 = r * r
+    poly = 0.0
+    for c in _SIN_TAYLOR:
+        poly = (poly + c) * r2
+    odd = k - 2.0 * jnp.floor(0.5 * k)  # k mod 2
+    return (1.0 - 2.0 * odd) * (r + r * poly)
 
 
 @register_effect
