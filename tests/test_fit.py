@@ -534,3 +534,15 @@ def test_a_screen_stuck_at_a_minor_delay_restarts_at_the_best_one():
     prior[0, 6] = 0.0
     same, evidence6, moved6 = delay_start(cohort, settings, stuck, log_delay_prior=prior)
     assert moved6 == {} and same is stuck and evidence6[0].argmax() == 6
+
+
+def test_vectorized_and_sequential_chains_give_the_same_draws():
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.3, seed=2, trials=(1,))
+    draws = {}
+    for method in ("vectorized", "sequential"):
+        settings = FitSettings(chains=2, warmup=20, draws=10, seed=5, chain_method=method)
+        mcmc, _ = fit(cohort, build_model("model1"), settings, progress=False)
+        draws[method] = np.asarray(mcmc.get_samples(group_by_chain=True)["gain"])
+    assert draws["vectorized"].shape[:2] == (2, 10)
+    assert not np.allclose(draws["vectorized"][0], draws["vectorized"][1])  # two chains, not one twice
+    np.testing.assert_allclose(draws["sequential"], draws["vectorized"], rtol=1e-9)

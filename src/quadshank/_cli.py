@@ -153,6 +153,7 @@ def cmd_fit(args) -> int:
         adapt_metric=args.adapt_metric,
         delay_evidence=args.delay_evidence,
         max_tree_depth=args.max_tree_depth,
+        chain_method=args.chain_method,
     )
     legs = _csv_list(args.legs) if args.legs else None
     summary = run_fit(
@@ -462,6 +463,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     start_options(f)
     f.add_argument("--max-tree-depth", type=int, default=8, help="NUTS tree depth limit (at most 2^depth - 1 leapfrog steps a draw)")
+    from ._fit import FitSettings
+
+    f.add_argument("--chain-method", choices=("vectorized", "sequential"), default=FitSettings.chain_method,
+                   help="run the chains as one batched program (default; faster on small data) or one after "
+                        "another (faster on large data: 1.4x at 5 legs x 5 min); the draws are the same")
     f.add_argument("--out", required=True)
     f.set_defaults(func=cmd_fit)
 

@@ -119,10 +119,14 @@ class FitSettings:
     centred: bool = True
     dense_mass: bool = True
     trials: tuple[int, ...] = (1,)
-    #: numpyro's ``chain_method``: "vectorized" (all chains in one batched program: on the
-    #: 2-core CPU, 4 chains × 200 iterations of model 3 + angle_delay on 5 legs × 2 min took
-    #: 57 s against 133 s one after another, screen and compilation included), "sequential"
-    #: or "parallel" (one device per chain).
+    #: numpyro's ``chain_method``: "vectorized" (all chains in one batched program),
+    #: "sequential" (one after another) or "parallel" (one device per chain).  The draws are
+    #: the same; the time is not, and which is faster depends on the data's size.  On the
+    #: 2-core CPU, model3s on 2 legs × 1.5 min (the demo's fit, 2 chains × 150 + 150) took
+    #: 32 s vectorized against 50 s sequential; model 3 + angle_delay on 5 legs × 5 min
+    #: (4 chains × 100 + 100 from the screen) 116 s against 83 s.  Batched over 4 chains,
+    #: that likelihood's gradient costs 2.2 single gradients' time per chain on the large
+    #: data (its arrays no longer fit the cache), 0.8–1.0 on 5 legs × 1 min or 2 legs × 5 min.
     chain_method: str = "vectorized"
     #: Where the chains start: "screen" (each leg's mode and Laplace covariance from the
     #: screen, which also give the metric; see :func:`screen_start`), "classical" (the
