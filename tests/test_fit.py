@@ -546,3 +546,19 @@ def test_vectorized_and_sequential_chains_give_the_same_draws():
     assert draws["vectorized"].shape[:2] == (2, 10)
     assert not np.allclose(draws["vectorized"][0], draws["vectorized"][1])  # two chains, not one twice
     np.testing.assert_allclose(draws["sequential"], draws["vectorized"], rtol=1e-9)
+
+
+def test_auto_chain_method_runs_large_data_one_chain_after_another():
+    from types import SimpleNamespace
+
+    from quadshank._fit import SEQUENTIAL_FROM_SAMPLES, chain_method
+
+    small = SimpleNamespace(sample_mask=np.ones((2, 9000), bool))  # the demo's 2 legs x 1.5 min
+    large = SimpleNamespace(sample_mask=np.ones((5, 30000), bool))  # 5 legs x 5 min
+    assert small.sample_mask.sum() < SEQUENTIAL_FROM_SAMPLES <= large.sample_mask.sum()
+    assert chain_method(FitSettings(), small) == "vectorized"
+    assert chain_method(FitSettings(), large) == "sequential"
+    assert chain_method(FitSettings(chain_method="vectorized"), large) == "vectorized"
+    assert chain_method(FitSettings(chain_method="sequential"), small) == "sequential"
+    with pytest.raises(ValueError, match="chain_method must be one of"):
+        FitSettings(chain_method="threads")

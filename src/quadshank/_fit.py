@@ -120,14 +120,15 @@ class FitSettings:
     dense_mass: bool = True
     trials: tuple[int, ...] = (1,)
     #: numpyro's ``chain_method``: "vectorized" (all chains in one batched program),
-    #: "sequential" (one after another) or "parallel" (one device per chain).  The draws are
-    #: the same; the time is not, and which is faster depends on the data's size.  On the
-    #: 2-core CPU, model3s on 2 legs × 1.5 min (the demo's fit, 2 chains × 150 + 150) took
-    #: 32 s vectorized against 50 s sequential; model 3 + angle_delay on 5 legs × 5 min
-    #: (4 chains × 100 + 100 from the screen) 116 s against 83 s.  Batched over 4 chains,
-    #: that likelihood's gradient costs 2.2 single gradients' time per chain on the large
-    #: data (its arrays no longer fit the cache), 0.8–1.0 on 5 legs × 1 min or 2 legs × 5 min.
-    chain_method: str = "vectorized"
+    #: "sequential" (one after another), "parallel" (one device per chain), or "auto":
+    #: sequential from :data:`SEQUENTIAL_FROM_SAMPLES` compared samples on, else vectorized
+    #: (:func:`chain_method`).  The draws are the same; the time is not.  On the 2-core CPU,
+    #: model3s on 2 legs × 1.5 min (18 000 samples; the demo's fit, 2 chains × 150 + 150)
+    #: took 32 s vectorized against 50 s sequential; model 3 + angle_delay on 5 legs × 5 min
+    #: (150 000 samples; 4 chains × 100 + 100 from the screen) 116 s against 83 s.  Batched
+    #: over 4 chains, that likelihood's gradient costs 2.2 single gradients per chain on the
+    #: 150 000 samples, 0.8–1.0 on 30 000 or 60 000 (5 legs × 1 min, 2 legs × 5 min).
+    chain_method: str = "auto"
     #: Where the chains start: "screen" (each leg's mode and Laplace covariance from the
     #: screen, which also give the metric; see :func:`screen_start`), "classical" (the
     #: classical least-squares estimate, jittered) or "prior" (the prior median).
@@ -144,6 +145,22 @@ class FitSettings:
     def __post_init__(self):
         if self.start not in STARTS:
             raise ValueError(f"start must be one of {', '.join(STARTS)}, not {self.start!r}")
+        if self.chain_method not in CHAIN_METHODS:
+            raise ValueError(f"chain_method must be one of {', '.join(CHAIN_METHODS)}, not {self.chain_method!r}")
+
+
+#: What :attr:`FitSettings.chain_method` takes.
+CHAIN_METHODS = ("auto", "vectorized", "sequential", "parallel")
+#: Compared samples (all legs) from which chain_method "auto" runs the chains one after another.
+SEQUENTIAL_FROM_SAMPLES = 100_000
+
+
+def chain_method(settings: FitSettings, data: LikelihoodData) -> str:
+    """numpyro's chain method for a fit of ``data``: the settings' own, or for "auto",
+    "sequential" from :data:`SEQUENTIAL_FROM_SAMPLES` compared samples on, else "vectorized"."""
+    if settings.chain_method != "auto":
+        return settings.chain_method
+    return "sequential" if int(np.sum(data.sample_mask)) >= SEQUENTIAL_FROM_SAMPLES else "vectorized"
 
 
 #: Classical models whose estimates start a model's chains (model3s: model 2's twitch, model 3's gains).
@@ -683,7 +700,7 @@ def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen):
         num_warmup=settings.warmup,
         num_samples=settings.draws,
         num_chains=settings.chains,
-        chain_method=settings.chain_method,
+        chain_method=chain_method(settings, data),
         progress_bar=progress,
         # the data are arguments of the jitted sampler, not constants folded into it:
         # the chains (and later fits of the same shapes) compile it once
@@ -906,6 +923,7 @@ def describe_fit(model: Model, data: LikelihoodData, settings: FitSettings) -> d
         "trials": list(data.trials),
         "resolution": data.resolution,
         "settings": dataclasses.asdict(settings),
+        "chain_method": chain_method(settings, data),
         "sampling_period_s": model.sampling_period_s,
     }
 

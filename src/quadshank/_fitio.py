@@ -392,6 +392,7 @@ def fit_summary(idata) -> dict:
         "diagnostics": diag,
         "banner": None if diag["ok"] else "FIT FAILED ITS CHECKS: " + "; ".join(diag["problems"]),
         "settings": desc["settings"],
+        "chain_method": desc.get("chain_method", desc["settings"].get("chain_method")),
         "interval": list(INTERVAL),
     }
 
