@@ -540,7 +540,7 @@ def test_vectorized_and_sequential_chains_give_the_same_draws():
     cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.3, seed=2, trials=(1,))
     draws = {}
     for method in ("vectorized", "sequential"):
-        settings = FitSettings(chains=2, warmup=20, draws=10, seed=5, chain_method=method)
+        settings = FitSettings(chains=2, warmup=20, draws=10, seed=5, chain_method=method, start="prior")
         mcmc, _ = fit(cohort, build_model("model1"), settings, progress=False)
         draws[method] = np.asarray(mcmc.get_samples(group_by_chain=True)["gain"])
     assert draws["vectorized"].shape[:2] == (2, 10)
