@@ -106,6 +106,10 @@ NU_PRIOR = (2.0, 0.1)
 
 #: Where chains can start (:attr:`FitSettings.start`).
 STARTS = ("screen", "classical", "prior")
+#: What :attr:`FitSettings.chain_method` takes.
+CHAIN_METHODS = ("auto", "vectorized", "sequential", "parallel")
+#: Compared samples (all legs) from which chain_method "auto" runs the chains one after another.
+SEQUENTIAL_FROM_SAMPLES = 100_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,12 +151,6 @@ class FitSettings:
             raise ValueError(f"start must be one of {', '.join(STARTS)}, not {self.start!r}")
         if self.chain_method not in CHAIN_METHODS:
             raise ValueError(f"chain_method must be one of {', '.join(CHAIN_METHODS)}, not {self.chain_method!r}")
-
-
-#: What :attr:`FitSettings.chain_method` takes.
-CHAIN_METHODS = ("auto", "vectorized", "sequential", "parallel")
-#: Compared samples (all legs) from which chain_method "auto" runs the chains one after another.
-SEQUENTIAL_FROM_SAMPLES = 100_000
 
 
 def chain_method(settings: FitSettings, data: LikelihoodData) -> str:
