@@ -5,9 +5,9 @@ XLA's CPU sine cost about as much as the rest of an RK4 step of the pendulum.
 ``quadshank._effects.sin_deg`` reduces the angle to ±90° and evaluates a Taylor
 polynomial instead.  Here both are timed side by side on posterior J of one
 5-minute trial: model 3 + angle_delay identified from trial 1 (TN-left,
-simulated, seed 0), ``--draws`` draws jittered about it (1 % on every
-parameter, delays 3–5, shifts 0–1, thresholds about −20°), every start, four
-horizons.  Each variant is compiled first, then timed in alternating rounds;
+simulated, seed 0), its delay's step hard as a fit's draws are evaluated,
+``--draws`` draws jittered about it (1 % on every parameter, delays 3–5,
+shifts 0–1, thresholds about −20°), every start, four horizons.  Each variant is compiled first, then timed in alternating rounds;
 the median round is reported, so both see the same load.  Their J must agree.
 
     python benchmarks/bench_rollout_sine.py [--draws 20] [--repeats 5] [--out results/benchmarks.md]
@@ -30,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from results_md import write_section  # noqa: E402
 
 from quadshank import _effects  # noqa: E402
+from quadshank._fit import hard_step  # noqa: E402
 from quadshank._identify import identify_leg  # noqa: E402
 from quadshank._posterior_eval import posterior_prediction_errors  # noqa: E402
 from quadshank._simulate import simulate_cohort  # noqa: E402
@@ -57,7 +58,7 @@ def main(argv=None) -> int:
     command = " ".join(["python benchmarks/bench_rollout_sine.py", *(shlex.quote(a) for a in (argv or sys.argv[1:]))])
 
     cohort, _ = simulate_cohort(legs=("TN-left",), minutes=5, seed=0, trials=(1, 2), effects=["angle_delay"])
-    model = identify_leg(cohort.get("TN-left", 1)).models["model3"].add("angle_delay")
+    model = hard_step(identify_leg(cohort.get("TN-left", 1)).models["model3"].add("angle_delay"))
     trial = cohort.get("TN-left", 2)
     draws = jittered_draws(model, args.draws)
     ours = _effects.Gravity.acceleration
@@ -93,7 +94,7 @@ Regenerate: `{command}`
 
 Machine: {platform.machine()}, {jax.default_backend().upper()} (jax {jax.__version__}), Python {platform.python_version()}; measured {time.strftime('%Y-%m-%d')}.
 Posterior J of one 5-minute trial (TN-left trial 2, simulated with angle_delay, seed 0): model 3 + angle_delay
-identified from trial 1, {args.draws} jittered draws, {starts} starts × 100-step rollouts, read at p = 10, 25, 50, 100.
+(hard step) identified from trial 1, {args.draws} jittered draws, {starts} starts × 100-step rollouts, read at p = 10, 25, 50, 100.
 Median of {args.repeats} alternating rounds, compilation excluded.
 
 | gravity's sine | time per draw and trial [ms] | whole cohort, 200 draws × 15 trials [s] |
