@@ -71,15 +71,11 @@ def main(argv=None) -> int:
         finally:
             _effects.Gravity.acceleration = ours
 
-    J = {}
-    for name in variants:  # compile each (the jitted rollouts retrace: the method is a different function)
-        jax.clear_caches()
-        J[name] = run(name)
-    rounds = {name: [] for name in variants}
+    J, rounds = {}, {name: [] for name in variants}
     for _ in range(args.repeats):
         for name in variants:
-            jax.clear_caches()
-            run(name)  # compile outside the timed call
+            jax.clear_caches()  # the jitted rollouts would otherwise keep the sine they were traced with
+            J[name] = run(name)  # compilation, outside the timed call
             t = time.perf_counter()
             run(name)
             rounds[name].append((time.perf_counter() - t) / args.draws)
