@@ -24,9 +24,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from reference_jphi import j_phi_loop  # noqa: E402
 from results_md import write_section  # noqa: E402
 
-from quadshank._evaluate import prediction_errors  # noqa: E402
-from quadshank._identify import identify_leg  # noqa: E402
-from quadshank._simulate import simulate_cohort  # noqa: E402
+from quadshank.evaluation._prediction import prediction_errors  # noqa: E402
+from quadshank.inference._identify import identify_leg  # noqa: E402
+from quadshank.data._simulate import simulate_cohort  # noqa: E402
 
 
 def main(argv=None) -> int:

@@ -28,10 +28,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from results_md import write_section  # noqa: E402
 
-from quadshank._fit import build_model, numpyro_model  # noqa: E402
-from quadshank._likelihood import PULSE_LEVEL_FIELDS, prepare  # noqa: E402
-from quadshank._paper import LEGS  # noqa: E402
-from quadshank._simulate import simulate_cohort  # noqa: E402
+from quadshank.inference._fit import build_model, numpyro_model  # noqa: E402
+from quadshank.model._likelihood import PULSE_LEVEL_FIELDS, prepare  # noqa: E402
+from quadshank.data._paper import LEGS  # noqa: E402
+from quadshank.data._simulate import simulate_cohort  # noqa: E402
 
 
 def main(argv=None) -> int:

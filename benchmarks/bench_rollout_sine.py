@@ -2,7 +2,7 @@
 
 The k-step rollouts of J_φ,p (eq. 12) run in single precision, and in them
 XLA's CPU sine cost about as much as the rest of an RK4 step of the pendulum.
-``quadshank._effects.sin_deg`` reduces the angle to ±90° and evaluates a Taylor
+``quadshank.model._effects.sin_deg`` reduces the angle to ±90° and evaluates a Taylor
 polynomial instead.  Here both are timed side by side on posterior J of one
 5-minute trial: model 3 + angle_delay identified from trial 1 (TN-left,
 simulated, seed 0), its delay's step hard as a fit's draws are evaluated,
@@ -30,10 +30,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from results_md import write_section  # noqa: E402
 
 from quadshank import _effects  # noqa: E402
-from quadshank._fit import hard_step  # noqa: E402
-from quadshank._identify import identify_leg  # noqa: E402
-from quadshank._posterior_eval import posterior_prediction_errors  # noqa: E402
-from quadshank._simulate import simulate_cohort  # noqa: E402
+from quadshank.inference._fit import hard_step  # noqa: E402
+from quadshank.inference._identify import identify_leg  # noqa: E402
+from quadshank.evaluation._posterior import posterior_prediction_errors  # noqa: E402
+from quadshank.data._simulate import simulate_cohort  # noqa: E402
 
 
 def jittered_draws(model, n: int, seed: int = 0):

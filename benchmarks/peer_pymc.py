@@ -1,13 +1,13 @@
 """The benchmark's peer: quadshank's hierarchical model written in PyMC, sampled by nutpie.
 
-The same joint density as :func:`quadshank._fit.numpyro_model` for the paper's
+The same joint density as :func:`quadshank.inference._fit.numpyro_model` for the paper's
 model 3 with the angle-dependent delay (or without it): legs standardised by
 their priors with the population mean, subject level and spreads integrated
 out (s_leg ~ Σ_g w_g MVN(0, 11ᵀ + r_s,g²S + r_l,g²I) on quadshank's grid of
 spreads), per-leg Student-t noise on twitch-window sums of the equivalent
 acceleration, the delay d ∈ {0…10}, the shift and the threshold (its states
 between the pulse angles) summed out by log-sum-exp.  It reads the same
-touch and step tables (``quadshank._likelihood.prepare``) and is checked
+touch and step tables (``quadshank.model._likelihood.prepare``) and is checked
 against quadshank's log density at a common point (:func:`check_same_density`)
 before any timing is trusted.
 
@@ -20,8 +20,8 @@ import math
 
 import numpy as np
 
-from quadshank._fit import NU_PRIOR, SIGMA_PRIOR, log_shift_prior, model_params, spread_grid
-from quadshank._likelihood import N_DELAYS, LikelihoodData
+from quadshank.inference._fit import NU_PRIOR, SIGMA_PRIOR, log_shift_prior, model_params, spread_grid
+from quadshank.model._likelihood import N_DELAYS, LikelihoodData
 
 SUPPORTED = {"zero_order", "linear_torque_angle", "linear_torque_velocity", "damping", "gravity", "elasticity",
              "angle_delay"}  # fmt: skip

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from quadshank._io import atomic_write_text
+from quadshank.common._io import atomic_write_text
 
 HEADER = "# Benchmarks\n\nEach section is written by the command shown in it.\n"
 

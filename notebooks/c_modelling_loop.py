@@ -48,11 +48,11 @@ import pandas as pd
 from IPython.display import Image, display
 
 from quadshank import build_model, simulate_cohort
-from quadshank._diagnose import leg_residuals, rank_effects, residual_figures, verdict_sentence
-from quadshank._evaluate import prediction_starts
-from quadshank._plots import plot_posterior_predictions
-from quadshank._posterior_eval import posterior_predictions
-from quadshank._screen import laplace_fit, leg_draw_models
+from quadshank.loop._diagnose import leg_residuals, rank_effects, residual_figures, verdict_sentence
+from quadshank.evaluation._prediction import prediction_starts
+from quadshank.outputs._figures import plot_posterior_predictions
+from quadshank.evaluation._posterior import posterior_predictions
+from quadshank.inference._screen import laplace_fit, leg_draw_models
 
 # %matplotlib inline
 plt.rcParams["figure.dpi"] = 72

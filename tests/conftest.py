@@ -28,8 +28,7 @@ import pytest  # noqa: E402
 @pytest.fixture
 def scratch_registry(monkeypatch):
     """Effects registered inside a test stay inside it (the loop's tests screen every registered candidate)."""
-    from quadshank import _effects
-
+    from quadshank.model import _effects as _effects
     monkeypatch.setattr(_effects, "_REGISTRY", dict(_effects._REGISTRY))
 
 

@@ -9,8 +9,8 @@ the bands; on data with no hidden effect the verdict must be ``none``.
 
 import warnings
 
-from quadshank._diagnose import rank_effects
-from quadshank._simulate import simulate_cohort
+from quadshank.loop._diagnose import rank_effects
+from quadshank.data._simulate import simulate_cohort
 
 HIDDEN = ("torque_angle_peak", "hill_velocity", "angle_delay", "fatigue", "potentiation")
 LEG = "JM-left"

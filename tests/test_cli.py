@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from quadshank._cli import main
-from quadshank._interchange import load_cohort
+from quadshank.cli import main
+from quadshank.data._interchange import load_cohort
 
 
 @pytest.fixture(scope="module")
@@ -76,8 +76,7 @@ def test_expected_errors_are_one_line_with_exit_code_2(data, tmp_path, capsys):
 def test_demo_small(tmp_path, monkeypatch, capsys):
     """`quadshank demo` at a small size: the reproduction, a fit, its evaluation, a diagnosis and the
     report, each in its folder, and the command says where the report is."""
-    from quadshank import _demo
-
+    from quadshank.commands import demo as _demo
     monkeypatch.setattr(_demo, "DEMO_EFFECTS", ("potentiation",))  # one candidate keeps the test short
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--minutes", "1", "--legs", "TN-left,OT-left",

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from quadshank import Trial
-from quadshank._evaluate import prediction_errors, sign_tests, table_v
-from quadshank._model import paper_model, passive_effects, simulate_angles
+from quadshank.evaluation._prediction import prediction_errors, sign_tests, table_v
+from quadshank.model._model import paper_model, passive_effects, simulate_angles
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from reference_jphi import j_phi_loop  # noqa: E402

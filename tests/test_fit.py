@@ -12,13 +12,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from quadshank._cli import main
-from quadshank._fit import FitSettings, build_model, fit
-from quadshank._fitio import FitFolderError, load_fit, posterior_models
-from quadshank._interchange import load_cohort
-from quadshank._likelihood import N_DELAYS
-from quadshank._provenance import code_provenance
-from quadshank._simulate import simulate_cohort
+from quadshank.cli import main
+from quadshank.inference._fit import FitSettings, build_model, fit
+from quadshank.inference._fitio import FitFolderError, load_fit, posterior_models
+from quadshank.data._interchange import load_cohort
+from quadshank.model._likelihood import N_DELAYS
+from quadshank.common._provenance import code_provenance
+from quadshank.data._simulate import simulate_cohort
 
 TINY = ["--chains", "2", "--warmup", "40", "--draws", "30"]
 
@@ -80,8 +80,8 @@ def test_a_fit_that_fails_its_checks_says_so(fitted, capsys):
 
 
 def test_interrupted_fit_leaves_no_complete_looking_folder(data_dir, monkeypatch):
-    import quadshank._fitio as fitio
-    import quadshank._pipeline as pipeline
+    import quadshank.inference._fitio as fitio
+    import quadshank.commands._pipeline as pipeline
 
     out = data_dir / "interrupted"
     out.mkdir()
@@ -122,7 +122,7 @@ def _spread_mixture_by_hand(s, leg_subject):
     cell found by quadrature of its density, and the normal density from scipy."""
     from scipy import integrate, stats
 
-    from quadshank._fit import SPREAD_GRID
+    from quadshank.inference._fit import SPREAD_GRID
 
     r = SPREAD_GRID
     edges = np.concatenate([[0.0], np.sqrt(r[1:] * r[:-1]), [np.inf]])
@@ -137,7 +137,7 @@ def _spread_mixture_by_hand(s, leg_subject):
 
 
 def test_spread_mixture_is_the_discretised_halfnormal_prior_summed_out():
-    from quadshank._fit import SpreadMixture
+    from quadshank.inference._fit import SpreadMixture
 
     leg_subject = np.array([0, 0, 1, 1, 2])
     prior = SpreadMixture(leg_subject)
@@ -147,7 +147,7 @@ def test_spread_mixture_is_the_discretised_halfnormal_prior_summed_out():
         assert float(prior.log_prob(jnp.asarray(s, jnp.float32))) == pytest.approx(want, rel=1e-4, abs=1e-4)
     # its draws have the mixture's covariance: E[s sᵀ] = Σ_g w_g C_g
     draws = np.asarray(prior.sample(jax.random.PRNGKey(0), (40000,)), np.float64)
-    from quadshank._fit import spread_grid
+    from quadshank.inference._fit import spread_grid
 
     log_w, r_s, r_l, *_ = spread_grid(tuple(leg_subject))
     same = (leg_subject[:, None] == leg_subject[None, :]).astype(float)
@@ -157,7 +157,7 @@ def test_spread_mixture_is_the_discretised_halfnormal_prior_summed_out():
 
 def test_spreads_are_drawn_from_their_conditional_on_the_grid():
     """spread_draws against P(r_s, r_l | s) computed by hand, for legs that agree and legs that do not."""
-    from quadshank._fit import SPREAD_GRID, model_params, spread_draws
+    from quadshank.inference._fit import SPREAD_GRID, model_params, spread_draws
 
     model = build_model("model1")
     leg_subject = np.array([0, 0, 1, 1, 2])
@@ -182,7 +182,7 @@ def test_spreads_are_drawn_from_their_conditional_on_the_grid():
 
 def test_population_and_subject_draws_follow_their_gaussian_conditional():
     """hyper_draws against Gaussian conditioning of the joint (μ, x_legs), computed another way."""
-    from quadshank._fit import hyper_draws, model_params
+    from quadshank.inference._fit import hyper_draws, model_params
 
     model = build_model("model1")
     gain = next(p for p in model_params(model) if p.name == "gain")
@@ -212,7 +212,7 @@ def test_population_and_subject_draws_follow_their_gaussian_conditional():
 
 def test_delay_prior_from_another_fit(fitted, data_dir):
     """A model-1 fit cannot see the delay, so its P(d | data) is exactly the prior it was given."""
-    from quadshank._fit import DELAY_PRIOR_FLOOR, delay_prior_from
+    from quadshank.inference._fit import DELAY_PRIOR_FLOOR, delay_prior_from
 
     source, _ = fitted
     src = json.loads((source / "summary.json").read_text())
@@ -235,8 +235,8 @@ def test_delay_prior_from_another_fit(fitted, data_dir):
 
 
 def test_angle_delay_fit_reports_the_delay_angle_curve(tmp_path):
-    from quadshank._fitio import fit_summary, to_inference_data
-    from quadshank._paper import MAX_DELAY
+    from quadshank.inference._fitio import fit_summary, to_inference_data
+    from quadshank.data._paper import MAX_DELAY
 
     cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.3, seed=4, effects=["angle_delay"], trials=(1,))
     model = build_model("model1", ["angle_delay"])
@@ -261,8 +261,8 @@ def test_summed_out_threshold_is_drawn_with_the_delay_from_their_joint_condition
     the pulses as its state does."""
     from scipy import stats
 
-    from quadshank._fit import _with_discrete_axes, log_shift_prior, sample_step_states, step_param
-    from quadshank._likelihood import leg_loglik_by_threshold, prepare, step_log_mass
+    from quadshank.inference._fit import _with_discrete_axes, log_shift_prior, sample_step_states, step_param
+    from quadshank.model._likelihood import leg_loglik_by_threshold, prepare, step_log_mass
 
     cohort, truth = simulate_cohort(legs=["JM-left"], minutes=0.3, seed=4, effects=["angle_delay"], trials=(1,))
     model = build_model("model3", ["angle_delay"])
@@ -304,9 +304,9 @@ def test_chains_start_at_the_classical_estimate_of_the_leading_delay_mode():
 
     import jax
 
-    from quadshank._fit import INIT_JITTER, _init_near, classical_start, model_params
-    from quadshank._likelihood import leg_loglik_by_delay, prepare
-    from quadshank._recovery import simulate_matching
+    from quadshank.inference._fit import INIT_JITTER, _init_near, classical_start, model_params
+    from quadshank.model._likelihood import leg_loglik_by_delay, prepare
+    from quadshank.evaluation._recovery import simulate_matching
 
     cohort, truth = simulate_matching("model2", legs=["TN-left", "JM-left"], minutes=1.0, seed=0)
     model = build_model("model2")
@@ -340,9 +340,9 @@ def test_screen_start_puts_each_chain_at_a_laplace_draw_with_the_laplace_metric(
     leg is the Laplace covariance.  model3s has vector parameters (a, b), whose site is (C, L)."""
     from numpyro.infer.util import constrain_fn
 
-    from quadshank._fit import fit_screen, numpyro_model, screen_start
-    from quadshank._likelihood import prepare
-    from quadshank._screen import _values_np
+    from quadshank.inference._fit import fit_screen, numpyro_model, screen_start
+    from quadshank.model._likelihood import prepare
+    from quadshank.inference._screen import _values_np
 
     cohort, _ = simulate_cohort(legs=["TN-left", "JM-left"], minutes=0.3, seed=4, trials=(1,))
     model = build_model("model3s")
@@ -412,7 +412,7 @@ def test_started_chains_begin_where_numpyros_own_nuts_would_put_them():
     import numpyro.distributions as dist
     from numpyro.infer import NUTS, init_to_median
 
-    from quadshank._fit import _StartedNUTS, init_to_uniform
+    from quadshank.inference._fit import _StartedNUTS, init_to_uniform
 
     y = jnp.asarray(np.random.default_rng(0).standard_t(5, 40) * 2.0 + 1.0)
 
@@ -438,7 +438,7 @@ def test_started_chains_begin_where_numpyros_own_nuts_would_put_them():
 def test_chains_at_different_delays_fail_the_checks_and_name_the_leg():
     """Chains that agree on everything continuous but sit at different delays of one leg (as model 3's
     do at short data) fail, and the problem names the leg and each chain's delay."""
-    from quadshank._fitio import diagnose_sampling
+    from quadshank.inference._fitio import diagnose_sampling
 
     p = _peaked
     agree = diagnose_sampling(_two_chain_fit([[p(4), 0.5 * (p(4) + p(5))], [p(4), 0.5 * (p(4) + p(5))]]))
@@ -457,7 +457,7 @@ def test_a_delay_the_evidence_weighs_but_no_chain_visits_is_a_warning():
     fifth of the mass (model 3 on a minute of data) draw a warning naming the leg, the delay and
     both weights, without failing the fit (the evidence is of the leg alone, the chains' of the
     pooled posterior); a neighbour the chains visit, or one the evidence barely weighs, draws none."""
-    from quadshank._fitio import diagnose_sampling
+    from quadshank.inference._fitio import diagnose_sampling
 
     one = np.zeros(N_DELAYS)
     one[3] = 1.0
@@ -481,9 +481,9 @@ def test_delay_evidence_weighs_each_delay_by_its_own_mode():
     has a mode at d = 3 and one at d = 4: the screen, near the first, puts all of P(d) on 3; the
     evidence gives 4 about a fifth.  Model 2 pins d (all on the truth), and model 1, whose window
     sums cannot see d, leaves it at the uniform prior."""
-    from quadshank._fit import delay_start
-    from quadshank._recovery import simulate_matching
-    from quadshank._screen import delay_evidence, laplace_fit
+    from quadshank.inference._fit import delay_start
+    from quadshank.evaluation._recovery import simulate_matching
+    from quadshank.inference._screen import delay_evidence, laplace_fit
 
     for name, seed, minutes in [("model3", 2, 1.0), ("model2", 0, 0.5), ("model1", 0, 0.5)]:
         cohort, truth = simulate_matching(name, ("TN-left",), minutes, seed)
@@ -509,9 +509,9 @@ def test_a_screen_stuck_at_a_minor_delay_restarts_at_the_best_one():
     from the mode of the delay the evidence weighs most, which then holds the screen's P(d)
     and a higher log density; where the fit's delay prior favours the delay the screen sits
     at, the screen stays."""
-    from quadshank._fit import delay_start
-    from quadshank._recovery import simulate_matching
-    from quadshank._screen import delay_modes, laplace_fit, restart_screen
+    from quadshank.inference._fit import delay_start
+    from quadshank.evaluation._recovery import simulate_matching
+    from quadshank.inference._screen import delay_modes, laplace_fit, restart_screen
 
     cohort, truth = simulate_matching("model3", ("TN-left",), 1.0, 2)
     settings = FitSettings(chains=2, seed=0)
@@ -551,7 +551,7 @@ def test_vectorized_and_sequential_chains_give_the_same_draws():
 def test_auto_chain_method_runs_large_data_one_chain_after_another():
     from types import SimpleNamespace
 
-    from quadshank._fit import SEQUENTIAL_FROM_SAMPLES, chain_method
+    from quadshank.inference._fit import SEQUENTIAL_FROM_SAMPLES, chain_method
 
     small = SimpleNamespace(sample_mask=np.ones((2, 9000), bool))  # the demo's 2 legs x 1.5 min
     large = SimpleNamespace(sample_mask=np.ones((5, 30000), bool))  # 5 legs x 5 min

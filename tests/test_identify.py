@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from quadshank import Trial
-from quadshank._identify import (
+from quadshank.inference._identify import (
     IdentificationError,
     fit_darma,
     identify_leg,
@@ -13,10 +13,10 @@ from quadshank._identify import (
     isolated_twitches,
     quiet_mask,
 )
-from quadshank._model import paper_model, passive_effects, simulate_angles
-from quadshank._paper import LEGS
-from quadshank._pipeline import DELAY_TOLERANCE, TOLERANCES, recovery
-from quadshank._simulate import simulate_cohort
+from quadshank.model._model import paper_model, passive_effects, simulate_angles
+from quadshank.data._paper import LEGS
+from quadshank.commands._pipeline import DELAY_TOLERANCE, TOLERANCES, recovery
+from quadshank.data._simulate import simulate_cohort
 
 
 def test_isolated_twitches_and_quiet_mask():

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quadshank import _interchange as ix
-from quadshank._cohort import Cohort, Trial, derive_velocity
-from quadshank._interchange import (
+from quadshank.data import _interchange as ix
+from quadshank.data._cohort import Cohort, Trial, derive_velocity
+from quadshank.data._interchange import (
     InterchangeError,
     Problem,
     convert,

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from quadshank import _likelihood as L
-from quadshank._effects import AngleDelay, Darma
-from quadshank._model import paper_model
-from quadshank._paper import MAX_DELAY, TWITCH_SAMPLES
-from quadshank._simulate import simulate_cohort
+from quadshank.model import _likelihood as L
+from quadshank.model._effects import AngleDelay, Darma
+from quadshank.model._model import paper_model
+from quadshank.data._paper import MAX_DELAY, TWITCH_SAMPLES
+from quadshank.data._simulate import simulate_cohort
 
 PASSIVE = ("damping", "gravity", "k1", "k2")
 
@@ -193,7 +193,7 @@ def test_impulse_response_of_darma_follows_its_recursion():
 def test_stateful_gains_are_refused(scratch_registry):
     import dataclasses
 
-    from quadshank._effects import Effect, register_effect
+    from quadshank.model._effects import Effect, register_effect
 
     @register_effect
     @dataclasses.dataclass(frozen=True)

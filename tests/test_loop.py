@@ -4,8 +4,8 @@ delay (see loop_cases.py; fatigue, potentiation and no hidden effect: test_loop_
 import pytest
 from loop_cases import HIDDEN, check_hidden_first, rankings
 
-from quadshank._diagnose import candidates
-from quadshank._fit import build_model
+from quadshank.loop._diagnose import candidates
+from quadshank.inference._fit import build_model
 
 HERE = ("torque_angle_peak", "hill_velocity", "angle_delay")
 

@@ -10,9 +10,9 @@ import json
 import numpy as np
 import pytest
 
-from quadshank._cli import main
-from quadshank._interchange import write_interchange
-from quadshank._simulate import simulate_cohort
+from quadshank.cli import main
+from quadshank.data._interchange import write_interchange
+from quadshank.data._simulate import simulate_cohort
 
 LEG = "JM-left"
 

@@ -4,8 +4,8 @@ hidden (see loop_cases.py; the other hidden effects: test_loop.py)."""
 import pytest
 from loop_cases import LEG, check_hidden_first, rankings
 
-from quadshank._diagnose import candidates
-from quadshank._fit import build_model
+from quadshank.loop._diagnose import candidates
+from quadshank.inference._fit import build_model
 
 HERE = ("fatigue", "potentiation")
 

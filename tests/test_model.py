@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from quadshank._effects import Effect, Param, register_effect, registered_effects
-from quadshank._model import (
+from quadshank.model._effects import Effect, Param, register_effect, registered_effects
+from quadshank.model._model import (
     Model,
     active_carries,
     paper_model,

@@ -11,12 +11,12 @@ import jax
 import numpy as np
 import pytest
 
-import quadshank._posterior_eval as pe
-from quadshank._cli import main
-from quadshank._evaluate import prediction_errors, prediction_starts, predictions
-from quadshank._fitio import load_fit, posterior_models
-from quadshank._interchange import load_cohort, write_interchange
-from quadshank._paper import HORIZONS
+import quadshank.evaluation._posterior as pe
+from quadshank.cli import main
+from quadshank.evaluation._prediction import prediction_errors, prediction_starts, predictions
+from quadshank.inference._fitio import load_fit, posterior_models
+from quadshank.data._interchange import load_cohort, write_interchange
+from quadshank.data._paper import HORIZONS
 
 TINY = ["--chains", "2", "--warmup", "30", "--draws", "20"]
 HORIZON_KEYS = {"100", "250", "500", "1000"}
@@ -192,7 +192,7 @@ def test_missing_fit_or_leg_exits_2_naming_it(run, tmp_path, capsys):
 
 
 def test_delay_angle_figure_has_a_panel_per_leg_and_the_population():
-    from quadshank._plots import plot_delay_angle
+    from quadshank.outputs._figures import plot_delay_angle
 
     grid = list(np.arange(-40.0, 61.0, 1.0))
     step = [3.0 if a < -20 else 4.0 for a in grid]

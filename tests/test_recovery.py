@@ -6,11 +6,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from quadshank._cli import main
-from quadshank._fit import build_model
-from quadshank._likelihood import leg_loglik_by_delay, prepare
-from quadshank._model import equivalent_acceleration, simulate_angles
-from quadshank._recovery import MATCHING_NOISE, ANGLE_RANGE, coverage_rows, matching_values, simulate_matching
+from quadshank.cli import main
+from quadshank.inference._fit import build_model
+from quadshank.model._likelihood import leg_loglik_by_delay, prepare
+from quadshank.model._model import equivalent_acceleration, simulate_angles
+from quadshank.evaluation._recovery import MATCHING_NOISE, ANGLE_RANGE, coverage_rows, matching_values, simulate_matching
 
 
 @pytest.mark.parametrize("model", ["model1", "model2", "model3"])
@@ -130,10 +130,10 @@ def test_the_angle_delay_likelihood_finds_the_step_of_matching_data(with_step):
 
 
 def test_recovery_reuses_a_finished_fit_of_the_same_truth_settings_and_code(tmp_path, monkeypatch):
-    import quadshank._pipeline as pipeline
-    import quadshank._provenance as provenance
-    import quadshank._recovery as recovery
-    from quadshank._fit import FitSettings
+    import quadshank.commands._pipeline as pipeline
+    import quadshank.common._provenance as provenance
+    import quadshank.evaluation._recovery as recovery
+    from quadshank.inference._fit import FitSettings
     calls = []
 
     def fake_run_fit(cohort, out, model, add_effects, settings, progress=False):
@@ -174,7 +174,7 @@ def test_coverage_table_names_delays_missed_and_wrong_modes_the_data_chose():
     """The Sampling table names each fit's split chains and missed delays; the wrong-mode table lists
     a leg whose data chose a delay (P(mode) ≥ 0.5) with P(true d) from the chains and the evidence,
     and leaves out a flat P(d) whose argmax is no claim."""
-    from quadshank._recovery import coverage_markdown
+    from quadshank.evaluation._recovery import coverage_markdown
 
     fit = {"seed": 2, "rhat_max": 1.06, "ess_bulk_min": 32, "divergences": 0, "ok": False, "sampling_seconds": 30,
            "delay_splits": {"TN-right": [4, 5]}, "delay_missed": {"JM-left": {"4": [0.25, 0.0]}}}
@@ -221,7 +221,7 @@ def test_likelihood_check_command_finds_the_likelihood_calibrated(tmp_path):
 
 def test_likelihood_check_sees_a_bias(monkeypatch):
     # the same check told a gain 4 % above the one that made the data: z of the gain far below 0
-    import quadshank._recovery as rec
+    import quadshank.evaluation._recovery as rec
 
     simulate = rec.simulate_matching
 

@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import quadshank._report as report
-from quadshank._cli import main
-from quadshank._fitio import INTERVAL, load_fit
+import quadshank.outputs._report as report
+from quadshank.cli import main
+from quadshank.inference._fitio import INTERVAL, load_fit
 
 LEGS = ("TN-left", "JM-left")
 CHROMIUM = Path("/usr/bin/chromium")

@@ -1,4 +1,4 @@
-"""Residual diagnostics (:mod:`quadshank._residuals`) on residuals built with a known answer."""
+"""Residual diagnostics (:mod:`quadshank.evaluation._residuals`) on residuals built with a known answer."""
 
 import math
 
@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from quadshank import _residuals as rd
-
+from quadshank.evaluation import _residuals as rd
 DT = 0.01
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

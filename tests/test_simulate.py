@@ -1,4 +1,4 @@
-"""Tests of the simulated cohort (quadshank._simulate)."""
+"""Tests of the simulated cohort (quadshank.data._simulate)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from quadshank._paper import LEGS, RMS_ANGLE, SAMPLING_PERIOD_S, TABLE_I, TABLE_III
-from quadshank._simulate import (
+from quadshank.data._paper import LEGS, RMS_ANGLE, SAMPLING_PERIOD_S, TABLE_I, TABLE_III
+from quadshank.data._simulate import (
     EFFECTS,
     PASSIVE_TRUTH,
     SENSOR,
@@ -249,7 +249,7 @@ def test_equivalent_acceleration_of_twitch_from_rest():
     assert abs(tail[-10:]).max() < 1.0
     assert m[200:260].sum() == pytest.approx(fg * m[100:160].sum(), rel=0.03)
     # eq. (8) on the noisy recording recovers it within the accelerometer noise
-    from quadshank._cohort import Trial
+    from quadshank.data._cohort import Trial
 
     trial = Trial.from_signals("JM", "left", 1, TS, out["angle_deg"], out["acceleration_deg_s2"], stim)
     eq = equivalent_acceleration(trial, lt)
@@ -410,7 +410,7 @@ def test_rms_angle_calibration():
 
 
 def test_twitch_variability_factors_have_mean_one_and_the_stated_spread():
-    from quadshank._simulate import EFFECT_PARAMETERS, twitch_variability
+    from quadshank.data._simulate import EFFECT_PARAMETERS, twitch_variability
 
     cv = EFFECT_PARAMETERS["twitch_variability"]["cv"]
     g = twitch_variability(np.random.default_rng(0), 200_000, cv)

@@ -7,11 +7,11 @@ seed of ``results/reproduce``), identified and evaluated as the paper did.
 import numpy as np
 import pytest
 
-from quadshank._evaluate import evaluate_cohort, sign_tests, table_v
-from quadshank._identify import identify_cohort
-from quadshank._paper import LEGS, TABLE_III
-from quadshank._pipeline import models_from_summary
-from quadshank._simulate import simulate_cohort
+from quadshank.evaluation._prediction import evaluate_cohort, sign_tests, table_v
+from quadshank.inference._identify import identify_cohort
+from quadshank.data._paper import LEGS, TABLE_III
+from quadshank.commands._pipeline import models_from_summary
+from quadshank.data._simulate import simulate_cohort
 
 MODELS = ("model1", "model2", "model3")
 

@@ -5,8 +5,8 @@ effects (:class:`Effect`) run in JAX; classical identification follows the
 paper's eqs. (8)–(11); predictions are scored by J_φ,p (eq. 12).
 """
 
-from ._cohort import Cohort, Trial, derive_velocity, leg_key
-from ._effects import (
+from .data._cohort import Cohort, Trial, derive_velocity, leg_key
+from .model._effects import (
     Damping,
     Darma,
     Effect,
@@ -28,15 +28,15 @@ from ._effects import (
     register_effect,
     registered_effects,
 )
-from ._evaluate import evaluate_cohort, prediction_errors, predictions, sign_tests, table_v
-from ._fit import FitSettings, build_model, fit
-from ._fitio import load_fit, save_fit, to_inference_data
-from ._identify import IdentificationError, identify_cohort, identify_leg, identify_passive
-from ._interchange import InterchangeError, convert, load_cohort, read_interchange, write_interchange
-from ._model import Model, equivalent_acceleration, paper_model, passive_effects, predict_ahead, simulate_angles
-from ._simulate import EFFECTS, default_truth, simulate_cohort
+from .evaluation._prediction import evaluate_cohort, prediction_errors, predictions, sign_tests, table_v
+from .inference._fit import FitSettings, build_model, fit
+from .inference._fitio import load_fit, save_fit, to_inference_data
+from .inference._identify import IdentificationError, identify_cohort, identify_leg, identify_passive
+from .data._interchange import InterchangeError, convert, load_cohort, read_interchange, write_interchange
+from .model._model import Model, equivalent_acceleration, paper_model, passive_effects, predict_ahead, simulate_angles
+from .data._simulate import EFFECTS, default_truth, simulate_cohort
 
-__version__ = "0.1.0"
+from .common._provenance import __version__
 
 __all__ = [
     "Cohort", "Trial", "derive_velocity", "leg_key",

@@ -45,7 +45,7 @@ depends on its *kind*:
     and its integer field ``shift`` (a discrete leaf, listed in the class
     attribute ``discrete``) is summed out by the hierarchical fit like d.
 
-Two class attributes serve the modelling loop (:mod:`quadshank._diagnose`):
+Two class attributes serve the modelling loop (:mod:`quadshank.loop._diagnose`):
 ``replaces`` names effects this one generalises (a torque–angle relation with
 a maximum replaces the linear one when it is added to a model), and
 ``signature`` names the residual feature where its absence shows (``angle``,
@@ -122,7 +122,7 @@ class Param:
     population-level belief in the parameter's own units; for a vector
     parameter loc and scale may be tuples, one entry per component.  ``shape``
     is ``()`` for a scalar, or a tuple for a vector parameter.  The hierarchical
-    fit (:mod:`quadshank._fit`) turns each declaration into population, subject
+    fit (:mod:`quadshank.inference._fit`) turns each declaration into population, subject
     and leg levels down to ``level``.
     """
 
@@ -190,7 +190,7 @@ class Effect:
     #: False for an effect on the acceleration channel only: it cannot change an angle prediction.
     predicts_angle: ClassVar[bool] = True
     #: Activation effects only: "sample" when the effect describes the twitch's
-    #: shape, "twitch" when only its integral (see :mod:`quadshank._likelihood`).
+    #: shape, "twitch" when only its integral (see :mod:`quadshank.model._likelihood`).
     resolution: ClassVar[str] = "sample"
     #: Activation effects only: samples of the impulse response the likelihood keeps.
     response_length: ClassVar[int] = 40
@@ -571,7 +571,7 @@ class AngleDelay(TwoPathDelay):
     The hierarchical fit sums the threshold out too (``step_param``), for the
     hard step: between two neighbouring pulse angles every threshold splits the
     pulses alike, so the likelihood is a staircase in the threshold, each stair
-    weighted by its prior mass (see :mod:`quadshank._likelihood`).  Sampled,
+    weighted by its prior mass (see :mod:`quadshank.model._likelihood`).  Sampled,
     the staircase (smoothed over a degree) holds NUTS to steps a fraction of a
     degree long: 127 leapfrog steps per draw against 15 without the effect.
     """

@@ -6,6 +6,8 @@ import functools
 import hashlib
 from pathlib import Path
 
+__version__ = "0.1.0"
+
 
 @functools.cache
 def code_fingerprint() -> str:
@@ -13,9 +15,9 @@ def code_fingerprint() -> str:
     contents, in name order).  Two fits with the same fingerprint were made by the same code;
     the version number alone does not change between commits."""
     h = hashlib.sha256()
-    root = Path(__file__).resolve().parent
-    for path in sorted(root.glob("*.py")):
-        h.update(path.name.encode())
+    root = Path(__file__).resolve().parents[1]
+    for path in sorted(root.rglob("*.py")):
+        h.update(path.relative_to(root).as_posix().encode())
         h.update(b"\0")
         h.update(path.read_bytes())
         h.update(b"\0")
@@ -24,6 +26,4 @@ def code_fingerprint() -> str:
 
 def code_provenance() -> dict:
     """``{"version": …, "fingerprint": …}`` as a fit's summary.json records it under ``code``."""
-    from . import __version__
-
     return {"version": __version__, "fingerprint": code_fingerprint()}

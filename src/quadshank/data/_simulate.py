@@ -881,6 +881,6 @@ def _jsonable(v):
 
 def write_truth(truth: dict, path: str | os.PathLike) -> Path:
     """Write the truth as pretty-printed JSON, atomically (temporary file, then rename)."""
-    from ._io import write_json
+    from ..common._io import write_json
 
     return write_json(path, _jsonable(truth))

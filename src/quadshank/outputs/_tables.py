@@ -12,8 +12,8 @@ import io
 import math
 from pathlib import Path
 
-from ._io import atomic_write_text
-from ._paper import TABLE_I, TABLE_II, TABLE_III, TABLE_IV, TABLE_V
+from ..common._io import atomic_write_text
+from ..data._paper import TABLE_I, TABLE_II, TABLE_III, TABLE_IV, TABLE_V
 
 __all__ = [
     "write_table",

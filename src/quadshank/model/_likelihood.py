@@ -86,10 +86,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._cohort import Cohort
+from ..data._cohort import Cohort
 from ._effects import FIRST_IPI_S, Effect, PulseContext, StepContext
 from ._model import Model, _passive_acc, acceleration_response, causal_fir, measured_acceleration, pulse_factors, true_angle
-from ._paper import MAX_DELAY, TWITCH_SAMPLES
+from ..data._paper import MAX_DELAY, TWITCH_SAMPLES
 
 __all__ = [
     "LikelihoodData",

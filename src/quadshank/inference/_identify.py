@@ -31,9 +31,9 @@ import dataclasses
 import numpy as np
 from scipy.optimize import least_squares
 
-from ._cohort import Cohort, Trial
-from ._model import equivalent_acceleration, paper_model, passive_effects
-from ._paper import MAX_DELAY, TWITCH_SAMPLES
+from ..data._cohort import Cohort, Trial
+from ..model._model import equivalent_acceleration, paper_model, passive_effects
+from ..data._paper import MAX_DELAY, TWITCH_SAMPLES
 
 __all__ = [
     "LegIdentification",
@@ -270,7 +270,7 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
 
 def identify_cohort(cohort: Cohort, trial: int = 1, progress: bool = False) -> dict[str, LegIdentification]:
     """Identify every leg of the cohort from its trial number ``trial``."""
-    from ._progress import progress_bar
+    from ..common._progress import progress_bar
 
     out = {}
     for leg in progress_bar(cohort.legs, desc="identify", enabled=progress):

@@ -1,15 +1,15 @@
 """Posterior predictive evaluation of fitted models: J_φ,p with 90 % bands, sign tests, PSIS-LOO.
 
-The classical evaluation (:mod:`quadshank._evaluate`) scores one identified
+The classical evaluation (:mod:`quadshank.evaluation._prediction`) scores one identified
 model per leg.  Here a model is a posterior, a fit folder written by
-``quadshank fit`` (see :mod:`quadshank._fitio`), and every score is computed
+``quadshank fit`` (see :mod:`quadshank.inference._fitio`), and every score is computed
 per posterior draw, so it comes with its uncertainty.
 
 Prediction error J_φ,p (eq. 12)
     For ``n_draws`` posterior draws (a random subset, fixed seed; the same draw
     indices for every leg of a fit, so the draws stay joint across legs) the
-    rollouts of :func:`quadshank._model.predict_ahead` are vmapped over draws
-    (a :class:`~quadshank._model.Model` is a pytree whose leaves, the delay
+    rollouts of :func:`quadshank.model._model.predict_ahead` are vmapped over draws
+    (a :class:`~quadshank.model._model.Model` is a pytree whose leaves, the delay
     included, carry a leading draws axis) and, inside ``predict_ahead``, over
     starts.  Draws go through in chunks of equal size (the last one padded
     with a repeated draw, so one compiled function serves a whole trial) that
@@ -17,7 +17,7 @@ Prediction error J_φ,p (eq. 12)
     :data:`CHUNK_ELEMENTS`.  ``start_stride`` = k uses the starts
     n = 0, k, 2k, … < N - max(horizons): the same starts for every horizon, so
     horizons stay comparable; k = 1 is eq. (12) exactly, and for one draw the
-    result equals :func:`quadshank._evaluate.prediction_errors`.
+    result equals :func:`quadshank.evaluation._prediction.prediction_errors`.
 
 Summaries
     Per model, leg, trial and horizon: median and 90 % band (5 % and 95 %
@@ -51,15 +51,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._cohort import Cohort, Trial
-from ._evaluate import prediction_starts, sign_tests
-from ._fitio import INTERVAL, load_fit, posterior_models, read_summary, sampled_vars
-from ._io import atomic_write_text, save_figure, write_json
-from ._model import Model, predict_ahead
-from ._paper import HORIZON_MS, HORIZONS, TABLE_V
-from ._plots import plot_delay_angle, plot_posterior_j_vs_horizon, plot_posterior_predictions
-from ._progress import progress_bar
-from ._tables import markdown_table, sign_test_rows, write_table
+from ..data._cohort import Cohort, Trial
+from ._prediction import prediction_starts, sign_tests
+from ..inference._fitio import INTERVAL, load_fit, posterior_models, read_summary, sampled_vars
+from ..common._io import atomic_write_text, save_figure, write_json
+from ..model._model import Model, predict_ahead
+from ..data._paper import HORIZON_MS, HORIZONS, TABLE_V
+from ..outputs._figures import plot_delay_angle, plot_posterior_j_vs_horizon, plot_posterior_predictions
+from ..common._progress import progress_bar
+from ..outputs._tables import markdown_table, sign_test_rows, write_table
 
 __all__ = [
     "LoadedFit",
@@ -153,7 +153,7 @@ def posterior_predictions(models: Model, trial: Trial, starts, horizons=HORIZONS
     """Angles predicted p samples after each start, per draw: array (draws, starts, horizons).
 
     ``models`` has leaves with a leading draws axis (see
-    :func:`quadshank._fitio.posterior_models`); ``starts + max(horizons)`` must
+    :func:`quadshank.inference._fitio.posterior_models`); ``starts + max(horizons)`` must
     stay inside the trial.
     """
     return np.concatenate(list(_prediction_chunks(models, trial, np.asarray(starts), horizons)), axis=0)
@@ -194,7 +194,7 @@ def posterior_j(
 
 
 def interval(values) -> dict[str, float]:
-    """Median and 90 % band (quantiles :data:`quadshank._fitio.INTERVAL`) of draws."""
+    """Median and 90 % band (quantiles :data:`quadshank.inference._fitio.INTERVAL`) of draws."""
     lo, hi = np.quantile(values, INTERVAL)
     return {"median": float(np.median(values)), "lo": float(lo), "hi": float(hi)}
 
@@ -222,7 +222,7 @@ def summarise_j(draws: dict, horizons=HORIZONS) -> tuple[dict, dict]:
 
 
 def _medians(J_legs: dict) -> dict:
-    """Posterior-median J shaped as :func:`quadshank._evaluate.sign_tests` expects (horizon keys int)."""
+    """Posterior-median J shaped as :func:`quadshank.evaluation._prediction.sign_tests` expects (horizon keys int)."""
     return {
         label: {leg: {tr: {int(h): v["median"] for h, v in hv.items()} for tr, hv in trials.items()}
                 for leg, trials in by_leg.items()}
@@ -408,8 +408,8 @@ def _prediction_figures(fits, cohort, J_legs, out: Path, *, n_draws: int, seed: 
 
 def _residual_section(fits: list[LoadedFit], cohort: Cohort, out: Path, md: list) -> dict:
     """Residual figures of every fit on its identification trials; appends a report section."""
-    from ._diagnose import fit_residuals, residual_figures
-    from ._likelihood import prepare
+    from ..loop._diagnose import fit_residuals, residual_figures
+    from ..model._likelihood import prepare
 
     md += ["## Residuals of each fit (posterior medians, modal delay)", ""]
     findings = {}
@@ -440,7 +440,7 @@ def run_posterior_evaluate(
     """Posterior J (Table V with bands), sign tests, PSIS-LOO, Figs. 5-6 with bands; summary.json last.
 
     ``residuals``: also each fit's residual diagnostics at its posterior medians
-    (:mod:`quadshank._diagnose`), side by side, what ``quadshank compare`` shows.
+    (:mod:`quadshank.loop._diagnose`), side by side, what ``quadshank compare`` shows.
     """
     if n_draws < 1:
         raise ValueError(f"--draws must be at least 1, not {n_draws}")

@@ -6,7 +6,7 @@ in the model takes its place) is added in turn, and the extension is compared
 with the model on the same data by
 
 - ΔELPD: PSIS-LOO over the likelihood's 1-s segments, paired segment by
-  segment, with its standard error (the screen of :mod:`quadshank._screen`);
+  segment, with its standard error (the screen of :mod:`quadshank.inference._screen`);
 - ΔJ_φ,p: the k-step-ahead angle error (eq. 12) at 500 and 1000 ms on the
   evaluation trials, as bands over the posterior draws of each model;
 - the residual signature: the trend of the model's one-step residual over
@@ -39,15 +39,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._cohort import Cohort
-from ._effects import registered_effects
-from ._fit import build_model
-from ._io import write_json
-from ._likelihood import leg_active_output, leg_window_cdf
-from ._model import Model, equivalent_acceleration
-from ._posterior_eval import interval, posterior_prediction_errors
-from ._progress import progress_bar
-from ._screen import LaplaceFit, delta_elpd, laplace_fit, leg_draw_models, paired_difference
+from ..data._cohort import Cohort
+from ..model._effects import registered_effects
+from ..inference._fit import build_model
+from ..common._io import write_json
+from ..model._likelihood import leg_active_output, leg_window_cdf
+from ..model._model import Model, equivalent_acceleration
+from ..evaluation._posterior import interval, posterior_prediction_errors
+from ..common._progress import progress_bar
+from ..inference._screen import LaplaceFit, delta_elpd, laplace_fit, leg_draw_models, paired_difference
 
 __all__ = ["candidates", "rank_effects", "ELPD_SE_BAR", "J_HORIZONS_MS", "leg_residuals", "fit_residuals", "residual_figures"]
 
@@ -88,8 +88,8 @@ def j_draws(fit: LaplaceFit, cohort: Cohort, trials, *, n_draws: int, start_stri
 
 
 def nuts_j_draws(fit, cohort: Cohort, trials, *, n_draws: int, start_stride: int, seed: int = 0) -> np.ndarray:
-    """:func:`j_draws` for a saved NUTS fit (a :class:`quadshank._posterior_eval.LoadedFit`)."""
-    from ._fitio import posterior_models
+    """:func:`j_draws` for a saved NUTS fit (a :class:`quadshank.evaluation._posterior.LoadedFit`)."""
+    from ..inference._fitio import posterior_models
 
     def models(leg):
         return posterior_models(fit.idata, fit.model, leg, n_draws, seed)[0]
@@ -204,7 +204,7 @@ def rank_effects(
     ``eval_trials``: where J is measured (default: every trial of the legs in
     the cohort, the identification trials included: the loop asks where the
     model fails on the measurements it has).  ``n_starts``: prior draws tried, besides the
-    prior median, for the parameters an extension adds (:func:`quadshank._screen.laplace_fit`).
+    prior median, for the parameters an extension adds (:func:`quadshank.inference._screen.laplace_fit`).
     """
     model = build_model(model) if isinstance(model, str) else model
     legs = tuple(legs) if legs is not None else cohort.legs
@@ -317,7 +317,7 @@ def confirm_with_nuts(
     """Confirm a screened extension with hierarchical NUTS.
 
     Fits the model of ``base`` (a saved NUTS fit: its folder, or the
-    :class:`quadshank._posterior_eval.LoadedFit`) plus ``effect`` to the same data, legs and
+    :class:`quadshank.evaluation._posterior.LoadedFit`) plus ``effect`` to the same data, legs and
     trials with the same settings (``out``, a fit folder), and measures the
     evidence as the screen does: ΔELPD by PSIS-LOO over the same 1-s segments,
     paired, and J at J_HORIZONS_MS as bands over posterior draws, against the
@@ -328,9 +328,9 @@ def confirm_with_nuts(
     """
     from pathlib import Path
 
-    from ._fit import FitSettings
-    from ._pipeline import run_fit
-    from ._posterior_eval import LoadedFit, load_fits, psis_loo
+    from ..inference._fit import FitSettings
+    from ..commands._pipeline import run_fit
+    from ..evaluation._posterior import LoadedFit, load_fits, psis_loo
 
     if not isinstance(base, LoadedFit):
         (base,) = load_fits([base])
@@ -365,7 +365,7 @@ def confirm_leaders(cohort: Cohort, ranking: Ranking, base_folder, out, *, n_con
     verdict under NUTS: the best of them that clears the bar there too, or ``none``."""
     from pathlib import Path
 
-    from ._posterior_eval import load_fits
+    from ..evaluation._posterior import load_fits
 
     leaders = [r for r in ranking.rows if r["clears_bar"]][:n_confirm]
     if not leaders:
@@ -406,7 +406,7 @@ def _screen_residuals(fit: LaplaceFit) -> dict[str, dict]:
 def residual_figures(residuals: dict[str, dict], out, label: str, dt: float) -> tuple[list, dict]:
     """Residual diagnostics per leg (trends, correlations, twitch-triggered average) of
     ``residuals`` (leg -> :func:`point_residuals`).  Returns (figure paths, findings per leg in words)."""
-    from . import _residuals as R
+    from ..evaluation import _residuals as R
 
     paths, notes = [], {}
     for leg, r in residuals.items():
@@ -460,7 +460,7 @@ def loo_pit(fit: LaplaceFit, leg: str, n_draws: int = 100) -> np.ndarray:
 
 @functools.partial(jax.jit, static_argnames=("R", "K"))
 def _window_cdfs(models: Model, delays, shifts, log_noise, x: dict, R: int, K: int):
-    """:func:`quadshank._likelihood.leg_window_cdf` per draw (leaves, delays, shifts and
+    """:func:`quadshank.model._likelihood.leg_window_cdf` per draw (leaves, delays, shifts and
     (log σ, log ν) with a leading draw axis): compiled once per model structure and data shape."""
 
     def one(m, d, shift, ln):
@@ -472,7 +472,7 @@ def _window_cdfs(models: Model, delays, shifts, log_noise, x: dict, R: int, K: i
 def elpd_in_time(fit: LaplaceFit, cohort: Cohort, leg: str) -> list[dict]:
     """The pointwise PSIS-LOO ELPD of ``leg``'s 1-s segments, each located in its trial:
     a list of {trial, start_s, elpd}, in the likelihood's segment order."""
-    from ._likelihood import SEGMENT_SAMPLES
+    from ..model._likelihood import SEGMENT_SAMPLES
 
     i = fit.legs.index(leg)
     rows = []
@@ -497,10 +497,10 @@ def predictive_checks(fit: LaplaceFit, cohort: Cohort, out, label: str) -> tuple
     """The model's predictive checks from its screen: measured against predicted angle one step
     (10 ms) and 1 s ahead with 90 % bands over posterior draws, LOO-PIT, and the pointwise ELPD in
     time.  Returns (figure paths, JSON-able results with their findings in words)."""
-    from . import _residuals as R
-    from ._io import save_figure
-    from ._plots import plot_posterior_predictions
-    from ._posterior_eval import FIGURE_WINDOW_S, posterior_predictions
+    from ..evaluation import _residuals as R
+    from ..common._io import save_figure
+    from ..outputs._figures import plot_posterior_predictions
+    from ..evaluation._posterior import FIGURE_WINDOW_S, posterior_predictions
 
     paths, result = [], {"loo_pit": {}, "worst_seconds": {}, "notes": []}
     shown = "JM-left" if "JM-left" in fit.legs else fit.legs[0]
@@ -664,7 +664,7 @@ def _fit_entry(summary: dict, folder: str) -> dict:
 def _compare_start_final(cohort, out, fits: dict, *, n_draws, start_stride, progress) -> dict:
     """The loop's first and last NUTS fits (folders relative to ``out``) compared in
     ``out/confirm/compare``: J bands, PSIS-LOO, residuals before and after."""
-    from ._posterior_eval import run_posterior_evaluate
+    from ..evaluation._posterior import run_posterior_evaluate
 
     cmp = run_posterior_evaluate(cohort, [out / fits["start"]["folder"], out / fits["final"]["folder"]], out / "confirm" / "compare",
                                  n_draws=n_draws, start_stride=start_stride, progress=progress, residuals=True)
@@ -702,7 +702,7 @@ def run_discover(
 ) -> dict:
     """The whole loop: diagnose, add the leading effect, diagnose again, while an effect clears the bar.
 
-    ``confirm`` (a :class:`quadshank._fit.FitSettings`): then every round's leader
+    ``confirm`` (a :class:`quadshank.inference._fit.FitSettings`): then every round's leader
     is confirmed with hierarchical NUTS before it is added: the starting model is
     fitted (``confirm/fit-start``), each round refits its leader against the
     previous round's fit (``round-K/confirm/fit-EFFECT``, see :func:`run_diagnose`)
@@ -717,7 +717,7 @@ def run_discover(
     current = build_model(model) if isinstance(model, str) else model
     fits, nuts_folder = {}, None
     if confirm is not None:
-        from ._pipeline import run_fit
+        from ..commands._pipeline import run_fit
 
         base_name, *adds = current.name.split("+")
         nuts_folder = out / "confirm" / "fit-start"

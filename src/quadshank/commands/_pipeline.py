@@ -14,14 +14,14 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from ._cohort import Cohort
-from ._evaluate import evaluate_cohort, predictions, sign_tests, table_v
-from ._identify import LegIdentification, identify_cohort
-from ._io import atomic_write_text, read_json, save_figure, write_json
-from ._model import Model, equivalent_acceleration, paper_model, passive_effects
-from ._plots import plot_delay_scan, plot_j_vs_horizon, plot_predictions, plot_signals, plot_twitch_dependence
-from ._paper import HORIZONS
-from ._tables import (
+from ..data._cohort import Cohort
+from ..evaluation._prediction import evaluate_cohort, predictions, sign_tests, table_v
+from ..inference._identify import LegIdentification, identify_cohort
+from ..common._io import atomic_write_text, read_json, save_figure, write_json
+from ..model._model import Model, equivalent_acceleration, paper_model, passive_effects
+from ..outputs._figures import plot_delay_scan, plot_j_vs_horizon, plot_predictions, plot_signals, plot_twitch_dependence
+from ..data._paper import HORIZONS
+from ..outputs._tables import (
     markdown_table,
     sign_test_rows,
     table_i,
@@ -250,9 +250,9 @@ def run_reproduce(
     command: str = "",
 ) -> dict:
     """Simulate the cohort, identify, evaluate; tables, figures and summary.json in ``out``."""
-    from ._interchange import write_interchange
-    from ._paper import LEGS
-    from ._simulate import simulate_cohort, write_truth
+    from ..data._interchange import write_interchange
+    from ..data._paper import LEGS
+    from ..data._simulate import simulate_cohort, write_truth
 
     out = Path(out)
     legs = tuple(legs or LEGS)
@@ -332,10 +332,10 @@ def run_fit(
     ``quadshank diagnose`` and ``compare``).
 
     ``delay_from``: a fit folder whose delay posterior becomes this fit's delay prior
-    (see :func:`quadshank._fit.delay_prior_from`).
+    (see :func:`quadshank.inference._fit.delay_prior_from`).
     """
-    from ._fit import FitSettings, build_model, delay_prior_from, delay_start, fit, fit_screen
-    from ._fitio import begin_fit, read_summary, save_fit, to_inference_data
+    from ..inference._fit import FitSettings, build_model, delay_prior_from, delay_start, fit, fit_screen
+    from ..inference._fitio import begin_fit, read_summary, save_fit, to_inference_data
 
     settings = settings or FitSettings()
     out = Path(out)

@@ -52,7 +52,7 @@ from ._effects import (
     get_effect,
     register_pytree,
 )
-from ._paper import MAX_DELAY, SAMPLING_PERIOD_S
+from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S
 
 __all__ = [
     "Model",

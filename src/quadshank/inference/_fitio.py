@@ -3,7 +3,7 @@
 ``DIR/fit.nc`` holds the posterior (hierarchical parameters, leg and subject
 values, per-leg noise, ``delay_logp`` = log P(d | θ, data) per draw and the
 drawn ``delay``), ``log_likelihood`` (``acceleration_segment``) per leg and 1-s segment (the PSIS-LOO
-unit, see :mod:`quadshank._likelihood`), ``observed_data`` (acceleration),
+unit, see :mod:`quadshank.model._likelihood`), ``observed_data`` (acceleration),
 ``constant_data`` (angle, velocity, stimulation, sample mask), ``sample_stats``
 and, as the attribute ``quadshank_model``, the model's description (JSON).
 ``DIR/summary.json`` condenses it.  Both are written atomically, fit.nc
@@ -32,9 +32,9 @@ from ._fit import (
     step_param,
     to_json,
 )
-from ._io import atomic_path, write_json
-from ._likelihood import N_DELAYS, LikelihoodData
-from ._model import Model
+from ..common._io import atomic_path, write_json
+from ..model._likelihood import N_DELAYS, LikelihoodData
+from ..model._model import Model
 
 __all__ = [
     "to_inference_data",
@@ -72,7 +72,7 @@ def to_inference_data(
 
     ``delay_source`` and ``log_delay_prior`` record where the delay prior came from
     (None: uniform on 0 … 10 samples).  ``delay_evidence``: (legs, 11) P(d | data) from
-    one Laplace approximation per delay (:func:`quadshank._screen.delay_evidence`),
+    one Laplace approximation per delay (:func:`quadshank.inference._screen.delay_evidence`),
     kept as ``constant_data.delay_evidence`` for :func:`delay_missed`.
     """
     import arviz as az
@@ -312,7 +312,7 @@ def _leg_draws(idata, name: str, i: int) -> np.ndarray:
 
 def delay_angle_curve(idata, i: int) -> np.ndarray:
     """Effective delay [samples] of pulses delivered at each ANGLE_GRID angle, per draw: d − shift·[φ < threshold]."""
-    from ._effects import AngleDelay
+    from ..model._effects import AngleDelay
 
     d = _leg_draws(idata, "delay", i).astype(float)
     shift = _leg_draws(idata, "delay_shift", i).astype(float)
@@ -399,9 +399,9 @@ def fit_summary(idata) -> dict:
 
 def save_fit(idata, folder: str | os.PathLike, extra: dict | None = None) -> dict:
     """Write fit.nc then summary.json (with ``extra`` entries and ``code``, the package's version
-    and source fingerprint, :func:`quadshank._provenance.code_provenance`) atomically; returns the
+    and source fingerprint, :func:`quadshank.common._provenance.code_provenance`) atomically; returns the
     summary."""
-    from ._provenance import code_provenance
+    from ..common._provenance import code_provenance
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -427,7 +427,7 @@ def _complete_fit(folder: str | os.PathLike) -> Path:
 
 def read_summary(folder: str | os.PathLike) -> dict:
     """``summary.json`` of a complete fit folder."""
-    from ._io import read_json
+    from ..common._io import read_json
 
     return read_json(_complete_fit(folder) / "summary.json")
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from ._io import atomic_path
+from ..common._io import atomic_path
 
 __all__ = ["Trial", "Cohort", "derive_velocity", "VELOCITY_WINDOW", "leg_key"]
 

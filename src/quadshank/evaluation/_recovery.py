@@ -19,13 +19,13 @@ Matching truth, per leg
   gains some legs swing over the top at full recruitment; the recruitment is
   then lowered (``RECRUITMENT_FALLBACK``) until the knee stays within
   ``ANGLE_RANGE``, and the one used is recorded in the truth;
-* signals: :func:`quadshank._model.simulate_angles` (RK4 at T_s); angle and
+* signals: :func:`quadshank.model._model.simulate_angles` (RK4 at T_s); angle and
   velocity are recorded exactly, and the acceleration is the model's plus
   independent Student-t noise per sample (``MATCHING_NOISE``).
 
 The noise parameters are not in the coverage count: the twitch-window likelihood
 of models 1 and 3 treats a window sum of t-distributed samples as t-distributed
-with the sum's variance and kurtosis (:func:`quadshank._likelihood.window_noise`),
+with the sum's variance and kurtosis (:func:`quadshank.model._likelihood.window_noise`),
 an approximation under which σ and ν are close to, not exactly, the values that
 drew the noise.
 
@@ -51,8 +51,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._cohort import Cohort, Trial
-from ._paper import LEGS, SAMPLING_PERIOD_S, TABLE_I, TABLE_II, TABLE_III
+from ..data._cohort import Cohort, Trial
+from ..data._paper import LEGS, SAMPLING_PERIOD_S, TABLE_I, TABLE_II, TABLE_III
 
 __all__ = [
     "MATCHING_NOISE",
@@ -83,7 +83,7 @@ EFFECT_TRUTH = {"angle_delay": {"params": {"threshold": -20.0}, "discrete": {"sh
 def matching_values(model: str, leg: str, add_effects: Sequence[str] = ()) -> dict:
     """The true parameters (by model parameter name), delay and discrete effect leaves of
     ``model`` extended by ``add_effects`` for ``leg``."""
-    from ._simulate import PASSIVE_TRUTH
+    from ..data._simulate import PASSIVE_TRUTH
 
     unknown = [e for e in add_effects if e not in EFFECT_TRUTH]
     if unknown:
@@ -130,9 +130,9 @@ def simulate_matching(
     """
     import jax.numpy as jnp
 
-    from ._fit import build_model
-    from ._model import _passive_acc, simulate_angles
-    from ._simulate import _check_legs, _check_trials, _plan_leg
+    from ..inference._fit import build_model
+    from ..model._model import _passive_acc, simulate_angles
+    from ..data._simulate import _check_legs, _check_trials, _plan_leg
 
     legs = _check_legs(legs)
     trials = _check_trials(trials)
@@ -251,14 +251,14 @@ def _binomial_band(n: int, p: float = 0.9) -> tuple[float, float]:
 
 def _finished_fit(fit_dir: Path, truth: dict, settings) -> dict | None:
     """The summary of a complete earlier fit of the same truth with the same settings by the
-    same code (its source fingerprint, :func:`quadshank._provenance.code_fingerprint`), else None.
+    same code (its source fingerprint, :func:`quadshank.common._provenance.code_fingerprint`), else None.
 
     A recovery run that was interrupted, or whose table is rebuilt, reuses such fits; after
     any change to the package the fits are made again.
     """
-    from ._fitio import read_summary
-    from ._io import read_json
-    from ._provenance import code_fingerprint
+    from ..inference._fitio import read_summary
+    from ..common._io import read_json
+    from ..common._provenance import code_fingerprint
 
     try:
         summary = read_summary(fit_dir)
@@ -271,7 +271,7 @@ def _finished_fit(fit_dir: Path, truth: dict, settings) -> dict | None:
 
 def _settings_json(settings) -> dict:
     """FitSettings as a fit's summary.json holds them (through the fit description's JSON)."""
-    from ._fit import from_json, to_json
+    from ..inference._fit import from_json, to_json
 
     return from_json(to_json(dataclasses.asdict(settings)))
 
@@ -300,10 +300,10 @@ def run_recovery(
     shift — was right for every leg, and an angle delay's change probability per leg)
     and ``out/coverage.md``.
     """
-    from ._fit import FitSettings, build_model
-    from ._io import atomic_write_text, write_json
-    from ._likelihood import max_shift
-    from ._pipeline import run_fit
+    from ..inference._fit import FitSettings, build_model
+    from ..common._io import atomic_write_text, write_json
+    from ..model._likelihood import max_shift
+    from ..commands._pipeline import run_fit
 
     out = Path(out)
     legs = tuple(legs) if legs else LEGS
@@ -401,7 +401,7 @@ def coverage_markdown(result: dict) -> str:
         "",
         f"Regenerate: `{result['command']}`" if result.get("command") else "",
         "",
-        f"Data simulated from the fitted model itself (see `quadshank._recovery`), {len(result['legs'])} legs × "
+        f"Data simulated from the fitted model itself (see `quadshank.evaluation._recovery`), {len(result['legs'])} legs × "
         f"{result['minutes']:g} min of trial 1, seeds {', '.join(map(str, result['seeds']))}; "
         f"NUTS {result['settings']['chains']} chains × {result['settings']['draws']} draws after "
         f"{result['settings']['warmup']} warm-up.  A calibrated posterior covers 90 % of the true values; "
@@ -519,8 +519,8 @@ def likelihood_calibration(
     reported, not counted).  ``model`` is one of the paper's models as it stands (an
     angle-dependent delay's threshold is summed out by the fit, not maximised).
     """
-    from ._fit import build_model
-    from ._progress import progress_bar
+    from ..inference._fit import build_model
+    from ..common._progress import progress_bar
 
     if replicates < 2:
         raise ValueError(f"replicates must be at least 2, got {replicates}")
@@ -588,7 +588,7 @@ class LegMaximumLikelihood:
         import jax
         import jax.numpy as jnp
 
-        from ._likelihood import leg_loglik_by_delay, max_shift, response_length
+        from ..model._likelihood import leg_loglik_by_delay, max_shift, response_length
 
         if max_shift(model):
             raise ValueError(f"{model.name}: the single-leg maximum likelihood takes models without an angle-dependent delay")
@@ -618,7 +618,7 @@ class LegMaximumLikelihood:
         import jax
         import jax.numpy as jnp
 
-        from ._likelihood import prepare
+        from ..model._likelihood import prepare
 
         _, ref = _flat_truth(true["params"])
         shapes = tuple((k, tuple(np.shape(v))) for k, v in true["params"].items())
@@ -681,7 +681,7 @@ def run_likelihood_calibration(
 ) -> dict:
     """:func:`likelihood_calibration` for each model and seed; writes ``out/likelihood.json``
     and ``out/likelihood.md`` and returns what the JSON holds."""
-    from ._io import atomic_write_text, write_json
+    from ..common._io import atomic_write_text, write_json
 
     out = Path(out)
     legs = tuple(legs) if legs else LEGS
@@ -702,7 +702,7 @@ def likelihood_markdown(result: dict) -> str:
         "",
         f"One trajectory per leg and seed ({result['minutes']:g} min of trial 1, simulated from the model itself), its "
         f"acceleration noise drawn afresh {result['replicates']} times; each replicate fitted by maximum likelihood, "
-        "each leg alone, at its true delay, with σ and ν free (`quadshank._recovery.likelihood_calibration`).  "
+        "each leg alone, at its true delay, with σ and ν free (`quadshank.evaluation._recovery.likelihood_calibration`).  "
         "z = (estimate − truth) / standard error from the Hessian.  A calibrated likelihood gives z a mean of 0 "
         "(± its standard error) and an sd of 1, and its Wald 90 % intervals cover 90 % of the time.  No prior, no "
         "pooling of legs, no delay uncertainty and no sampler enter here, so a shortfall of a recovery run's "

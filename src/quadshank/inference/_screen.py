@@ -1,12 +1,12 @@
 """A cheap posterior for screening models: per-leg MAP with a Laplace approximation.
 
-The modelling loop (:mod:`quadshank._diagnose`) asks, for every candidate
+The modelling loop (:mod:`quadshank.loop._diagnose`) asks, for every candidate
 effect, whether adding it to a model improves it.  A hierarchical NUTS fit per
 candidate takes many minutes; this screen takes seconds per leg:
 
 1. Each leg on its own, with the declared population prior as its prior (no
    pooling between legs), the same likelihood as the NUTS fit
-   (:mod:`quadshank._likelihood`: Student-t on the equivalent acceleration, the
+   (:mod:`quadshank.model._likelihood`: Student-t on the equivalent acceleration, the
    delay d and a delay effect's shift summed out exactly).
 2. The posterior mode by L-BFGS on the standardised scale the fit samples on
    (x = loc + scale·z for each declared parameter, log σ, log ν), started at
@@ -37,10 +37,10 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import optimize, special
 
-from ._cohort import Cohort
+from ..data._cohort import Cohort
 from ._fit import NU_PRIOR, SIGMA_PRIOR, _with_discrete_axes, classical_start, log_shift_prior, model_params, sample_delays
-from ._likelihood import N_DELAYS, LikelihoodData, leg_loglik_by_delay, leg_pointwise, prepare
-from ._model import Model
+from ..model._likelihood import N_DELAYS, LikelihoodData, leg_loglik_by_delay, leg_pointwise, prepare
+from ..model._model import Model
 
 __all__ = ["LaplaceFit", "laplace_fit", "DelayModes", "delay_modes", "delay_evidence", "restart_screen", "delta_elpd", "leg_draw_models"]
 
@@ -430,7 +430,7 @@ def delay_modes(screen: LaplaceFit, max_iter: int = 400) -> DelayModes:
     span three decades, and unwhitened it took 150–450 iterations per delay where
     whitened it takes 20–250.  Eleven optimisations per leg: a check of the
     delay's modes, and the start of the chains where the screen missed the best
-    (:func:`quadshank._fit.delay_start`).
+    (:func:`quadshank.inference._fit.delay_start`).
     """
     with jax.enable_x64(True):
         return _delay_modes(screen, max_iter)

@@ -26,7 +26,7 @@ and the advice.
 
 Levels.  A leg's values are the fit summary's (``summary.json`` of the fit); the
 subject and population values are the posterior draws ``<name>_subject`` and
-``<name>_mu`` (:func:`quadshank._fit.hyper_draws`), summarised the same way
+``<name>_mu`` (:func:`quadshank.inference._fit.hyper_draws`), summarised the same way
 (median, 5 % and 95 % quantiles).  The noise parameters σ and ν are per leg and
 have no hierarchy.
 """
@@ -43,10 +43,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ._fitio import INTERVAL
-from ._io import atomic_write_text, figure_bytes, read_json, write_json
-from ._paper import HORIZON_MS, TABLE_V
-from ._posterior_eval import interval
+from ..inference._fitio import INTERVAL
+from ..common._io import atomic_write_text, figure_bytes, read_json, write_json
+from ..data._paper import HORIZON_MS, TABLE_V
+from ..evaluation._posterior import interval
 
 __all__ = ["run_report", "leg_parameters"]
 
@@ -221,7 +221,7 @@ def _plot_j_legs(legs: list[str], J_legs: dict, label: str):
     """J against horizon per leg: median and 90 % band per trial, the paper's Table V (mean ± s.d.) beside."""
     import matplotlib.pyplot as plt
 
-    from ._plots import _horizon_axis
+    from ._figures import _horizon_axis
 
     base, paper = _paper_table_v(label)
     fig, axes = plt.subplots(1, len(legs), figsize=(4.4 * len(legs), 3.6), squeeze=False, sharey=True)
@@ -253,8 +253,8 @@ def _plot_leg_predictions(fit, cohort, leg: str, J_legs: dict, n_draws: int, see
     """Measured angle and the angle predicted 100 ms and 1 s ahead: median and 90 % band over draws."""
     import matplotlib.pyplot as plt
 
-    from ._fitio import posterior_models
-    from ._posterior_eval import posterior_predictions
+    from ..inference._fitio import posterior_models
+    from ..evaluation._posterior import posterior_predictions
 
     trial = _prediction_case(cohort, leg)
     dt = trial.sampling_period_s
@@ -529,9 +529,9 @@ def run_report(
     ``start_stride``-th start.  ``diagnosis``: a ``quadshank diagnose`` or
     ``discover`` folder whose ranking is shown.
     """
-    from ._posterior_eval import _check_legs, load_fits, posterior_j, summarise_j
-    from ._plots import plot_delay_angle
-    from ._progress import progress_bar
+    from ..evaluation._posterior import _check_legs, load_fits, posterior_j, summarise_j
+    from ._figures import plot_delay_angle
+    from ..common._progress import progress_bar
 
     if n_draws < 1:
         raise ValueError(f"--draws must be at least 1, not {n_draws}")
@@ -544,7 +544,7 @@ def run_report(
     legs = list(desc["legs"])
     diag_info = _read_diagnosis(diagnosis, label) if diagnosis else None
     if cohort is None:
-        from ._interchange import load_cohort
+        from ..data._interchange import load_cohort
 
         if not fs.get("data"):
             raise ValueError(f"{fit_dir}: the fit does not record its data; give the data (--data)")

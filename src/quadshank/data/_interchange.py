@@ -1,7 +1,7 @@
 """Interchange folders: a cohort as plain CSV files, read with full validation.
 
 The interchange format is what a laboratory exports by hand or from any tool;
-the NetCDF file of :class:`~quadshank._cohort.Cohort` is the native form.
+the NetCDF file of :class:`~quadshank.data._cohort.Cohort` is the native form.
 :func:`read_interchange` checks a folder completely and reports *every* problem
 it finds, each with file, column and line, before anything is loaded;
 :func:`write_interchange` writes a folder that reads back bit-identically;
@@ -36,7 +36,7 @@ Trial CSV — one row per sample, columns in any order, names exact:
 | `velocity_deg_s`      | optional: measured angular velocity [deg/s]                |
 
 When `velocity_deg_s` is absent the velocity is derived from the angle
-(:func:`~quadshank._cohort.derive_velocity`) and the trial is marked
+(:func:`~quadshank.data._cohort.derive_velocity`) and the trial is marked
 ``velocity_measured = False``.
 
 Validation rules
@@ -82,7 +82,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from ._cohort import Cohort, Trial, leg_key
-from ._io import temp_sibling
+from ..common._io import temp_sibling
 
 __all__ = [
     "Problem",

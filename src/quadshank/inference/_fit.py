@@ -1,7 +1,7 @@
 """Hierarchical Bayesian identification with NUTS (numpyro).
 
 The numpyro model is generated from the Model's declared parameters
-(:class:`quadshank._effects.Param`).  Each parameter with prior
+(:class:`quadshank.model._effects.Param`).  Each parameter with prior
 ``(family, loc, scale)`` lives on an unconstrained scale x (log θ for a
 ``lognormal`` prior, θ itself for ``normal``) and is built non-centred down to
 its declared level:
@@ -36,14 +36,14 @@ the grid (:func:`spread_draws`).
 Population means and subject values are drawn afterwards from their Gaussian
 conditional given each draw and its spreads (:func:`hyper_draws`).  A dense mass matrix absorbs the remaining linear correlations
 (k1 with k2, gain with the gain factors).  Noise (Student-t, see
-:mod:`quadshank._likelihood`) is per leg: σ ~ LogNormal(log 40 deg/s², 1),
+:mod:`quadshank.model._likelihood`) is per leg: σ ~ LogNormal(log 40 deg/s², 1),
 ν ~ Gamma(2, 0.1).  The delay d of each leg has a uniform prior on 0 … 10
 samples (or another fit's posterior, :func:`delay_prior_from`) and is summed
 out exactly, jointly with a delay effect's shift; P(d | data) is the posterior mean of the
 per-draw conditional P(d | θ, data), and one d per draw is drawn from that
 conditional for the pointwise log-likelihood (so PSIS-LOO is over (θ, d)).
 Chains start at each leg's mode from the screen (:func:`screen_start`,
-:mod:`quadshank._screen`), whose Laplace covariances are also the metric:
+:mod:`quadshank.inference._screen`), whose Laplace covariances are also the metric:
 each d has its own mode in θ, the screen's multi-start optimisation of the
 marginal posterior finds one, restarted at the delay that a Laplace
 approximation per delay weighs most where that is another
@@ -70,9 +70,9 @@ import numpyro.distributions as dist
 from numpyro.infer import MCMC, NUTS, init_to_median, init_to_uniform
 from numpyro.util import is_prng_key
 
-from ._cohort import Cohort
-from ._effects import Param, get_effect
-from ._likelihood import (
+from ..data._cohort import Cohort
+from ..model._effects import Param, get_effect
+from ..model._likelihood import (
     N_DELAYS,
     LikelihoodData,
     leg_loglik_by_delay,
@@ -82,7 +82,7 @@ from ._likelihood import (
     step_edges,
     step_log_mass,
 )
-from ._model import Model, paper_model
+from ..model._model import Model, paper_model
 
 __all__ = [
     "FitSettings",
@@ -449,7 +449,7 @@ def uses_screen(model: Model, settings: FitSettings) -> bool:
 
 def fit_screen(cohort: Cohort, model: Model, settings: FitSettings, legs=None, n_starts: int = 3, progress: bool = False):
     """The screen :func:`fit` starts its chains from (None where it starts otherwise, see
-    :func:`uses_screen`); computed ahead so that :func:`quadshank._screen.delay_evidence` can
+    :func:`uses_screen`); computed ahead so that :func:`quadshank.inference._screen.delay_evidence` can
     start from it too."""
     from ._screen import laplace_fit
 
@@ -470,7 +470,7 @@ def delay_start(cohort: Cohort, settings: FitSettings, screen, log_delay_prior=N
     where each delay has its own mode in θ (model 3) that basin can be a delay's that
     holds little mass: on 18 s of TN-left (model3s + angle_delay) the screen sat at
     d = 3 while the mode at d = 4 had a log density 120 higher, and the chains, started
-    there, never left d = 3.  :func:`quadshank._screen.delay_modes` finds every delay's
+    there, never left d = 3.  :func:`quadshank.inference._screen.delay_modes` finds every delay's
     mode; where that evidence (times ``log_delay_prior``, the fit's delay prior) gives the
     delay the screen sits at (its P(d)'s mode) less than half of what it gives the best
     delay, the leg is screened again from the best delay's mode.  Where the data do not
@@ -501,7 +501,7 @@ def delay_start(cohort: Cohort, settings: FitSettings, screen, log_delay_prior=N
 
 
 def screen_start(model: Model, data: LikelihoodData, settings: FitSettings, conditioned, arrays, scr):
-    """Starting points and a metric for NUTS from the per-leg screen (:mod:`quadshank._screen`).
+    """Starting points and a metric for NUTS from the per-leg screen (:mod:`quadshank.inference._screen`).
 
     ``scr``: the screen of the fit's legs (:func:`fit_screen`).
 
@@ -832,7 +832,7 @@ def sample_step_states(model: Model, data: LikelihoodData, posterior: dict, log_
 
     (d, shift, state) are drawn jointly from P(d, shift, state | θ, data) by Gumbel-max, state
     being the threshold's interval between two neighbouring pulse angles
-    (:func:`quadshank._likelihood.step_tables`), and the threshold from its Normal prior
+    (:func:`quadshank.model._likelihood.step_tables`), and the threshold from its Normal prior
     truncated to that interval.  With shift 0 the states are alike, so the threshold is drawn
     from its prior: the data say nothing of it.  ``posterior`` arrays are (draws, legs, ...);
     ``log_delay_prior`` (legs, D) or None (uniform).  Returns three (draws, legs) arrays.
