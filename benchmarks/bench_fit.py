@@ -39,13 +39,19 @@ import arviz as az
 import jax
 import numpy as np
 
-from quadshank.inference._fit import CHAIN_METHODS, STARTS, FitSettings, build_model, uses_screen
+from quadshank.inference._nuts import (
+    CHAIN_METHODS,
+    STARTS,
+    FitSettings,
+    uses_screen,
+)
+from quadshank.inference._priors import build_model
 from quadshank.inference._fitio import THRESHOLDS
 from quadshank.common._io import write_json
 from quadshank.data._paper import LEGS
-import quadshank.inference._fit as fit_module
+import quadshank.inference._nuts as fit_module
 import quadshank.inference._screen as screen_module
-from quadshank.commands._pipeline import run_fit
+from quadshank.commands.fit import run_fit
 from quadshank.evaluation._posterior import load_fits, posterior_j
 from quadshank.data._simulate import simulate_cohort
 
@@ -84,7 +90,7 @@ class CompileClock:
 
 def _start_at(compiled, starts: dict, chains: int):
     """``compiled`` with its chains started at ``starts`` (unconstrained values per chain, keyed by
-    numpyro's site names, as :func:`quadshank.inference._fit.screen_start` gives them) in place of nutpie's
+    numpyro's site names, as :func:`quadshank.inference._nuts.screen_start` gives them) in place of nutpie's
     jittered default.  nutpie asks for one start per chain (again where a start's density is not
     finite); the k-th request gets chain k mod ``chains``'s values, so the peer's chains start at
     the points the fit's chains started at."""
@@ -129,7 +135,7 @@ def run_peer(cohort, model_name: str, effects, settings, starts: dict | None = N
 
     from peer_pymc import build_pymc_model, check_same_density
 
-    from quadshank.inference._fit import numpyro_model
+    from quadshank.inference._density import numpyro_model
     from quadshank.model._likelihood import prepare
 
     m = build_model(model_name, effects)

@@ -28,7 +28,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from results_md import write_section  # noqa: E402
 
-from quadshank.inference._fit import build_model, numpyro_model  # noqa: E402
+from quadshank.inference._priors import build_model
+from quadshank.inference._density import numpyro_model
 from quadshank.model._likelihood import PULSE_LEVEL_FIELDS, prepare  # noqa: E402
 from quadshank.data._paper import LEGS  # noqa: E402
 from quadshank.data._simulate import simulate_cohort  # noqa: E402

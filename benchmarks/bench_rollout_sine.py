@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from results_md import write_section  # noqa: E402
 
 from quadshank import _effects  # noqa: E402
-from quadshank.inference._fit import hard_step  # noqa: E402
+from quadshank.inference._draws import hard_step
 from quadshank.inference._identify import identify_leg  # noqa: E402
 from quadshank.evaluation._posterior import posterior_prediction_errors  # noqa: E402
 from quadshank.data._simulate import simulate_cohort  # noqa: E402

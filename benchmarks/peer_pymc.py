@@ -1,6 +1,6 @@
 """The benchmark's peer: quadshank's hierarchical model written in PyMC, sampled by nutpie.
 
-The same joint density as :func:`quadshank.inference._fit.numpyro_model` for the paper's
+The same joint density as :func:`quadshank.inference._nuts.numpyro_model` for the paper's
 model 3 with the angle-dependent delay (or without it): legs standardised by
 their priors with the population mean, subject level and spreads integrated
 out (s_leg ~ Σ_g w_g MVN(0, 11ᵀ + r_s,g²S + r_l,g²I) on quadshank's grid of
@@ -20,7 +20,13 @@ import math
 
 import numpy as np
 
-from quadshank.inference._fit import NU_PRIOR, SIGMA_PRIOR, log_shift_prior, model_params, spread_grid
+from quadshank.inference._priors import (
+    NU_PRIOR,
+    SIGMA_PRIOR,
+    log_shift_prior,
+    model_params,
+    spread_grid,
+)
 from quadshank.model._likelihood import N_DELAYS, LikelihoodData
 
 SUPPORTED = {"zero_order", "linear_torque_angle", "linear_torque_velocity", "damping", "gravity", "elasticity",

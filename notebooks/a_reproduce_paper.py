@@ -45,7 +45,7 @@ import pandas as pd
 import quadshank
 from quadshank import evaluate_cohort, identify_cohort, predictions, sign_tests, simulate_cohort, table_v
 from quadshank.data._paper import HORIZON_MS, TABLE_V
-from quadshank.commands._pipeline import TOLERANCES, recovery
+from quadshank.evaluation._classical_recovery import TOLERANCES, recovery
 from quadshank.outputs._figures import plot_delay_scan, plot_j_vs_horizon, plot_predictions, plot_signals, plot_twitch_dependence
 from quadshank.outputs._tables import table_i, table_ii, table_iii, table_passive
 

@@ -47,9 +47,9 @@ import pandas as pd
 
 from quadshank import FitSettings, simulate_cohort
 from quadshank.inference._fitio import load_fit, read_summary, sampled_vars
-from quadshank.commands._pipeline import run_fit
+from quadshank.commands.fit import run_fit
 from quadshank.outputs._figures import plot_delay_angle, plot_posterior_j_vs_horizon
-from quadshank.evaluation._posterior import run_posterior_evaluate
+from quadshank.commands.evaluate import run_posterior_evaluate
 from quadshank.outputs._report import _plot_delay_posterior, _plot_shrinkage, leg_parameters
 
 # %matplotlib inline

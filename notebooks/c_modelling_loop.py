@@ -48,7 +48,9 @@ import pandas as pd
 from IPython.display import Image, display
 
 from quadshank import build_model, simulate_cohort
-from quadshank.loop._diagnose import leg_residuals, rank_effects, residual_figures, verdict_sentence
+from quadshank.evaluation._residuals import leg_residuals
+from quadshank.loop._diagnose import rank_effects, verdict_sentence
+from quadshank.outputs._loop import residual_figures
 from quadshank.evaluation._prediction import prediction_starts
 from quadshank.outputs._figures import plot_posterior_predictions
 from quadshank.evaluation._posterior import posterior_predictions

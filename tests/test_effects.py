@@ -252,7 +252,7 @@ def test_loo_pit_of_the_screen_is_uniform_on_data_from_the_model():
     screen's LOO-PIT is uniform within its band, with 10 % of the windows in the outer 5 % tails;
     the same PIT values read against a predictive three times too narrow are not."""
     from quadshank.evaluation import _residuals as rd
-    from quadshank.loop._diagnose import elpd_in_time, loo_pit
+    from quadshank.evaluation._checks import elpd_in_time, loo_pit
     from quadshank.inference._screen import laplace_fit
 
     model = paper_model("3s")

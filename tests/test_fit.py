@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from quadshank.cli import main
-from quadshank.inference._fit import FitSettings, build_model, fit
+from quadshank.inference._nuts import FitSettings, fit
+from quadshank.inference._priors import build_model
 from quadshank.inference._fitio import FitFolderError, load_fit, posterior_models
 from quadshank.data._interchange import load_cohort
 from quadshank.model._likelihood import N_DELAYS
@@ -80,8 +81,7 @@ def test_a_fit_that_fails_its_checks_says_so(fitted, capsys):
 
 
 def test_interrupted_fit_leaves_no_complete_looking_folder(data_dir, monkeypatch):
-    import quadshank.inference._fitio as fitio
-    import quadshank.commands._pipeline as pipeline
+    import quadshank.commands.fit as fit_command
 
     out = data_dir / "interrupted"
     out.mkdir()
@@ -90,9 +90,9 @@ def test_interrupted_fit_leaves_no_complete_looking_folder(data_dir, monkeypatch
     def boom(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(fitio, "to_inference_data", boom)
+    monkeypatch.setattr(fit_command, "to_inference_data", boom)
     with pytest.raises(KeyboardInterrupt):
-        pipeline.run_fit(
+        fit_command.run_fit(
             load_cohort(data_dir / "data"),
             out, "model1", settings=FitSettings(chains=1, warmup=5, draws=5),
         )
@@ -122,7 +122,7 @@ def _spread_mixture_by_hand(s, leg_subject):
     cell found by quadrature of its density, and the normal density from scipy."""
     from scipy import integrate, stats
 
-    from quadshank.inference._fit import SPREAD_GRID
+    from quadshank.inference._priors import SPREAD_GRID
 
     r = SPREAD_GRID
     edges = np.concatenate([[0.0], np.sqrt(r[1:] * r[:-1]), [np.inf]])
@@ -137,7 +137,7 @@ def _spread_mixture_by_hand(s, leg_subject):
 
 
 def test_spread_mixture_is_the_discretised_halfnormal_prior_summed_out():
-    from quadshank.inference._fit import SpreadMixture
+    from quadshank.inference._priors import SpreadMixture
 
     leg_subject = np.array([0, 0, 1, 1, 2])
     prior = SpreadMixture(leg_subject)
@@ -147,7 +147,7 @@ def test_spread_mixture_is_the_discretised_halfnormal_prior_summed_out():
         assert float(prior.log_prob(jnp.asarray(s, jnp.float32))) == pytest.approx(want, rel=1e-4, abs=1e-4)
     # its draws have the mixture's covariance: E[s sᵀ] = Σ_g w_g C_g
     draws = np.asarray(prior.sample(jax.random.PRNGKey(0), (40000,)), np.float64)
-    from quadshank.inference._fit import spread_grid
+    from quadshank.inference._priors import spread_grid
 
     log_w, r_s, r_l, *_ = spread_grid(tuple(leg_subject))
     same = (leg_subject[:, None] == leg_subject[None, :]).astype(float)
@@ -157,7 +157,8 @@ def test_spread_mixture_is_the_discretised_halfnormal_prior_summed_out():
 
 def test_spreads_are_drawn_from_their_conditional_on_the_grid():
     """spread_draws against P(r_s, r_l | s) computed by hand, for legs that agree and legs that do not."""
-    from quadshank.inference._fit import SPREAD_GRID, model_params, spread_draws
+    from quadshank.inference._priors import SPREAD_GRID, model_params
+    from quadshank.inference._draws import spread_draws
 
     model = build_model("model1")
     leg_subject = np.array([0, 0, 1, 1, 2])
@@ -182,7 +183,8 @@ def test_spreads_are_drawn_from_their_conditional_on_the_grid():
 
 def test_population_and_subject_draws_follow_their_gaussian_conditional():
     """hyper_draws against Gaussian conditioning of the joint (μ, x_legs), computed another way."""
-    from quadshank.inference._fit import hyper_draws, model_params
+    from quadshank.inference._draws import hyper_draws
+    from quadshank.inference._priors import model_params
 
     model = build_model("model1")
     gain = next(p for p in model_params(model) if p.name == "gain")
@@ -212,7 +214,7 @@ def test_population_and_subject_draws_follow_their_gaussian_conditional():
 
 def test_delay_prior_from_another_fit(fitted, data_dir):
     """A model-1 fit cannot see the delay, so its P(d | data) is exactly the prior it was given."""
-    from quadshank.inference._fit import DELAY_PRIOR_FLOOR, delay_prior_from
+    from quadshank.inference._priors import DELAY_PRIOR_FLOOR, delay_prior_from
 
     source, _ = fitted
     src = json.loads((source / "summary.json").read_text())
@@ -261,7 +263,8 @@ def test_summed_out_threshold_is_drawn_with_the_delay_from_their_joint_condition
     the pulses as its state does."""
     from scipy import stats
 
-    from quadshank.inference._fit import _with_discrete_axes, log_shift_prior, sample_step_states, step_param
+    from quadshank.inference._priors import _with_discrete_axes, log_shift_prior, step_param
+    from quadshank.inference._draws import sample_step_states
     from quadshank.model._likelihood import leg_loglik_by_threshold, prepare, step_log_mass
 
     cohort, truth = simulate_cohort(legs=["JM-left"], minutes=0.3, seed=4, effects=["angle_delay"], trials=(1,))
@@ -304,7 +307,8 @@ def test_chains_start_at_the_classical_estimate_of_the_leading_delay_mode():
 
     import jax
 
-    from quadshank.inference._fit import INIT_JITTER, _init_near, classical_start, model_params
+    from quadshank.inference._starts import INIT_JITTER, _init_near, classical_start
+    from quadshank.inference._priors import model_params
     from quadshank.model._likelihood import leg_loglik_by_delay, prepare
     from quadshank.evaluation._recovery import simulate_matching
 
@@ -340,7 +344,8 @@ def test_screen_start_puts_each_chain_at_a_laplace_draw_with_the_laplace_metric(
     leg is the Laplace covariance.  model3s has vector parameters (a, b), whose site is (C, L)."""
     from numpyro.infer.util import constrain_fn
 
-    from quadshank.inference._fit import fit_screen, numpyro_model, screen_start
+    from quadshank.inference._nuts import fit_screen, screen_start
+    from quadshank.inference._density import numpyro_model
     from quadshank.model._likelihood import prepare
     from quadshank.inference._screen import _values_np
 
@@ -403,38 +408,6 @@ def _peaked(mode, spread=0.05):
     return out
 
 
-def test_started_chains_begin_where_numpyros_own_nuts_would_put_them():
-    """Given starts (the screen's), the fit's kernel skips numpyro's search for a start of its
-    own (one chain's key, no prior draws, no compiled loop over the chains); the state the
-    chains begin in, momentum and adaptation included, is numpyro's NUTS's exactly, so the
-    draws are too.  The kernel knows nothing of the model: a small one shows it."""
-    import numpyro
-    import numpyro.distributions as dist
-    from numpyro.infer import NUTS, init_to_median
-
-    from quadshank.inference._fit import _StartedNUTS, init_to_uniform
-
-    y = jnp.asarray(np.random.default_rng(0).standard_t(5, 40) * 2.0 + 1.0)
-
-    def model(y):
-        mu = numpyro.sample("mu", dist.Normal(0.0, 10.0))
-        with numpyro.plate("groups", 2):
-            nu = numpyro.sample("nu", dist.Gamma(2.0, 0.1))
-        numpyro.sample("y", dist.StudentT(nu[0], mu, 2.0), obs=y)
-
-    chains = 3
-    init = {"mu": jnp.array([0.5, 1.0, 1.5]), "nu": jnp.log(jnp.array([[3.0, 4.0], [5.0, 6.0], [7.0, 8.0]]))}
-    keys = jax.random.split(jax.random.PRNGKey(0), chains)
-    states = [
-        jax.tree_util.tree_leaves(kernel.init(keys, 10, init, model_args=(y,)))
-        for kernel in (NUTS(model, init_strategy=init_to_median(num_samples=15)), _StartedNUTS(model, init_strategy=init_to_uniform))
-    ]
-    assert len(states[0]) == len(states[1]) > 10
-    for a, b in zip(*states):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    assert np.asarray(states[1][0]).shape[0] == chains
-
-
 def test_chains_at_different_delays_fail_the_checks_and_name_the_leg():
     """Chains that agree on everything continuous but sit at different delays of one leg (as model 3's
     do at short data) fail, and the problem names the leg and each chain's delay."""
@@ -481,7 +454,7 @@ def test_delay_evidence_weighs_each_delay_by_its_own_mode():
     has a mode at d = 3 and one at d = 4: the screen, near the first, puts all of P(d) on 3; the
     evidence gives 4 about a fifth.  Model 2 pins d (all on the truth), and model 1, whose window
     sums cannot see d, leaves it at the uniform prior."""
-    from quadshank.inference._fit import delay_start
+    from quadshank.inference._nuts import delay_start
     from quadshank.evaluation._recovery import simulate_matching
     from quadshank.inference._screen import delay_evidence, laplace_fit
 
@@ -509,7 +482,7 @@ def test_a_screen_stuck_at_a_minor_delay_restarts_at_the_best_one():
     from the mode of the delay the evidence weighs most, which then holds the screen's P(d)
     and a higher log density; where the fit's delay prior favours the delay the screen sits
     at, the screen stays."""
-    from quadshank.inference._fit import delay_start
+    from quadshank.inference._nuts import delay_start
     from quadshank.evaluation._recovery import simulate_matching
     from quadshank.inference._screen import delay_modes, laplace_fit, restart_screen
 
@@ -551,7 +524,7 @@ def test_vectorized_and_sequential_chains_give_the_same_draws():
 def test_auto_chain_method_runs_large_data_one_chain_after_another():
     from types import SimpleNamespace
 
-    from quadshank.inference._fit import SEQUENTIAL_FROM_SAMPLES, chain_method
+    from quadshank.inference._nuts import SEQUENTIAL_FROM_SAMPLES, chain_method
 
     small = SimpleNamespace(sample_mask=np.ones((2, 9000), bool))  # the demo's 2 legs x 1.5 min
     large = SimpleNamespace(sample_mask=np.ones((5, 30000), bool))  # 5 legs x 5 min

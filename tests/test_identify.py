@@ -15,7 +15,7 @@ from quadshank.inference._identify import (
 )
 from quadshank.model._model import paper_model, passive_effects, simulate_angles
 from quadshank.data._paper import LEGS
-from quadshank.commands._pipeline import DELAY_TOLERANCE, TOLERANCES, recovery
+from quadshank.evaluation._classical_recovery import DELAY_TOLERANCE, TOLERANCES, recovery
 from quadshank.data._simulate import simulate_cohort
 
 

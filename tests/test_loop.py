@@ -5,7 +5,7 @@ import pytest
 from loop_cases import HIDDEN, check_hidden_first, rankings
 
 from quadshank.loop._diagnose import candidates
-from quadshank.inference._fit import build_model
+from quadshank.inference._priors import build_model
 
 HERE = ("torque_angle_peak", "hill_velocity", "angle_delay")
 

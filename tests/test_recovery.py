@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from quadshank.cli import main
-from quadshank.inference._fit import build_model
+from quadshank.inference._priors import build_model
 from quadshank.model._likelihood import leg_loglik_by_delay, prepare
 from quadshank.model._model import equivalent_acceleration, simulate_angles
 from quadshank.evaluation._recovery import MATCHING_NOISE, ANGLE_RANGE, coverage_rows, matching_values, simulate_matching
@@ -130,10 +130,9 @@ def test_the_angle_delay_likelihood_finds_the_step_of_matching_data(with_step):
 
 
 def test_recovery_reuses_a_finished_fit_of_the_same_truth_settings_and_code(tmp_path, monkeypatch):
-    import quadshank.commands._pipeline as pipeline
+    import quadshank.commands.recovery as recovery
     import quadshank.common._provenance as provenance
-    import quadshank.evaluation._recovery as recovery
-    from quadshank.inference._fit import FitSettings
+    from quadshank.inference._nuts import FitSettings
     calls = []
 
     def fake_run_fit(cohort, out, model, add_effects, settings, progress=False):
@@ -149,7 +148,7 @@ def test_recovery_reuses_a_finished_fit_of_the_same_truth_settings_and_code(tmp_
         (out / "fit.nc").write_text("")
         return summary
 
-    monkeypatch.setattr(pipeline, "run_fit", fake_run_fit)
+    monkeypatch.setattr(recovery, "run_fit", fake_run_fit)
     monkeypatch.setattr(recovery, "_add_pulls", lambda *a: None)  # the legs' own likelihood: not tested here
     settings = FitSettings(chains=1, warmup=5, draws=5)
     kw = dict(models=["model1"], seeds=[0, 1], legs=["TN-left"], minutes=0.2, settings=settings)
@@ -174,7 +173,7 @@ def test_coverage_table_names_delays_missed_and_wrong_modes_the_data_chose():
     """The Sampling table names each fit's split chains and missed delays; the wrong-mode table lists
     a leg whose data chose a delay (P(mode) ≥ 0.5) with P(true d) from the chains and the evidence,
     and leaves out a flat P(d) whose argmax is no claim."""
-    from quadshank.evaluation._recovery import coverage_markdown
+    from quadshank.outputs._recovery import coverage_markdown
 
     fit = {"seed": 2, "rhat_max": 1.06, "ess_bulk_min": 32, "divergences": 0, "ok": False, "sampling_seconds": 30,
            "delay_splits": {"TN-right": [4, 5]}, "delay_missed": {"JM-left": {"4": [0.25, 0.0]}}}

@@ -10,7 +10,7 @@ import pytest
 from quadshank.evaluation._prediction import evaluate_cohort, sign_tests, table_v
 from quadshank.inference._identify import identify_cohort
 from quadshank.data._paper import LEGS, TABLE_III
-from quadshank.commands._pipeline import models_from_summary
+from quadshank.inference._identify import models_from_summary
 from quadshank.data._simulate import simulate_cohort
 
 MODELS = ("model1", "model2", "model3")

@@ -29,7 +29,8 @@ from .model._effects import (
     registered_effects,
 )
 from .evaluation._prediction import evaluate_cohort, prediction_errors, predictions, sign_tests, table_v
-from .inference._fit import FitSettings, build_model, fit
+from .inference._nuts import FitSettings, fit
+from .inference._priors import build_model
 from .inference._fitio import load_fit, save_fit, to_inference_data
 from .inference._identify import IdentificationError, identify_cohort, identify_leg, identify_passive
 from .data._interchange import InterchangeError, convert, load_cohort, read_interchange, write_interchange

@@ -9,7 +9,25 @@ import sys
 import time
 from pathlib import Path
 
+import matplotlib
+
+from .commands.demo import run_demo
+from .commands.diagnose import run_diagnose
+from .commands.discover import run_discover
+from .commands.evaluate import run_evaluate, run_posterior_evaluate
+from .commands.fit import run_fit
+from .commands.identify import run_identify
+from .commands.recovery import run_likelihood_calibration, run_recovery
+from .commands.reproduce import run_reproduce
+from .common._io import read_json
+from .data._interchange import convert, load_cohort, write_interchange
+from .data._paper import LEGS
+from .data._simulate import simulate_cohort, write_truth
+from .inference._fitio import load_fit, read_summary
+from .inference._identify import load_identification, models_from_summary
+from .inference._nuts import SEQUENTIAL_FROM_SAMPLES, STARTS, FitSettings
 from .model._model import MODELS
+from .outputs._report import run_report
 
 __all__ = ["main"]
 
@@ -32,7 +50,6 @@ def _say(args, *lines: str) -> None:
 
 
 def _truth_beside(data: Path) -> dict | None:
-    from .common._io import read_json
 
     path = data / "truth.json" if data.is_dir() else data.with_name("truth.json")
     return read_json(path) if path.exists() else None
@@ -42,9 +59,6 @@ def _truth_beside(data: Path) -> dict | None:
 
 
 def cmd_simulate(args) -> int:
-    from .data._interchange import write_interchange
-    from .data._paper import LEGS
-    from .data._simulate import simulate_cohort, write_truth
 
     legs = _csv_list(args.legs) if args.legs else list(LEGS)
     effects = _csv_list(args.effects) if args.effects else []
@@ -60,7 +74,6 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_convert(args) -> int:
-    from .data._interchange import convert
 
     dst = convert(args.src, args.dst)
     _say(args, f"converted {args.src} -> {dst}")
@@ -68,8 +81,6 @@ def cmd_convert(args) -> int:
 
 
 def cmd_identify(args) -> int:
-    from .data._interchange import load_cohort
-    from .commands._pipeline import run_identify
 
     data = Path(args.data)
     cohort = load_cohort(data)
@@ -80,13 +91,10 @@ def cmd_identify(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    from .data._interchange import load_cohort
-    from .commands._pipeline import load_identification, models_from_summary, run_identify
 
     data = Path(args.data)
     out = Path(args.out)
     if args.fit:
-        from .evaluation._posterior import run_posterior_evaluate
 
         if args.identified:
             raise ValueError("give --fit (posterior evaluation) or --identified (point estimates), not both")
@@ -126,7 +134,6 @@ def cmd_evaluate(args) -> int:
 
 
 def run_evaluate_and_report(args, cohort, models, out):
-    from .commands._pipeline import run_evaluate
 
     summary = run_evaluate(cohort, models, out, progress=not args.quiet)
     for model, trials in summary["J"].items():
@@ -138,9 +145,6 @@ def run_evaluate_and_report(args, cohort, models, out):
 
 
 def cmd_fit(args) -> int:
-    from .inference._fit import FitSettings
-    from .data._interchange import load_cohort
-    from .commands._pipeline import run_fit
 
     cohort = load_cohort(Path(args.data))
     settings = FitSettings(
@@ -189,8 +193,6 @@ def cmd_fit(args) -> int:
 
 
 def cmd_recovery(args) -> int:
-    from .inference._fit import FitSettings
-    from .evaluation._recovery import run_recovery
 
     command = _command_line(args)
     settings = FitSettings(
@@ -221,7 +223,6 @@ def cmd_recovery(args) -> int:
 
 
 def cmd_likelihood_check(args) -> int:
-    from .evaluation._recovery import run_likelihood_calibration
 
     command = _command_line(args)
     result = run_likelihood_calibration(
@@ -246,7 +247,6 @@ def cmd_likelihood_check(args) -> int:
 
 
 def _loop_data(args, fit_summary: dict | None = None):
-    from .data._interchange import load_cohort
 
     data = args.data or (fit_summary or {}).get("data")
     if not data:
@@ -265,8 +265,6 @@ def _say_ranking(args, summary: dict) -> None:
 
 
 def cmd_diagnose(args) -> int:
-    from .loop._diagnose import run_diagnose
-    from .inference._fitio import load_fit, read_summary
 
     fit_summary = read_summary(args.fitdir)
     _, model, desc = load_fit(args.fitdir)
@@ -285,14 +283,12 @@ def cmd_diagnose(args) -> int:
 
 
 def cmd_discover(args) -> int:
-    from .loop._diagnose import run_discover
 
     cohort, data = _loop_data(args)
     command = _command_line(args)
     trials = tuple(int(t) for t in _csv_list(args.trials))
     confirm = None
     if args.confirm:
-        from .inference._fit import FitSettings
 
         confirm = FitSettings(chains=args.chains, warmup=args.warmup, draws=args.draws, seed=args.seed, trials=trials)
     summary = run_discover(
@@ -310,8 +306,6 @@ def cmd_discover(args) -> int:
 
 
 def cmd_compare(args) -> int:
-    from .inference._fitio import read_summary
-    from .evaluation._posterior import run_posterior_evaluate
 
     cohort, _ = _loop_data(args, read_summary(args.fit_a))
     summary = run_posterior_evaluate(cohort, [args.fit_a, args.fit_b], args.out, n_draws=args.draws,
@@ -327,8 +321,6 @@ def cmd_compare(args) -> int:
 
 
 def cmd_report(args) -> int:
-    from .inference._fitio import read_summary
-    from .outputs._report import run_report
 
     fit_summary = read_summary(args.fitdir)
     cohort, _ = _loop_data(args, fit_summary)
@@ -342,7 +334,6 @@ def cmd_report(args) -> int:
 
 
 def cmd_reproduce(args, default_out: str | None = None) -> int:
-    from .commands._pipeline import run_reproduce
 
     out = Path(args.out or default_out)
     command = _command_line(args)
@@ -369,7 +360,6 @@ def cmd_reproduce(args, default_out: str | None = None) -> int:
 
 
 def cmd_demo(args) -> int:
-    from .commands.demo import run_demo
 
     command = _command_line(args)
     t0 = time.perf_counter()
@@ -398,8 +388,6 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     def start_options(sp):
-        from .inference._fit import STARTS
-
         sp.add_argument("--start", choices=STARTS, default="screen",
                         help="where the chains start: each leg's mode from the screen, whose Laplace covariance is "
                              "also the metric (default); the classical least-squares identification; the prior median")
@@ -463,7 +451,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     start_options(f)
     f.add_argument("--max-tree-depth", type=int, default=8, help="NUTS tree depth limit (at most 2^depth - 1 leapfrog steps a draw)")
-    from .inference._fit import SEQUENTIAL_FROM_SAMPLES, FitSettings
 
     f.add_argument("--chain-method", choices=("auto", "vectorized", "sequential"), default=FitSettings.chain_method,
                    help="run the chains as one batched program (faster on small data) or one after another "
@@ -571,6 +558,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = argv
+    # the command line draws only into files: no window, whatever the session's display
+    matplotlib.use("Agg")
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

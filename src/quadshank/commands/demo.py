@@ -3,7 +3,7 @@
 Five steps, each in its own folder under ``out``:
 
 1. ``reproduce/``: the paper's section 7 (simulate the cohort, classical
-   identification, Table V) — :func:`quadshank.commands._pipeline.run_reproduce`;
+   identification, Table V) — :func:`quadshank.commands.reproduce.run_reproduce`;
 2. ``fit/``: a hierarchical NUTS fit of the loop's baseline ``model3s`` to trial 1
    of two legs of two subjects (so the report can show shrinkage);
 3. ``evaluate/``: J_φ,p over posterior draws, trials 1–3, with PSIS-LOO;
@@ -24,6 +24,15 @@ import time
 from pathlib import Path
 
 from ..common._io import atomic_write_text, write_json
+from ..data._interchange import load_cohort
+from ..data._paper import LEGS
+from ..inference._nuts import FitSettings
+from ..inference._priors import build_model
+from ..outputs._report import run_report
+from .diagnose import run_diagnose
+from .evaluate import run_posterior_evaluate
+from .fit import run_fit
+from .reproduce import run_reproduce
 
 __all__ = ["run_demo", "DEMO_LEGS", "DEMO_EFFECTS"]
 
@@ -51,12 +60,6 @@ def run_demo(
     command: str = "",
 ) -> dict:
     """Reproduce, fit, evaluate, diagnose, report; returns the summary (also ``out/summary.json``)."""
-    from ..loop._diagnose import run_diagnose
-    from ..inference._fit import FitSettings, build_model
-    from ..data._paper import LEGS
-    from ._pipeline import run_fit, run_reproduce
-    from ..evaluation._posterior import run_posterior_evaluate
-    from ..outputs._report import run_report
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -80,7 +83,6 @@ def run_demo(
     rep = run_reproduce(out / "reproduce", minutes=minutes, seed=seed, effects=effects, legs=legs,
                         progress=progress, command=command)
     step("reproduce")
-    from ..data._interchange import load_cohort
 
     data = out / "reproduce" / "data"
     cohort = load_cohort(data)

@@ -3,17 +3,25 @@
 from __future__ import annotations
 
 import contextlib
+import functools
+import io
 import json
 import os
 import tempfile
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
 
-#: Permissions of a written file: mkstemp makes it 0600; a result is read by others (the umask still applies).
-_UMASK = os.umask(0)
-os.umask(_UMASK)
-FILE_MODE = 0o666 & ~_UMASK
+
+@functools.cache
+def file_mode() -> int:
+    """Permissions of a written file: mkstemp makes it 0600, but a result is read by others, so
+    it gets 0666 less the process's umask (read once, at the first write; reading the umask
+    means setting it)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
 
 
 def temp_sibling(path: Path) -> Path:
@@ -21,7 +29,7 @@ def temp_sibling(path: Path) -> Path:
     atomic), with the permissions of a file written the usual way."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
-    os.chmod(tmp, FILE_MODE)
+    os.chmod(tmp, file_mode())
     return Path(tmp)
 
 
@@ -74,18 +82,16 @@ def read_json(path: str | os.PathLike):
         raise ValueError(f"{path}: not valid JSON ({exc})") from None
 
 
-def figure_bytes(fig, fmt: str = "png", dpi: int = 110) -> bytes:
-    """A matplotlib figure rendered (tight bounding box) and closed."""
-    import io
+def figure_bytes(fig, fmt: str = "png", dpi: int = 110, tight: bool = True) -> bytes:
+    """A matplotlib figure rendered (``tight``: cropped to its content) and closed."""
 
-    import matplotlib.pyplot as plt
 
     buf = io.BytesIO()
-    fig.savefig(buf, format=fmt, dpi=dpi, bbox_inches="tight")
+    fig.savefig(buf, format=fmt, dpi=dpi, bbox_inches="tight" if tight else None)
     plt.close(fig)
     return buf.getvalue()
 
 
-def save_figure(fig, path: str | os.PathLike, dpi: int = 110) -> Path:
+def save_figure(fig, path: str | os.PathLike, dpi: int = 110, tight: bool = True) -> Path:
     """Save a matplotlib figure atomically and close it."""
-    return atomic_write_bytes(path, figure_bytes(fig, Path(path).suffix.lstrip(".") or "png", dpi))
+    return atomic_write_bytes(path, figure_bytes(fig, Path(path).suffix.lstrip(".") or "png", dpi, tight))

@@ -5,11 +5,12 @@ from __future__ import annotations
 import sys
 from collections.abc import Iterable
 
+from tqdm.auto import tqdm
+
 
 def progress_bar(iterable: Iterable, *, desc: str, enabled: bool = True, total: int | None = None):
     """Wrap ``iterable`` in a progress bar when ``enabled``; otherwise return it unchanged."""
     if not enabled:
         return iterable
-    from tqdm.auto import tqdm
 
     return tqdm(iterable, desc=desc, total=total, file=sys.stderr, leave=False, dynamic_ncols=True)

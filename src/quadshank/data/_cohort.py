@@ -10,12 +10,14 @@ padded with NaN and their length is stored, so the round trip is lossless.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 import xarray as xr
+from scipy.signal import savgol_filter
 
 from ..common._io import atomic_path
 
@@ -47,7 +49,6 @@ def derive_velocity(angle_deg: np.ndarray, dt: float) -> np.ndarray:
     95 % of its amplitude; the 10 ms velocity kick of a twitch is smeared over
     the window.  A causal filter of the same length would lag by 30 ms.
     """
-    from scipy.signal import savgol_filter
 
     angle = np.asarray(angle_deg, dtype=float)
     if angle.size < VELOCITY_WINDOW:
@@ -258,6 +259,5 @@ def _attr_value(v):
     """NetCDF attributes hold numbers and strings; anything else is stored as its JSON text."""
     if isinstance(v, (str, int, float, np.integer, np.floating)):
         return v
-    import json
 
     return json.dumps(v)

@@ -81,8 +81,8 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from ._cohort import Cohort, Trial, leg_key
 from ..common._io import temp_sibling
+from ._cohort import Cohort, Trial, leg_key
 
 __all__ = [
     "Problem",

@@ -200,8 +200,13 @@ import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+from jax import lax
+from tqdm.auto import tqdm
 
+from ..common._io import write_json
 from ._cohort import Cohort, Trial
 from ._paper import (
     DELAY_STEP_ANGLE,
@@ -520,9 +525,6 @@ def _chunk_runner():
     evaluated exactly at the RK4 stage times.  Each impulse is scaled by
     f(φ)·g(φ̇) at the internal step where it arrives (the twitch's onset).
     """
-    import jax
-    import jax.numpy as jnp
-    from jax import lax
 
     dt = INTERNAL_STEP_S
 
@@ -642,8 +644,6 @@ def _run_plant(params: Sequence[dict], amps: np.ndarray, progress: bool = False)
     equivalent acceleration M/I, unmodulated twitch activation, all at the
     sample instants k·T_s.
     """
-    import jax
-    import jax.numpy as jnp
 
     amps = np.asarray(amps, dtype=np.float64)
     batch, n = amps.shape
@@ -660,7 +660,6 @@ def _run_plant(params: Sequence[dict], amps: np.ndarray, progress: bool = False)
         carry = ((zeros,) * 6, jnp.zeros((batch, _BUFFER), dtype=jnp.float64))
         it = range(n_chunks)
         if progress:
-            from tqdm.auto import tqdm
 
             it = tqdm(it, desc="simulating", unit="chunk")
         for c in it:
@@ -881,6 +880,5 @@ def _jsonable(v):
 
 def write_truth(truth: dict, path: str | os.PathLike) -> Path:
     """Write the truth as pretty-printed JSON, atomically (temporary file, then rename)."""
-    from ..common._io import write_json
 
     return write_json(path, _jsonable(truth))

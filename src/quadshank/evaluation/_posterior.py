@@ -42,24 +42,28 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import time
 import warnings
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import arviz as az
 import jax
 import jax.numpy as jnp
 import numpy as np
+import xarray as xr
 
-from ..data._cohort import Cohort, Trial
-from ._prediction import prediction_starts, sign_tests
-from ..inference._fitio import INTERVAL, load_fit, posterior_models, read_summary, sampled_vars
-from ..common._io import atomic_write_text, save_figure, write_json
-from ..model._model import Model, predict_ahead
-from ..data._paper import HORIZON_MS, HORIZONS, TABLE_V
-from ..outputs._figures import plot_delay_angle, plot_posterior_j_vs_horizon, plot_posterior_predictions
 from ..common._progress import progress_bar
-from ..outputs._tables import markdown_table, sign_test_rows, write_table
+from ..data._cohort import Cohort, Trial
+from ..data._paper import HORIZON_MS, HORIZONS
+from ..inference._fitio import (
+    INTERVAL,
+    load_fit,
+    posterior_models,
+    read_summary,
+    sampled_vars,
+)
+from ..model._model import Model, predict_ahead
+from ._prediction import prediction_starts
 
 __all__ = [
     "LoadedFit",
@@ -71,7 +75,6 @@ __all__ = [
     "summarise_j",
     "psis_loo",
     "loo_report",
-    "run_posterior_evaluate",
     "CHUNK_ELEMENTS",
     "PARETO_K_BAD",
 ]
@@ -239,8 +242,6 @@ def psis_loo(idata, source: str = "the fit"):
     ``source`` names the fit in the error raised when an unpadded segment's
     log-likelihood is not finite.
     """
-    import arviz as az
-    import xarray as xr
 
     ll = idata.log_likelihood["acceleration_segment"]
     legs = sorted(str(x) for x in ll["leg"].values)
@@ -269,7 +270,6 @@ def _data_key(f: LoadedFit) -> tuple:
 
 def loo_report(fits: list[LoadedFit]) -> dict:
     """PSIS-LOO per fit, and ``az.compare`` within each group of fits made on the same data."""
-    import arviz as az
 
     elpd = {f.label: psis_loo(f.idata, str(f.folder)) for f in fits}
     per_fit = {}
@@ -318,199 +318,9 @@ def loo_report(fits: list[LoadedFit]) -> dict:
 # ============================================================================ tables
 
 
-def _table_v_rows(J: dict, labels: list[str]) -> list[dict]:
-    """Posterior Table V: median and 90 % band of the mean over legs, the paper's mean (s.d.) beside."""
-    rows = []
-    for tr in sorted({tr for by_trial in J.values() for tr in by_trial}, key=int):
-        for h in (str(HORIZON_MS[p]) for p in HORIZONS):
-            row: dict = {"trial": tr, "horizon [ms]": int(h)}
-            for label in labels:
-                v = J[label].get(tr, {}).get(h, {})
-                row[f"{label} median"] = v.get("median")
-                row[f"{label} 5%"] = v.get("lo")
-                row[f"{label} 95%"] = v.get("hi")
-            for label in labels:
-                paper = TABLE_V.get(tr, {}).get(label, {}).get(int(h))
-                row[f"paper {label}"] = f"{paper[0]} ({paper[1]})" if paper else "–"
-            rows.append(row)
-    return rows
-
-
-def _per_leg_rows(J_legs: dict, fits: list[LoadedFit]) -> list[dict]:
-    fitted = {f.label: {str(t) for t in f.desc["trials"]} for f in fits}
-    return [
-        {
-            "model": label,
-            "leg": leg,
-            "trial": tr,
-            "fitted on it": "yes" if tr in fitted[label] else "no",
-            "horizon [ms]": int(h),
-            "median": v["median"],
-            "5%": v["lo"],
-            "95%": v["hi"],
-        }
-        for label, by_leg in J_legs.items()
-        for leg, trials in by_leg.items()
-        for tr, hv in sorted(trials.items(), key=lambda kv: int(kv[0]))
-        for h, v in hv.items()
-    ]
-
-
-def _loo_rows(loo: dict) -> tuple[list[dict], list[dict]]:
-    key = f"pareto_k_over_{PARETO_K_BAD}"
-    fits = [
-        {"model": label, "elpd_loo": v["elpd_loo"], "se": v["se"], "p_loo": v["p_loo"],
-         "observations": v["n_observations"], f"k > {PARETO_K_BAD}": v[key], "k max": v["pareto_k_max"]}
-        for label, v in loo["fits"].items()
-    ]
-    compare = [
-        {"legs": ", ".join(group["legs"]), "trials": ", ".join(map(str, group["trials"])), "model": label,
-         "rank": row["rank"], "elpd_diff": row["elpd_diff"], "dse": row["dse"], "weight": row["weight"]}
-        for group in loo["compare"]
-        for label, row in sorted(group["table"].items(), key=lambda kv: kv[1]["rank"])
-    ]
-    return fits, compare
-
-
 # ============================================================================ figures
-
-
-def _figure_case(fits: list[LoadedFit], cohort: Cohort) -> tuple[str, Trial]:
-    """The leg and trial of the prediction figures: JM-left, trial 2, as the paper, when available."""
-    common = [leg for leg in cohort.legs if all(leg in f.desc["legs"] for f in fits)]
-    candidates = common or list(fits[0].desc["legs"])
-    leg = "JM-left" if "JM-left" in candidates else candidates[0]
-    numbers = [t.trial for t in cohort.trials_of(leg)]
-    return leg, cohort.get(leg, 2 if 2 in numbers else numbers[0])
-
-
-def _prediction_figures(fits, cohort, J_legs, out: Path, *, n_draws: int, seed: int) -> list[Path]:
-    """Figs. 5-6 with a 90 % band over draws: 100 ms and 1 s ahead over a 20-s window."""
-    leg, trial = _figure_case(fits, cohort)
-    dt = trial.sampling_period_s
-    start_s = min(FIGURE_WINDOW_S[0], max(0.0, trial.n_samples * dt - FIGURE_WINDOW_S[1]))
-    i0 = int(round(start_s / dt))
-    i1 = min(trial.n_samples, i0 + int(round(FIGURE_WINDOW_S[1] / dt)))
-    models = {f.label: posterior_models(f.idata, f.model, leg, n_draws, seed)[0] for f in fits if leg in f.desc["legs"]}
-    paths = []
-    for p, name in ((10, "fig5_posterior_predictions_100ms.png"), (100, "fig6_posterior_predictions_1s.png")):
-        starts = np.arange(max(0, i0 - p), min(i1, trial.n_samples) - p)
-        predicted = {label: (starts, posterior_predictions(m, trial, starts, (p,))[:, :, 0])
-                     for label, m in models.items()}
-        j = {label: J_legs[label][leg][str(trial.trial)][str(HORIZON_MS[p])] for label in models}
-        fig = plot_posterior_predictions(trial, predicted, p, j=j, start_s=start_s, length_s=FIGURE_WINDOW_S[1])
-        paths.append(save_figure(fig, out / "figures" / name))
-    return paths
 
 
 # ============================================================================ the command
 
 
-def _residual_section(fits: list[LoadedFit], cohort: Cohort, out: Path, md: list) -> dict:
-    """Residual figures of every fit on its identification trials; appends a report section."""
-    from ..loop._diagnose import fit_residuals, residual_figures
-    from ..model._likelihood import prepare
-
-    md += ["## Residuals of each fit (posterior medians, modal delay)", ""]
-    findings = {}
-    for f in fits:
-        data = prepare(cohort, f.model, tuple(f.desc["trials"]), f.desc["legs"])
-        res = {leg: fit_residuals(f.idata, f.model, data, leg) for leg in f.desc["legs"]}
-        paths, notes = residual_figures(res, out / "figures", f.label.replace("+", "_"), f.model.sampling_period_s)
-        findings[f.label] = notes
-        md.append(f"### {f.label}")
-        md.append("")
-        for leg, lines in notes.items():
-            md.append(f"- {leg}: " + (" ".join(lines) if lines else "nothing stands out."))
-        md += ["", *[f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in paths], ""]
-    return findings
-
-
-def run_posterior_evaluate(
-    cohort: Cohort,
-    folders,
-    out: str | Path,
-    *,
-    n_draws: int = 200,
-    start_stride: int = 1,
-    seed: int = 0,
-    progress: bool = False,
-    residuals: bool = False,
-) -> dict:
-    """Posterior J (Table V with bands), sign tests, PSIS-LOO, Figs. 5-6 with bands; summary.json last.
-
-    ``residuals``: also each fit's residual diagnostics at its posterior medians
-    (:mod:`quadshank.loop._diagnose`), side by side, what ``quadshank compare`` shows.
-    """
-    if n_draws < 1:
-        raise ValueError(f"--draws must be at least 1, not {n_draws}")
-    if start_stride < 1:
-        raise ValueError(f"--start-stride must be at least 1, not {start_stride}")
-    out = Path(out)
-    fits = load_fits(folders)
-    _check_legs(fits, cohort)
-    labels = [f.label for f in fits]
-
-    t0 = time.perf_counter()
-    draws = posterior_j(fits, cohort, n_draws=n_draws, start_stride=start_stride, seed=seed, progress=progress)
-    elapsed = time.perf_counter() - t0
-    J, J_legs = summarise_j(draws)
-    tests = sign_tests(_medians(J_legs)) if len(fits) >= 2 else []
-    loo = loo_report(fits)
-
-    md = ["# Posterior evaluation: k-step-ahead angle prediction (eq. 12) and PSIS-LOO", ""]
-    for f in fits:
-        banner = f.summary.get("banner")
-        md.append(f"- {f.label}: fit {f.folder}, fitted on trial(s) {', '.join(map(str, f.desc['trials']))}"
-                  + (f" — **{banner}**" if banner else ""))
-    md.append("")
-    md.append(write_table(_table_v_rows(J, labels), out / "tables", "table5_posterior",
-                          "Table V (posterior): J_φ,p of the mean over legs, median and 90 % band [deg]"))
-    md.append(write_table(_per_leg_rows(J_legs, fits), out / "tables", "j_per_leg_posterior",
-                          "J_φ,p per leg and trial, median and 90 % band over draws [deg]"))
-    md.append(write_table(sign_test_rows(tests), out / "tables", "sign_tests_posterior",
-                          "Sign tests on the posterior-median J (trials 2 and 3)"))
-    loo_fits, loo_compare = _loo_rows(loo)
-    md.append(write_table(loo_fits, out / "tables", "loo", "PSIS-LOO per fit (1-s segments)"))
-    md.append(write_table(loo_compare, out / "tables", "loo_compare", "PSIS-LOO comparison (same data)"))
-    if loo["not_compared"]:
-        md.append(markdown_table(loo["not_compared"], "Fits not compared by LOO"))
-
-    figures = [save_figure(plot_posterior_j_vs_horizon(J), out / "figures" / "table5_posterior_j_vs_horizon.png")]
-    figures += _prediction_figures(fits, cohort, J_legs, out, n_draws=n_draws, seed=seed)
-    for f in fits:
-        if any("delay_angle" in s for s in f.summary["legs"].values()):
-            fig = plot_delay_angle(f.summary, f.label)
-            figures.append(save_figure(fig, out / "figures" / f"delay_angle_{f.label.replace('+', '_')}.png"))
-    md += ["## Figures", "", *[f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in figures], ""]
-    findings = _residual_section(fits, cohort, out, md) if residuals else None
-
-    summary = {
-        "method": "posterior",
-        "J": J,
-        "J_legs": J_legs,
-        "sign_tests": tests,
-        "loo": loo,
-        "fits": {
-            f.label: {
-                "folder": str(f.folder),
-                "legs": list(f.desc["legs"]),
-                "trials_fitted": list(f.desc["trials"]),
-                "draws_used": min(n_draws, f.idata.posterior.sizes["chain"] * f.idata.posterior.sizes["draw"]),
-                "banner": f.summary.get("banner"),
-            }
-            for f in fits
-        },
-        "legs": list(dict.fromkeys(leg for f in fits for leg in f.desc["legs"])),
-        "horizons_samples": list(HORIZONS),
-        "interval": list(INTERVAL),
-        "n_draws": n_draws,
-        "start_stride": start_stride,
-        "seed": seed,
-        "evaluation_seconds": elapsed,
-    }
-    if findings is not None:
-        summary["residual_findings"] = findings
-    atomic_write_text(out / "report.md", "\n".join(md))
-    write_json(out / "summary.json", summary)
-    return summary

@@ -20,9 +20,10 @@ import itertools
 import numpy as np
 from scipy.stats import binomtest
 
+from ..common._progress import progress_bar
 from ..data._cohort import Cohort, Trial
-from ..model._model import Model, predict_ahead
 from ..data._paper import HORIZON_MS, HORIZONS
+from ..model._model import Model, predict_ahead
 
 __all__ = ["prediction_errors", "prediction_starts", "predictions", "evaluate_cohort", "sign_tests", "table_v", "ALPHA"]
 
@@ -63,7 +64,6 @@ def evaluate_cohort(
     ``models[leg][model_name]`` is the identified model of that leg.  Returns
     ``J[model_name][leg][trial_str][horizon_ms]`` in degrees.
     """
-    from ..common._progress import progress_bar
 
     J: dict = {}
     jobs = [(t, name, m) for t in cohort for name, m in models[t.key].items()]

@@ -44,24 +44,27 @@ the pooling moved.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-from collections.abc import Iterable, Sequence
-from pathlib import Path
+from collections.abc import Sequence
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
+from ..common._progress import progress_bar
 from ..data._cohort import Cohort, Trial
 from ..data._paper import LEGS, SAMPLING_PERIOD_S, TABLE_I, TABLE_II, TABLE_III
+from ..data._simulate import PASSIVE_TRUTH, _check_legs, _check_trials, _plan_leg
+from ..inference._priors import build_model
+from ..model._likelihood import leg_loglik_by_delay, max_shift, prepare, response_length
+from ..model._model import _passive_acc, simulate_angles
 
 __all__ = [
     "MATCHING_NOISE",
     "matching_values",
     "simulate_matching",
     "coverage_rows",
-    "run_recovery",
     "likelihood_calibration",
-    "run_likelihood_calibration",
 ]
 
 #: Student-t noise added to the matching truth's acceleration, per sample.
@@ -83,7 +86,6 @@ EFFECT_TRUTH = {"angle_delay": {"params": {"threshold": -20.0}, "discrete": {"sh
 def matching_values(model: str, leg: str, add_effects: Sequence[str] = ()) -> dict:
     """The true parameters (by model parameter name), delay and discrete effect leaves of
     ``model`` extended by ``add_effects`` for ``leg``."""
-    from ..data._simulate import PASSIVE_TRUTH
 
     unknown = [e for e in add_effects if e not in EFFECT_TRUTH]
     if unknown:
@@ -128,11 +130,7 @@ def simulate_matching(
     "recruitment": {leg: {trial: u}}}``.  Deterministic in ``seed``; the noise
     streams are separate from the simulator's.
     """
-    import jax.numpy as jnp
 
-    from ..inference._fit import build_model
-    from ..model._model import _passive_acc, simulate_angles
-    from ..data._simulate import _check_legs, _check_trials, _plan_leg
 
     legs = _check_legs(legs)
     trials = _check_trials(trials)
@@ -249,233 +247,6 @@ def _binomial_band(n: int, p: float = 0.9) -> tuple[float, float]:
     return max(0.0, p - half), min(1.0, p + half)
 
 
-def _finished_fit(fit_dir: Path, truth: dict, settings) -> dict | None:
-    """The summary of a complete earlier fit of the same truth with the same settings by the
-    same code (its source fingerprint, :func:`quadshank.common._provenance.code_fingerprint`), else None.
-
-    A recovery run that was interrupted, or whose table is rebuilt, reuses such fits; after
-    any change to the package the fits are made again.
-    """
-    from ..inference._fitio import read_summary
-    from ..common._io import read_json
-    from ..common._provenance import code_fingerprint
-
-    try:
-        summary = read_summary(fit_dir)
-        same_truth = read_json(fit_dir / "truth.json") == json.loads(json.dumps(truth))
-    except (FileNotFoundError, ValueError, KeyError):
-        return None
-    same_code = summary.get("code", {}).get("fingerprint") == code_fingerprint()
-    return summary if same_truth and same_code and summary.get("settings") == _settings_json(settings) else None
-
-
-def _settings_json(settings) -> dict:
-    """FitSettings as a fit's summary.json holds them (through the fit description's JSON)."""
-    from ..inference._fit import from_json, to_json
-
-    return from_json(to_json(dataclasses.asdict(settings)))
-
-
-def run_recovery(
-    out: str | Path,
-    models: Iterable[str] = ("model1", "model2", "model3"),
-    seeds: Iterable[int] = (0, 1, 2),
-    legs: Sequence[str] | None = None,
-    minutes: float = 1.0,
-    settings=None,
-    progress: bool = False,
-    command: str = "",
-    add_effects: Sequence[str] = (),
-    truth_effects: Sequence[str] | None = None,
-) -> dict:
-    """Simulate a matching truth, fit it, and count coverage, for each model and seed.
-
-    ``add_effects`` extend every fitted model; the truth holds ``truth_effects``
-    (default: the same effects, so the truth matches; ``()`` asks whether a fit with
-    an effect claims it on data without it).  Writes ``out/{name}-seed{S}/``
-    (truth.json, fit.nc, summary.json; a complete fit already there of the same truth
-    with the same settings by the same code is reused), then ``out/coverage.json`` (every row, and per
-    model the covered fraction of the 90 % intervals with the band expected of a
-    calibrated posterior, whether the posterior mode of d — and of an angle delay's
-    shift — was right for every leg, and an angle delay's change probability per leg)
-    and ``out/coverage.md``.
-    """
-    from ..inference._fit import FitSettings, build_model
-    from ..common._io import atomic_write_text, write_json
-    from ..model._likelihood import max_shift
-    from ..commands._pipeline import run_fit
-
-    out = Path(out)
-    legs = tuple(legs) if legs else LEGS
-    add_effects = tuple(add_effects)
-    truth_effects = add_effects if truth_effects is None else tuple(truth_effects)
-    settings = settings or FitSettings(chains=2, warmup=500, draws=500)
-    models, seeds = list(models), [int(s) for s in seeds]
-    per_model: dict[str, dict] = {}
-    all_rows = []
-    for model in models:
-        fitted = build_model(model, add_effects)
-        name = fitted.name
-        # the posterior against each leg's own likelihood (needs the truth's parameters in the fitted model)
-        ml = LegMaximumLikelihood(fitted, MATCHING_NOISE) if not max_shift(fitted) and truth_effects == add_effects else None
-        rows, diags = [], []
-        for seed in seeds:
-            cohort, truth = simulate_matching(model, legs, minutes, seed, add_effects=truth_effects)
-            fit_dir = out / f"{name}-seed{seed}"
-            fs = dataclasses.replace(settings, seed=seed)
-            summary = _finished_fit(fit_dir, truth, fs)
-            reused = summary is not None
-            if summary is None:
-                fit_dir.mkdir(parents=True, exist_ok=True)
-                write_json(fit_dir / "truth.json", truth)
-                summary = run_fit(cohort, fit_dir, model, add_effects, fs, progress=progress)
-            diag = summary["diagnostics"]
-            info = {"seed": seed, "reused": reused, **{k: diag[k] for k in ("rhat_max", "ess_bulk_min", "divergences", "ok")},
-                    "sampling_seconds": summary.get("sampling_seconds"), "delay_splits": diag.get("delay_splits", {}),
-                    "delay_missed": diag.get("delay_missed", {})}  # fmt: skip
-            changes = {leg: s["delay_angle"]["change_probability"] for leg, s in summary["legs"].items() if "delay_angle" in s}
-            if changes:
-                info["change_probability"] = changes
-                info["threshold_deg"] = {leg: s["delay_angle"]["threshold_deg"] for leg, s in summary["legs"].items()
-                                         if "delay_angle" in s}  # fmt: skip
-            diags.append(info)
-            seed_rows = coverage_rows(summary, truth)
-            if ml is not None:
-                _add_pulls(seed_rows, ml, cohort, truth)
-            for r in seed_rows:
-                rows.append({"model": name, "seed": seed, **r})
-        params = [r for r in rows if r["param"] not in ("delay", "shift")]
-        n_cov = sum(r["covered"] for r in params)
-        by_param: dict[str, list[bool]] = {}
-        for r in params:
-            by_param.setdefault(r["param"], []).append(r["covered"])
-        per_model[name] = {
-            "truth_effects": list(truth_effects),
-            "n_intervals": len(params),
-            "covered": n_cov,
-            "coverage": n_cov / len(params) if params else math.nan,
-            "expected_band_95": list(_binomial_band(len(params))),
-            "by_param": {k: {"covered": int(sum(v)), "n": len(v)} for k, v in by_param.items()},
-            "fits": diags,
-        }
-        for discrete in ("delay", "shift"):
-            hits = [r["covered"] for r in rows if r["param"] == discrete]
-            if hits:
-                per_model[name][f"{discrete}_mode_right"] = int(sum(hits))
-                per_model[name][f"{discrete}_legs"] = len(hits)
-        right = {(r["seed"], r["leg"]) for r in rows if r["param"] == "delay" and r["covered"]}
-        pulls: dict[tuple[str, str], list[float]] = {}
-        for r in params:
-            if "pull" in r and (r["seed"], r["leg"]) in right:
-                pulls.setdefault((r["param"], r["leg"]), []).append(r["pull"])
-        if pulls:
-            order = list(dict.fromkeys(r["param"] for r in params))
-            per_model[name]["pull"] = [
-                {"param": k, "leg": leg, "fits": len(v), "median_abs": float(np.median(np.abs(v))),
-                 "max_abs": float(np.max(np.abs(v))), "mean": float(np.mean(v))}
-                for (k, leg), v in sorted(pulls.items(), key=lambda kv: (order.index(kv[0][0]), legs.index(kv[0][1])))
-            ]  # fmt: skip
-        # a mode of a flat P(d) means nothing: count the legs whose data chose a delay at all
-        per_model[name]["delay_seen_legs"] = sum(r.get("p_mode", 0.0) >= DELAY_SEEN for r in rows if r["param"] == "delay")
-        all_rows.extend(rows)
-    result = {
-        "command": command,
-        "interval": 0.9,
-        "legs": list(legs),
-        "minutes": minutes,
-        "seeds": seeds,
-        "settings": _settings_json(settings),
-        "noise": MATCHING_NOISE,
-        "models": per_model,
-        "rows": all_rows,
-    }
-    write_json(out / "coverage.json", result)
-    atomic_write_text(out / "coverage.md", coverage_markdown(result))
-    return result
-
-
-def coverage_markdown(result: dict) -> str:
-    """The coverage table of :func:`run_recovery` as Markdown."""
-    lines = [
-        "# Parameter recovery on a matching truth",
-        "",
-        f"Regenerate: `{result['command']}`" if result.get("command") else "",
-        "",
-        f"Data simulated from the fitted model itself (see `quadshank.evaluation._recovery`), {len(result['legs'])} legs × "
-        f"{result['minutes']:g} min of trial 1, seeds {', '.join(map(str, result['seeds']))}; "
-        f"NUTS {result['settings']['chains']} chains × {result['settings']['draws']} draws after "
-        f"{result['settings']['warmup']} warm-up.  A calibrated posterior covers 90 % of the true values; "
-        "the band is where the covered fraction of a calibrated posterior falls 95 % of the time "
-        "(intervals treated as independent, which legs sharing a population are not quite).",
-        "",
-        "| model | effects in the truth | 90 % intervals covering the truth | expected (95 % band) "
-        "| delay mode right | shift mode right | fits ok |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for model, m in result["models"].items():
-        lo, hi = m["expected_band_95"]
-        ok = sum(bool(f["ok"]) for f in m["fits"])
-        shift = f"{m['shift_mode_right']}/{m['shift_legs']} legs" if "shift_legs" in m else "–"
-        lines.append(
-            f"| {model} | {', '.join(m['truth_effects']) or 'none'} | {m['covered']}/{m['n_intervals']} = "
-            f"{m['coverage']:.2f} | {lo:.2f}–{hi:.2f} | {m['delay_mode_right']}/{m['delay_legs']} legs "
-            f"(P(mode) ≥ {DELAY_SEEN} in {m['delay_seen_legs']}) | {shift} "
-            f"| {ok}/{len(m['fits'])} |"
-        )
-    changes = [(model, f) for model, m in result["models"].items() for f in m["fits"] if "change_probability" in f]
-    if changes:
-        lines += ["", "## Angle delay: P(the delay changes with angle), and where (median, 90 % interval)", ""]
-        for model, f in changes:
-            cells = []
-            for leg, p in f["change_probability"].items():
-                thr = f.get("threshold_deg", {}).get(leg)
-                where = f", threshold {thr['median']:.1f}° [{thr['lo']:.1f}, {thr['hi']:.1f}]" if thr else ""
-                cells.append(f"{leg} {p:.2f}{where}")
-            lines.append(f"- {model}, seed {f['seed']}: {'; '.join(cells)}")
-    lines += ["", "## By parameter (covered / intervals, over legs and seeds)", ""]
-    for model, m in result["models"].items():
-        cells = ", ".join(f"{k} {v['covered']}/{v['n']}" for k, v in m["by_param"].items())
-        lines.append(f"- **{model}**: {cells}")
-    pulled = [(model, m["pull"]) for model, m in result["models"].items() if m.get("pull")]
-    if pulled:
-        lines += ["", "## The posterior against each leg's own likelihood", "",
-                  "pull = (posterior median − the leg's maximum likelihood at the true delay) / its standard error, "
-                  "over the legs whose posterior mode of d is right: how far the prior and the pooling of legs "
-                  "moved each parameter from what the leg's data say (`likelihood-check` calibrates the "
-                  "likelihood itself).", "",
-                  "| model | parameter | leg | fits | median abs(pull) | max abs(pull) | mean pull |", "|---|---|---|---|---|---|---|"]
-        for model, pull in pulled:
-            for v in pull:
-                lines.append(f"| {model} | {v['param']} | {v['leg']} | {v['fits']} | {v['median_abs']:.2f} | "
-                             f"{v['max_abs']:.2f} | {v['mean']:+.2f} |")
-    lines += ["", "## Sampling", "", "| model | seed | R-hat max | bulk ESS min | divergences | chains at different delays "
-              "| delays weighed but not visited | sampling [s] |", "|---|---|---|---|---|---|---|---|"]
-    for model, m in result["models"].items():
-        for f in m["fits"]:
-            secs = f.get("sampling_seconds")
-            splits, missed = f.get("delay_splits"), f.get("delay_missed")
-            where = "–" if splits is None else ", ".join(f"{leg} {'/'.join(map(str, d))}" for leg, d in splits.items()) or "none"
-            unseen = "–" if missed is None else "; ".join(
-                f"{leg} " + ", ".join(f"d = {d} ({e:.2f})" for d, (e, _c) in ds.items()) for leg, ds in missed.items()) or "none"
-            lines.append(
-                f"| {model} | {f['seed']} | {f['rhat_max']:.3f} | {f['ess_bulk_min']:.0f} | {f['divergences']} | {where} | "
-                f"{unseen} | {'' if secs is None else f'{secs:.0f}'} |"
-            )
-    # a mode of a flat P(d) (model 1) is no claim: only legs whose data chose a delay
-    wrong = [r for r in result.get("rows", []) if r["param"] == "delay" and not r["covered"] and r.get("p_mode", 0) >= DELAY_SEEN]
-    if wrong:
-        lines += ["", "## Legs whose posterior mode of d is wrong", "",
-                  f"Among legs whose P(mode) ≥ {DELAY_SEEN}: P(true d) in the chains and by a Laplace approximation "
-                  "per delay (`delay_evidence`).", "",
-                  "| model | seed | leg | true d | mode | P(true d), chains | P(true d), Laplace per delay |",
-                  "|---|---|---|---|---|---|---|"]
-        for r in wrong:
-            ev = r.get("p_true_evidence")
-            lines.append(f"| {r['model']} | {r['seed']} | {r['leg']} | {r['true']:.0f} | {r['median']:.0f} | "
-                         f"{r.get('p_true', float('nan')):.2f} | {'–' if ev is None else f'{ev:.2f}'} |")
-    return "\n".join(lines) + "\n"
-
-
 # --------------------------------------------------------------------------------------------
 # The likelihood alone: noise replicates of one matching truth, maximum likelihood per leg
 # --------------------------------------------------------------------------------------------
@@ -519,8 +290,6 @@ def likelihood_calibration(
     reported, not counted).  ``model`` is one of the paper's models as it stands (an
     angle-dependent delay's threshold is summed out by the fit, not maximised).
     """
-    from ..inference._fit import build_model
-    from ..common._progress import progress_bar
 
     if replicates < 2:
         raise ValueError(f"replicates must be at least 2, got {replicates}")
@@ -585,10 +354,7 @@ class LegMaximumLikelihood:
     """
 
     def __init__(self, model, noise: dict):
-        import jax
-        import jax.numpy as jnp
 
-        from ..model._likelihood import leg_loglik_by_delay, max_shift, response_length
 
         if max_shift(model):
             raise ValueError(f"{model.name}: the single-leg maximum likelihood takes models without an angle-dependent delay")
@@ -615,10 +381,7 @@ class LegMaximumLikelihood:
         """(estimate, standard error) of the flattened parameters then σ and ν for ``leg`` of
         ``cohort`` at the delay ``true["delay"]``, starting from ``true["params"]``; None where
         no maximum is found."""
-        import jax
-        import jax.numpy as jnp
 
-        from ..model._likelihood import prepare
 
         _, ref = _flat_truth(true["params"])
         shapes = tuple((k, tuple(np.shape(v))) for k, v in true["params"].items())
@@ -645,7 +408,6 @@ class LegMaximumLikelihood:
 def _newton(f, grad, hess, z):
     """The minimum of ``f`` from ``z``, or None: Newton's method, its Hessian damped
     (Levenberg–Marquardt) where a full step does not lower ``f``."""
-    import jax.numpy as jnp
 
     eye = jnp.eye(z.size, dtype=z.dtype)
     lam = 0.0
@@ -669,62 +431,3 @@ def _newton(f, grad, hess, z):
     return None
 
 
-def run_likelihood_calibration(
-    out: str | Path,
-    models: Iterable[str] = ("model1", "model2", "model3"),
-    seeds: Iterable[int] = (0,),
-    legs: Sequence[str] | None = None,
-    minutes: float = 1.0,
-    replicates: int = 100,
-    progress: bool = False,
-    command: str = "",
-) -> dict:
-    """:func:`likelihood_calibration` for each model and seed; writes ``out/likelihood.json``
-    and ``out/likelihood.md`` and returns what the JSON holds."""
-    from ..common._io import atomic_write_text, write_json
-
-    out = Path(out)
-    legs = tuple(legs) if legs else LEGS
-    runs = [likelihood_calibration(m, legs, minutes, int(s), replicates, progress=progress) for m in models for s in seeds]
-    result = {"command": command, "interval": 0.9, "legs": list(legs), "minutes": minutes, "replicates": replicates, "runs": runs}
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "likelihood.json", result)
-    atomic_write_text(out / "likelihood.md", likelihood_markdown(result))
-    return result
-
-
-def likelihood_markdown(result: dict) -> str:
-    """The tables of :func:`run_likelihood_calibration` as Markdown."""
-    lines = [
-        "# The likelihood alone: maximum likelihood on noise replicates of a matching truth",
-        "",
-        f"Regenerate: `{result['command']}`" if result.get("command") else "",
-        "",
-        f"One trajectory per leg and seed ({result['minutes']:g} min of trial 1, simulated from the model itself), its "
-        f"acceleration noise drawn afresh {result['replicates']} times; each replicate fitted by maximum likelihood, "
-        "each leg alone, at its true delay, with σ and ν free (`quadshank.evaluation._recovery.likelihood_calibration`).  "
-        "z = (estimate − truth) / standard error from the Hessian.  A calibrated likelihood gives z a mean of 0 "
-        "(± its standard error) and an sd of 1, and its Wald 90 % intervals cover 90 % of the time.  No prior, no "
-        "pooling of legs, no delay uncertainty and no sampler enter here, so a shortfall of a recovery run's "
-        "posterior coverage that this check does not show lies in one of those.",
-        "",
-        "| model | seed | 90 % intervals covering the truth | expected (95 % band) | replicates with a maximum, per leg |",
-        "|---|---|---|---|---|",
-    ]
-    for r in result["runs"]:
-        lo, hi = r["expected_band_95"]
-        conv = ", ".join(f"{leg} {v['converged']}" for leg, v in r["legs"].items())
-        lines.append(f"| {r['model']} | {r['seed']} | {r['covered']}/{r['intervals']} = {r['coverage']:.3f} | {lo:.3f}–{hi:.3f} | {conv} |")
-    for r in result["runs"]:
-        lines += ["", f"## {r['model']}, seed {r['seed']}: z mean ± se / z sd / coverage", ""]
-        names = list(next(iter(r["legs"].values()))["params"])
-        lines += ["| leg | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
-        for leg, v in r["legs"].items():
-            cells = [f"{p['z_mean']:+.2f} ± {p['z_se']:.2f} / {p['z_sd']:.2f} / {p['coverage']:.2f}" for p in v["params"].values()]
-            lines.append(f"| {leg} | " + " | ".join(cells) + " |")
-    lines += [
-        "",
-        "σ and ν are shown, not counted in the coverage: on twitch windows (models 1 and 3) the likelihood takes a "
-        "window's sum of Student-t samples as a Student-t with the sum's variance and kurtosis, an approximation.",
-    ]
-    return "\n".join(lines) + "\n"

@@ -13,28 +13,29 @@ so a folder whose fit was interrupted never looks complete.
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import os
 from pathlib import Path
 
+import arviz as az
+import jax.numpy as jnp
 import numpy as np
 
-from ._fit import (
-    FitSettings,
-    describe_fit,
-    hyper_draws,
-    from_json,
+from ..common._io import atomic_path, read_json, write_json
+from ..common._provenance import code_provenance
+from ..model._effects import AngleDelay, get_effect
+from ..model._likelihood import N_DELAYS, LikelihoodData
+from ..model._model import Model
+from ._draws import (
     hard_step,
-    model_from_description,
-    model_params,
+    hyper_draws,
     pointwise_loglik,
     sample_delays,
     sample_step_states,
-    step_param,
-    to_json,
 )
-from ..common._io import atomic_path, write_json
-from ..model._likelihood import N_DELAYS, LikelihoodData
-from ..model._model import Model
+from ._nuts import FitSettings, chain_method
+from ._priors import NOISE_PARAMS, model_params, step_param
 
 __all__ = [
     "to_inference_data",
@@ -75,7 +76,6 @@ def to_inference_data(
     one Laplace approximation per delay (:func:`quadshank.inference._screen.delay_evidence`),
     kept as ``constant_data.delay_evidence`` for :func:`delay_missed`.
     """
-    import arviz as az
 
     samples = {k: np.asarray(v) for k, v in mcmc.get_samples(group_by_chain=True).items()}
     samples.update(hyper_draws(model, samples, data.leg_subject, len(data.subjects), settings.seed))
@@ -214,7 +214,6 @@ def delay_missed(idata) -> dict[str, dict[int, list[float]]]:
 
 def diagnose_sampling(idata) -> dict:
     """R-hat, bulk and tail ESS, divergences, E-BFMI against :data:`THRESHOLDS`, with advice."""
-    import arviz as az
 
     names = sampled_vars(idata)
     post = idata.posterior[names]
@@ -312,7 +311,6 @@ def _leg_draws(idata, name: str, i: int) -> np.ndarray:
 
 def delay_angle_curve(idata, i: int) -> np.ndarray:
     """Effective delay [samples] of pulses delivered at each ANGLE_GRID angle, per draw: d − shift·[φ < threshold]."""
-    from ..model._effects import AngleDelay
 
     d = _leg_draws(idata, "delay", i).astype(float)
     shift = _leg_draws(idata, "delay_shift", i).astype(float)
@@ -401,7 +399,6 @@ def save_fit(idata, folder: str | os.PathLike, extra: dict | None = None) -> dic
     """Write fit.nc then summary.json (with ``extra`` entries and ``code``, the package's version
     and source fingerprint, :func:`quadshank.common._provenance.code_provenance`) atomically; returns the
     summary."""
-    from ..common._provenance import code_provenance
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -427,14 +424,12 @@ def _complete_fit(folder: str | os.PathLike) -> Path:
 
 def read_summary(folder: str | os.PathLike) -> dict:
     """``summary.json`` of a complete fit folder."""
-    from ..common._io import read_json
 
     return read_json(_complete_fit(folder) / "summary.json")
 
 
 def load_fit(folder: str | os.PathLike):
     """(InferenceData, Model without values, description) of a saved fit."""
-    import arviz as az
 
     idata = az.from_netcdf(_complete_fit(folder) / "fit.nc")
     desc = from_json(idata.posterior.attrs["quadshank_model"])
@@ -443,7 +438,6 @@ def load_fit(folder: str | os.PathLike):
 
 def posterior_models(idata, model: Model, leg: str, n_draws: int | None = None, seed: int = 0):
     """The model of one leg with leaves of shape (draws,), and those draws' delays."""
-    import jax.numpy as jnp
 
     post = idata.posterior
     i = list(post["leg"].values).index(leg)
@@ -463,3 +457,37 @@ def posterior_models(idata, model: Model, leg: str, n_draws: int | None = None, 
     return stacked, delay
 
 
+def describe_fit(model: Model, data: LikelihoodData, settings: FitSettings) -> dict:
+    return {
+        "model": model.name,
+        "effects": [e.name for e in model.effects],
+        "params": {
+            p.name: {"units": p.units, "prior": list(p.prior), "level": p.level, "shape": list(p.shape), "doc": p.doc}
+            for p in model_params(model)
+        },
+        "noise": {k: {"units": u, "doc": doc} for k, (u, doc) in NOISE_PARAMS.items()},
+        "legs": list(data.legs),
+        "subjects": list(data.subjects),
+        "leg_subject": [int(i) for i in data.leg_subject],
+        "trials": list(data.trials),
+        "resolution": data.resolution,
+        "settings": dataclasses.asdict(settings),
+        "chain_method": chain_method(settings, data),
+        "sampling_period_s": model.sampling_period_s,
+    }
+
+
+def model_from_description(desc: dict) -> Model:
+    """Rebuild the (unparameterised) Model a fit was made with."""
+    effects = [get_effect(n)() for n in desc["effects"]]
+    model = Model(tuple(effects), name=desc["model"], sampling_period_s=desc.get("sampling_period_s", 0.01))
+    # a fit that summed a step parameter out drew it under the hard step, and is evaluated so
+    return hard_step(model) if desc.get("summed_out") else model
+
+
+def to_json(desc: dict) -> str:
+    return json.dumps(desc, sort_keys=True)
+
+
+def from_json(text: str) -> dict:
+    return json.loads(text)

@@ -27,13 +27,16 @@ Per leg, from the identification trial (trial 1 by default):
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 from scipy.optimize import least_squares
 
+from ..common._io import read_json
+from ..common._progress import progress_bar
 from ..data._cohort import Cohort, Trial
-from ..model._model import equivalent_acceleration, paper_model, passive_effects
 from ..data._paper import MAX_DELAY, TWITCH_SAMPLES
+from ..model._model import Model, equivalent_acceleration, paper_model, passive_effects
 
 __all__ = [
     "LegIdentification",
@@ -270,9 +273,37 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
 
 def identify_cohort(cohort: Cohort, trial: int = 1, progress: bool = False) -> dict[str, LegIdentification]:
     """Identify every leg of the cohort from its trial number ``trial``."""
-    from ..common._progress import progress_bar
 
     out = {}
     for leg in progress_bar(cohort.legs, desc="identify", enabled=progress):
         out[leg] = identify_leg(cohort.get(leg, trial))
     return out
+
+
+def models_from_summary(summary: dict) -> dict[str, dict[str, Model]]:
+    """Rebuild the identified models of each leg from an identify ``summary.json``."""
+    models = {}
+    for leg, s in summary.items():
+        passive = passive_effects(**s["passive"])
+        d = int(s["delay_samples"])
+        m2 = s["model2"]
+        models[leg] = {
+            "model1": paper_model(1, passive, delay=d).with_params(gain=s["model1"]["gain"]),
+            "model2": paper_model(2, passive, delay=d).with_params(
+                a=np.array([m2["a1"], m2["a2"]]), b=np.array([m2["b1"], m2["b2"]])
+            ),
+            "model3": paper_model(3, passive, delay=d).with_params(
+                gain=s["model3"]["gain"],
+                gamma_angle=s["model3"]["gamma_angle"],
+                gamma_velocity=s["model3"]["gamma_velocity"],
+            ),
+        }
+    return models
+
+
+def load_identification(folder: str | Path) -> dict[str, dict[str, Model]]:
+    """Models from the ``summary.json`` of a ``quadshank identify`` output folder."""
+    path = Path(folder) / "summary.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no identification here (run `quadshank identify DATA --out {folder}`)")
+    return models_from_summary(read_json(path))

@@ -32,15 +32,30 @@ import dataclasses
 import math
 import warnings
 
+import arviz as az
 import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy import optimize, special
 
 from ..data._cohort import Cohort
-from ._fit import NU_PRIOR, SIGMA_PRIOR, _with_discrete_axes, classical_start, log_shift_prior, model_params, sample_delays
-from ..model._likelihood import N_DELAYS, LikelihoodData, leg_loglik_by_delay, leg_pointwise, prepare
+from ..model._likelihood import (
+    N_DELAYS,
+    LikelihoodData,
+    leg_loglik_by_delay,
+    leg_pointwise,
+    prepare,
+)
 from ..model._model import Model
+from ._draws import sample_delays
+from ._priors import (
+    NU_PRIOR,
+    SIGMA_PRIOR,
+    _with_discrete_axes,
+    log_shift_prior,
+    model_params,
+)
+from ._starts import classical_start
 
 __all__ = ["LaplaceFit", "laplace_fit", "DelayModes", "delay_modes", "delay_evidence", "restart_screen", "delta_elpd", "leg_draw_models"]
 
@@ -289,7 +304,6 @@ def _laplace_fit(
     max_iter: int = 400,
     loo: bool = True,
 ) -> LaplaceFit:
-    import arviz as az
 
     data = prepare(cohort, model, trials=trials, legs=legs)
     specs = _specs(model)

@@ -87,9 +87,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..data._cohort import Cohort
-from ._effects import FIRST_IPI_S, Effect, PulseContext, StepContext
-from ._model import Model, _passive_acc, acceleration_response, causal_fir, measured_acceleration, pulse_factors, true_angle
 from ..data._paper import MAX_DELAY, TWITCH_SAMPLES
+from ._effects import FIRST_IPI_S, Effect, PulseContext, StepContext
+from ._model import (
+    Model,
+    _passive_acc,
+    acceleration_response,
+    causal_fir,
+    measured_acceleration,
+    pulse_factors,
+    true_angle,
+)
 
 __all__ = [
     "LikelihoodData",

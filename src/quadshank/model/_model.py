@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S
 from ._effects import (
     FIRST_IPI_S,
     Damping,
@@ -52,7 +53,6 @@ from ._effects import (
     get_effect,
     register_pytree,
 )
-from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S
 
 __all__ = [
     "Model",

@@ -2,14 +2,10 @@
 
 from __future__ import annotations
 
-import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
 
-matplotlib.use("Agg")
-
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from ..data._paper import HORIZON_MS, TABLE_V  # noqa: E402
+from ..data._paper import HORIZON_MS, TABLE_V
 
 __all__ = [
     "plot_signals", "plot_twitch_dependence", "plot_predictions", "plot_j_vs_horizon", "plot_delay_scan",

@@ -41,12 +41,23 @@ import re
 import time
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
 
-from ..inference._fitio import INTERVAL
 from ..common._io import atomic_write_text, figure_bytes, read_json, write_json
+from ..common._progress import progress_bar
+from ..data._interchange import load_cohort
 from ..data._paper import HORIZON_MS, TABLE_V
-from ..evaluation._posterior import interval
+from ..evaluation._posterior import (
+    _check_legs,
+    interval,
+    load_fits,
+    posterior_j,
+    posterior_predictions,
+    summarise_j,
+)
+from ..inference._fitio import INTERVAL, posterior_models
+from ._figures import _horizon_axis, plot_delay_angle
 
 __all__ = ["run_report", "leg_parameters"]
 
@@ -163,7 +174,6 @@ def _data_uri(fig) -> str:
 
 def _plot_shrinkage(subject: str, legs: list[str], params: dict):
     """Forest plot in prior scales: population, the subject and its legs, per parameter component."""
-    import matplotlib.pyplot as plt
 
     labels = [k for k, v in params[legs[0]]["params"].items() if v["prior"] is not None]
     rows = [("population", "population", None), (f"subject {subject}", "subject", None)]
@@ -198,7 +208,6 @@ def _plot_shrinkage(subject: str, legs: list[str], params: dict):
 
 
 def _plot_delay_posterior(legs: list[str], fit_summary: dict):
-    import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, len(legs), figsize=(3.6 * len(legs), 2.8), squeeze=False, sharey=True)
     for ax, leg in zip(axes[0], legs):
@@ -219,9 +228,7 @@ def _paper_table_v(label: str) -> tuple[str, dict]:
 
 def _plot_j_legs(legs: list[str], J_legs: dict, label: str):
     """J against horizon per leg: median and 90 % band per trial, the paper's Table V (mean ± s.d.) beside."""
-    import matplotlib.pyplot as plt
 
-    from ._figures import _horizon_axis
 
     base, paper = _paper_table_v(label)
     fig, axes = plt.subplots(1, len(legs), figsize=(4.4 * len(legs), 3.6), squeeze=False, sharey=True)
@@ -251,10 +258,7 @@ def _prediction_case(cohort, leg: str):
 
 def _plot_leg_predictions(fit, cohort, leg: str, J_legs: dict, n_draws: int, seed: int):
     """Measured angle and the angle predicted 100 ms and 1 s ahead: median and 90 % band over draws."""
-    import matplotlib.pyplot as plt
 
-    from ..inference._fitio import posterior_models
-    from ..evaluation._posterior import posterior_predictions
 
     trial = _prediction_case(cohort, leg)
     dt = trial.sampling_period_s
@@ -529,9 +533,6 @@ def run_report(
     ``start_stride``-th start.  ``diagnosis``: a ``quadshank diagnose`` or
     ``discover`` folder whose ranking is shown.
     """
-    from ..evaluation._posterior import _check_legs, load_fits, posterior_j, summarise_j
-    from ._figures import plot_delay_angle
-    from ..common._progress import progress_bar
 
     if n_draws < 1:
         raise ValueError(f"--draws must be at least 1, not {n_draws}")
@@ -544,7 +545,6 @@ def run_report(
     legs = list(desc["legs"])
     diag_info = _read_diagnosis(diagnosis, label) if diagnosis else None
     if cohort is None:
-        from ..data._interchange import load_cohort
 
         if not fs.get("data"):
             raise ValueError(f"{fit_dir}: the fit does not record its data; give the data (--data)")

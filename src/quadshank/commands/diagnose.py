@@ -1,0 +1,167 @@
+"""``quadshank diagnose``: rank the candidate effects for a model, confirm the leaders with NUTS, write the report."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..common._io import write_json
+from ..common._progress import progress_bar
+from ..data._cohort import Cohort
+from ..evaluation._posterior import LoadedFit, load_fits, psis_loo
+from ..inference._nuts import FitSettings
+from ..inference._screen import LaplaceFit, paired_difference
+from ..loop._diagnose import (
+    J_DRAWS,
+    J_START_STRIDE,
+    Ranking,
+    _bar,
+    _trials_of,
+    nuts_j_draws,
+    nuts_sentence,
+    rank_effects,
+    verdict_sentence,
+)
+from ..model._effects import registered_effects
+from ..model._model import Model
+from ..outputs._loop import (
+    _screen_residuals,
+    predictive_checks,
+    ranking_markdown,
+    residual_figures,
+)
+from .fit import run_fit
+
+
+def confirm_with_nuts(
+    cohort: Cohort,
+    base,
+    effect: str,
+    out,
+    *,
+    eval_trials=None,
+    n_j_draws: int = J_DRAWS,
+    start_stride: int = J_START_STRIDE,
+    J_base: np.ndarray | None = None,
+    progress: bool = False,
+) -> dict:
+    """Confirm a screened extension with hierarchical NUTS.
+
+    Fits the model of ``base`` (a saved NUTS fit: its folder, or the
+    :class:`quadshank.evaluation._posterior.LoadedFit`) plus ``effect`` to the same data, legs and
+    trials with the same settings (``out``, a fit folder), and measures the
+    evidence as the screen does: ΔELPD by PSIS-LOO over the same 1-s segments,
+    paired, and J at J_HORIZONS_MS as bands over posterior draws, against the
+    same bar.  ``J_base``: the base fit's J draws, if already computed
+    (:func:`nuts_j_draws`).  Returns the JSON-able evidence, with the fit's
+    folder, model, diagnostics and failure banner (a fit that fails its checks
+    is reported, not hidden).
+    """
+
+
+    if not isinstance(base, LoadedFit):
+        (base,) = load_fits([base])
+    desc = base.desc
+    settings = FitSettings(**{**desc["settings"], "trials": tuple(desc["trials"])})
+    trials = tuple(eval_trials) if eval_trials is not None else _trials_of(cohort, desc["legs"])
+    base_name, *adds = desc["model"].split("+")
+    s = run_fit(cohort, out, base_name, [*adds, effect], settings, legs=desc["legs"], progress=progress,
+                data_source=base.summary.get("data"))
+    (ext,) = load_fits([out])
+    loo_a, loo_b = psis_loo(base.idata, str(base.folder)), psis_loo(ext.idata, str(ext.folder))
+    if list(loo_a.loo_i["observation"].values) != list(loo_b.loo_i["observation"].values):
+        raise ValueError(f"{base.folder} and {out}: the fits' PSIS-LOO segments differ; they are not of the same data")
+    d, se = paired_difference(loo_a.loo_i.values, loo_b.loo_i.values)
+    if J_base is None:
+        J_base = nuts_j_draws(base, cohort, trials, n_draws=n_j_draws, start_stride=start_stride)
+    J_ext = nuts_j_draws(ext, cohort, trials, n_draws=n_j_draws, start_stride=start_stride)
+    return {
+        "effect": effect,
+        "model": s["model"],
+        "folder": str(Path(out)),
+        **_bar(d, se, J_base, J_ext, registered_effects()[effect].predicts_angle),
+        "pareto_k_max": float(np.max(np.asarray(loo_b.pareto_k))),
+        "diagnostics": s["diagnostics"],
+        "banner": s.get("banner"),
+    }
+
+
+def confirm_leaders(cohort: Cohort, ranking: Ranking, base_folder, out, *, n_confirm: int = 1, progress: bool = False) -> str:
+    """Confirm the ``n_confirm`` best candidates that clear the screen's bar with NUTS (each
+    row gets ``nuts``: :func:`confirm_with_nuts`, its fit in ``out/fit-EFFECT``); returns the
+    verdict under NUTS: the best of them that clears the bar there too, or ``none``."""
+
+
+    leaders = [r for r in ranking.rows if r["clears_bar"]][:n_confirm]
+    if not leaders:
+        return "none"
+    (base,) = load_fits([base_folder])
+    trials = _trials_of(cohort, base.desc["legs"])
+    J0 = nuts_j_draws(base, cohort, trials, n_draws=J_DRAWS, start_stride=J_START_STRIDE)
+    for r in progress_bar(leaders, desc="confirming with NUTS", enabled=progress):
+        r["nuts"] = confirm_with_nuts(cohort, base, r["effect"], Path(out) / f"fit-{r['effect']}",
+                                      eval_trials=trials, J_base=J0, progress=progress)
+    return next((r["effect"] for r in leaders if r["nuts"]["clears_bar"]), "none")
+
+
+def run_diagnose(
+    cohort: Cohort,
+    model: Model | str,
+    out,
+    *,
+    trials=(1,),
+    legs=None,
+    effects=None,
+    figures: bool = True,
+    command: str | None = None,
+    progress: bool = False,
+    base: LaplaceFit | None = None,
+    seed: int = 0,
+    n_starts: int = 3,
+    confirm_from=None,
+    n_confirm: int = 1,
+) -> dict:
+    """Rank the candidate effects for ``model``; writes figures, report.md and summary.json (last).
+
+    ``n_starts``: see :func:`rank_effects`.  ``confirm_from``: a NUTS fit folder of
+    ``model`` on the same data; then the ``n_confirm`` best candidates that clear
+    the screen's bar are refitted with NUTS (``out/confirm/fit-EFFECT``, the same
+    settings) and the verdict is the best that clears the bar under NUTS too
+    (:func:`confirm_leaders`); the screen's own is kept as ``screen_verdict``."""
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    ranking = rank_effects(cohort, model, trials=trials, legs=legs, effects=effects, base=base, seed=seed,
+                           n_starts=n_starts, progress=progress)
+    screen_verdict = ranking.verdict
+    if confirm_from is not None:
+        ranking.verdict = confirm_leaders(cohort, ranking, confirm_from, out / "confirm", n_confirm=n_confirm,
+                                          progress=progress)
+    summary = ranking.to_json()
+    summary["sentence"] = verdict_sentence(ranking)
+    if confirm_from is not None:
+        summary["screen_verdict"] = screen_verdict
+        summary["confirmed_from"] = str(confirm_from)
+        said = nuts_sentence(summary)
+        if ranking.verdict == "none" and screen_verdict != "none":
+            summary["sentence"] = f"The screen's leader, {screen_verdict}, is not confirmed by NUTS. {said}"
+        elif said:
+            summary["sentence"] += " " + said
+    summary["trials"] = [int(t) for t in trials]
+    dt = ranking.base.model.sampling_period_s
+    if figures:
+        paths, checks = predictive_checks(ranking.base, cohort, out, "baseline")
+        summary["predictive_checks"] = checks
+        more, notes = residual_figures(_screen_residuals(ranking.base), out, "baseline", dt)
+        paths += more
+        if ranking.verdict != "none":
+            more, after = residual_figures(_screen_residuals(ranking.fits[ranking.verdict]), out, "with_" + ranking.verdict, dt)
+            paths += more
+            summary["residual_findings_after"] = after
+        summary["residual_findings"] = notes
+        summary["figures"] = [p.name for p in paths]
+    (out / "report.md").write_text(ranking_markdown(summary, command))
+    write_json(out / "summary.json", summary)
+    summary["_ranking"] = ranking
+    return summary

@@ -1,0 +1,124 @@
+"""``quadshank discover``: the modelling loop, round after round, while an effect clears the bar."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..common._io import write_json
+from ..data._cohort import Cohort
+from ..inference._priors import build_model
+from ..model._model import Model
+from .diagnose import run_diagnose
+from .evaluate import run_posterior_evaluate
+from .fit import run_fit
+
+
+def _fit_entry(summary: dict, folder: str) -> dict:
+    return {"folder": folder, "model": summary["model"], "banner": summary.get("banner"), "diagnostics": summary["diagnostics"]}
+
+
+def _compare_start_final(cohort, out, fits: dict, *, n_draws, start_stride, progress) -> dict:
+    """The loop's first and last NUTS fits (folders relative to ``out``) compared in
+    ``out/confirm/compare``: J bands, PSIS-LOO, residuals before and after."""
+
+    cmp = run_posterior_evaluate(cohort, [out / fits["start"]["folder"], out / fits["final"]["folder"]], out / "confirm" / "compare",
+                                 n_draws=n_draws, start_stride=start_stride, progress=progress, residuals=True)
+    a, b = fits["start"]["model"], fits["final"]["model"]
+    group = (cmp["loo"]["compare"] or [{}])[0].get("table", {})
+    J = cmp["J"]
+    trial = sorted(J[a])[-1]
+    ja, jb = J[a][trial]["1000"], J[b][trial]["1000"]
+    elpd = group.get(a, {})
+    text = (f"NUTS: {b} against {a}: ELPD difference {elpd.get('elpd_diff', float('nan')):.1f} ± {elpd.get('dse', float('nan')):.1f} "
+            f"in favour of {'the final model' if group.get(b, {}).get('rank') == 0 else 'the start model'}; "
+            f"J at 1 s on trial {trial} {ja['median']:.2f}° [{ja['lo']:.2f}, {ja['hi']:.2f}] → {jb['median']:.2f}° [{jb['lo']:.2f}, {jb['hi']:.2f}].")
+    banners = [f"{f['model']}: {f['banner']}" for f in fits.values() if f["banner"]]
+    if banners:
+        text += " Caution, the fits failed their checks: " + "; ".join(banners)
+    return {"sentence": text, "elpd_diff": elpd.get("elpd_diff"), "elpd_dse": elpd.get("dse"),
+            "J_1000ms": {a: ja, b: jb}, "trial": trial}
+
+
+def run_discover(
+    cohort: Cohort,
+    out,
+    *,
+    model: Model | str = "model3s",
+    trials=(1,),
+    legs=None,
+    effects=None,
+    max_rounds: int = 3,
+    command: str | None = None,
+    progress: bool = False,
+    confirm=None,
+    data_source: str | None = None,
+    compare_draws: int = 100,
+    compare_stride: int = 10,
+) -> dict:
+    """The whole loop: diagnose, add the leading effect, diagnose again, while an effect clears the bar.
+
+    ``confirm`` (a :class:`quadshank.inference._fit.FitSettings`): then every round's leader
+    is confirmed with hierarchical NUTS before it is added: the starting model is
+    fitted (``confirm/fit-start``), each round refits its leader against the
+    previous round's fit (``round-K/confirm/fit-EFFECT``, see :func:`run_diagnose`)
+    and the loop goes on only while NUTS agrees; the first and last fits are then
+    compared (``confirm/compare``: J bands over ``compare_draws`` posterior draws,
+    PSIS-LOO, residuals before and after).
+    """
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    current = build_model(model) if isinstance(model, str) else model
+    fits, nuts_folder = {}, None
+    if confirm is not None:
+
+        base_name, *adds = current.name.split("+")
+        nuts_folder = out / "confirm" / "fit-start"
+        s = run_fit(cohort, nuts_folder, base_name, adds, confirm, legs=legs, progress=progress, data_source=data_source)
+        fits["start"] = fits["final"] = _fit_entry(s, "confirm/fit-start")
+    rounds, base = [], None
+    for k in range(1, max_rounds + 1):
+        s = run_diagnose(
+            cohort, current, out / f"round-{k}", trials=trials, legs=legs, effects=effects, base=base, progress=progress,
+            confirm_from=nuts_folder,
+        )
+        ranking = s.pop("_ranking")
+        rounds.append({"model": current.name, "verdict": s["verdict"], "sentence": s["sentence"], "J_ms": s["J_ms"], "elpd": s["elpd"]})
+        if "screen_verdict" in s:
+            rounds[-1]["screen_verdict"] = s["screen_verdict"]
+        if s["verdict"] == "none":
+            break
+        base = ranking.fits[s["verdict"]]
+        current = base.model
+        if confirm is not None:
+            row = next(r for r in s["ranking"] if r["effect"] == s["verdict"])
+            nuts_folder = Path(row["nuts"]["folder"])
+            fits["final"] = _fit_entry(row["nuts"], nuts_folder.relative_to(out).as_posix())
+    summary = {"model": rounds[0]["model"], "final_model": current.name, "rounds": rounds,
+               "added": [r["verdict"] for r in rounds if r["verdict"] != "none"]}
+    if confirm is not None:
+        summary["confirm"] = dict(fits)
+        if summary["added"]:
+            summary["confirm"].update(_compare_start_final(cohort, out, fits, n_draws=compare_draws,
+                                                           start_stride=compare_stride, progress=progress))
+        else:
+            summary["confirm"]["sentence"] = "Nothing was added; the start model's fit is in confirm/fit-start."
+    md = ["# The modelling loop (`quadshank discover`)", ""]
+    if command:
+        md += [f"Regenerate: `{command}`", ""]
+    for k, r in enumerate(rounds, 1):
+        J = r["J_ms"]
+        md.append(
+            f"{k}. **{r['model']}**: J at 0.5 s {J['500']['median']:.3f}° [{J['500']['lo']:.3f}, {J['500']['hi']:.3f}], "
+            f"at 1 s {J['1000']['median']:.3f}°; ELPD {r['elpd']['value']:.0f} ± {r['elpd']['se']:.0f}. "
+            f"Verdict: {r['verdict']}. {r['sentence']} (details: [round-{k}/report.md](round-{k}/report.md))"
+        )
+    md += ["", f"Final model: **{current.name}**."]
+    if confirm is not None:
+        c = summary["confirm"]
+        md += ["", "## Confirmed with hierarchical NUTS", "", c["sentence"], "",
+               f"Fits: [{c['start']['folder']}]({c['start']['folder']}), [{c['final']['folder']}]({c['final']['folder']}); "
+               f"comparison with residuals before and after: [confirm/compare/report.md](confirm/compare/report.md)."]
+    (out / "report.md").write_text("\n".join(md) + "\n")
+    write_json(out / "summary.json", summary)
+    return summary

@@ -1,0 +1,303 @@
+"""Hierarchical Bayesian identification with NUTS (numpyro): settings, the chains' start, the run.
+
+The numpyro model itself is in :mod:`quadshank.inference._density`; its priors in
+:mod:`quadshank.inference._priors`.  Chains start at each leg's mode from the screen
+(:func:`screen_start`, :mod:`quadshank.inference._screen`), whose Laplace covariances are
+also the metric: each d has its own mode in θ, the screen's multi-start optimisation of
+the marginal posterior finds one, restarted at the delay that a Laplace approximation per
+delay weighs most where that is another (:func:`delay_start`), and each leg's block is
+narrow and correlated in a way a short warm-up cannot estimate.  The classical
+least-squares start (:func:`quadshank.inference._starts.classical_start`) and the prior
+median remain as options.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from numpyro import handlers
+from numpyro.infer import MCMC, NUTS, init_to_median, init_to_uniform
+
+from ..data._cohort import Cohort
+from ..model._likelihood import (
+    N_DELAYS,
+    LikelihoodData,
+    prepare,
+)
+from ..model._model import Model
+from ._density import numpyro_model
+from ._priors import model_params
+from ._screen import delay_modes, laplace_fit, restart_screen
+from ._starts import _init_near, classical_start
+
+__all__ = [
+    "FitSettings",
+    "model_params",
+    "numpyro_model",
+    "fit",
+]
+
+#: Where chains can start (:attr:`FitSettings.start`).
+STARTS = ("screen", "classical", "prior")
+#: What :attr:`FitSettings.chain_method` takes.
+CHAIN_METHODS = ("auto", "vectorized", "sequential", "parallel")
+#: Compared samples (all legs) from which chain_method "auto" runs the chains one after another.
+SEQUENTIAL_FROM_SAMPLES = 100_000
+
+
+@dataclasses.dataclass(frozen=True)
+class FitSettings:
+    chains: int = 4
+    warmup: int = 1000
+    draws: int = 1000
+    seed: int = 0
+    target_accept: float = 0.9
+    max_tree_depth: int = 8
+    centred: bool = True
+    dense_mass: bool = True
+    trials: tuple[int, ...] = (1,)
+    #: numpyro's ``chain_method``: "vectorized" (all chains in one batched program),
+    #: "sequential" (one after another), "parallel" (one device per chain), or "auto":
+    #: sequential from :data:`SEQUENTIAL_FROM_SAMPLES` compared samples on, else vectorized
+    #: (:func:`chain_method`).  The draws are the same; the time is not.  On the 2-core CPU,
+    #: model3s on 2 legs × 1.5 min (18 000 samples; the demo's fit, 2 chains × 150 + 150)
+    #: took 32 s vectorized against 50 s sequential; model 3 + angle_delay on 5 legs × 5 min
+    #: (150 000 samples; 4 chains × 100 + 100 from the screen) 116 s against 83 s.  Batched
+    #: over 4 chains, that likelihood's gradient costs 2.2 single gradients per chain on the
+    #: 150 000 samples, 0.8–1.0 on 30 000 or 60 000 (5 legs × 1 min, 2 legs × 5 min).
+    chain_method: str = "auto"
+    #: Where the chains start: "screen" (each leg's mode and Laplace covariance from the
+    #: screen, which also give the metric; see :func:`screen_start`), "classical" (the
+    #: classical least-squares estimate, jittered) or "prior" (the prior median).
+    start: str = "screen"
+    #: With ``start="screen"``, adapt the metric in warm-up as well (by default the screen's
+    #: is kept and only the step size adapts); the other starts always adapt it.
+    adapt_metric: bool = False
+    #: With ``start="screen"``, weigh each leg's delays by a Laplace approximation per delay
+    #: before sampling (:func:`delay_start`): the screen restarts at the best delay where it
+    #: missed it, and the weights, stored in the fit, are checked against the chains' P(d):
+    #: a delay holding ≥ 0.1 of that weight that no chain visits draws a warning.
+    delay_evidence: bool = True
+
+    def __post_init__(self):
+        if self.start not in STARTS:
+            raise ValueError(f"start must be one of {', '.join(STARTS)}, not {self.start!r}")
+        if self.chain_method not in CHAIN_METHODS:
+            raise ValueError(f"chain_method must be one of {', '.join(CHAIN_METHODS)}, not {self.chain_method!r}")
+
+
+def chain_method(settings: FitSettings, data: LikelihoodData) -> str:
+    """numpyro's chain method for a fit of ``data``: the settings' own, or for "auto",
+    "sequential" from :data:`SEQUENTIAL_FROM_SAMPLES` compared samples on, else "vectorized"."""
+    if settings.chain_method != "auto":
+        return settings.chain_method
+    return "sequential" if int(np.sum(data.sample_mask)) >= SEQUENTIAL_FROM_SAMPLES else "vectorized"
+
+
+def uses_screen(model: Model, settings: FitSettings) -> bool:
+    """Whether the chains start from the screen: the screen's vector maps onto the standardised
+    leg sites, and a parameter declared at the subject or population level has none (such a
+    model starts as "classical" does)."""
+    return settings.start == "screen" and settings.centred and all(p.level == "leg" for p in model_params(model))
+
+
+def fit_screen(cohort: Cohort, model: Model, settings: FitSettings, legs=None, n_starts: int = 3, progress: bool = False):
+    """The screen :func:`fit` starts its chains from (None where it starts otherwise, see
+    :func:`uses_screen`); computed ahead so that :func:`quadshank.inference._screen.delay_evidence` can
+    start from it too."""
+
+    if not uses_screen(model, settings):
+        return None
+    if progress:
+        print("fit: each leg's mode and Laplace covariance (the screen) for the chains' start and metric",
+              file=sys.stderr, flush=True)
+    return laplace_fit(cohort, model, trials=settings.trials, legs=legs, n_starts=n_starts,
+                       n_draws=max(settings.chains, 2), seed=settings.seed, loo=False)
+
+
+def delay_start(cohort: Cohort, settings: FitSettings, screen, log_delay_prior=None, progress: bool = False):
+    """Each leg's delays weighed by a Laplace approximation per delay, and the screen restarted
+    where it missed the best of them.  Returns ``(screen, evidence, moved)``.
+
+    The screen's L-BFGS of the marginal posterior settles in the basin it starts in, and
+    where each delay has its own mode in θ (model 3) that basin can be a delay's that
+    holds little mass: on 18 s of TN-left (model3s + angle_delay) the screen sat at
+    d = 3 while the mode at d = 4 had a log density 120 higher, and the chains, started
+    there, never left d = 3.  :func:`quadshank.inference._screen.delay_modes` finds every delay's
+    mode; where that evidence (times ``log_delay_prior``, the fit's delay prior) gives the
+    delay the screen sits at (its P(d)'s mode) less than half of what it gives the best
+    delay, the leg is screened again from the best delay's mode.  Where the data do not
+    tell the delays apart (model 1, whose window sums cannot see d) the screen stays.
+    ``evidence``: (legs, 11) P(d | data) of each leg alone; ``moved``: ``{leg: (d of the
+    old screen, d of the new)}``.
+    """
+
+    dm = delay_modes(screen)
+    evidence = dm.probability
+    if log_delay_prior is not None:  # the fit's delay prior, not the evidence's uniform one
+        evidence = evidence * np.exp(np.asarray(log_delay_prior, np.float64))
+        evidence = evidence / evidence.sum(axis=1, keepdims=True)
+    best = evidence.argmax(axis=1)
+    sits = screen.delay_posterior.argmax(axis=1)
+    starts, moved = {}, {}
+    for i, leg in enumerate(screen.legs):
+        if evidence[i, sits[i]] < 0.5 * evidence[i, best[i]]:
+            starts[leg] = dm.modes[i, best[i]]
+            moved[leg] = (int(sits[i]), int(best[i]))
+    if starts:
+        if progress:
+            print("fit: the screen restarted at the delay the evidence weighs most: "
+                  + ", ".join(f"{leg} d = {a} -> {b}" for leg, (a, b) in moved.items()), file=sys.stderr, flush=True)
+        screen = restart_screen(screen, cohort, starts, trials=settings.trials, seed=settings.seed)
+    return screen, evidence, moved
+
+
+def screen_start(model: Model, data: LikelihoodData, settings: FitSettings, conditioned, arrays, scr):
+    """Starting points and a metric for NUTS from the per-leg screen (:mod:`quadshank.inference._screen`).
+
+    ``scr``: the screen of the fit's legs (:func:`fit_screen`).
+
+    Returns ``(init_params, inverse_mass_matrix)``: unconstrained values per chain
+    (chain c of leg i starts at the c-th Laplace draw of that leg) and a dense inverse
+    metric holding each leg's Laplace covariance.  Each leg's thousands of samples
+    make its block nearly Gaussian and very narrow (posterior sds down to 1e-3 prior
+    scales, correlated k1–k2, a–b, gain–gain factors); a metric estimated from a short
+    warm-up misses that, and chains that start at different points settle at
+    different delays.  The screen's multi-start optimisation of the marginal
+    posterior finds the leading mode and the Laplace covariance is the metric for it.
+    The legs are the whole latent vector (the levels above them are summed out), and
+    the legs are coupled only through their prior, so the metric is block-diagonal.
+    """
+
+    chains = settings.chains
+    if scr.legs != data.legs or scr.draws.shape[1] < chains:
+        raise ValueError(f"the screen is of legs {', '.join(scr.legs)} with {scr.draws.shape[1]} draws; "
+                         f"the fit needs {', '.join(data.legs)} and {chains}: make it with fit_screen()")
+    def latent_values(arrays):
+        trace = handlers.trace(handlers.seed(conditioned, settings.seed)).get_trace(arrays)
+        return {k: v["value"] for k, v in trace.items() if v["type"] == "sample" and not v["is_observed"]}
+
+    # the latent sites' shapes, traced abstractly: nothing drawn, nothing compiled
+    shapes = {k: tuple(v.shape) for k, v in jax.eval_shape(latent_values, arrays).items()}
+    names = sorted(shapes)  # numpyro's order of the flattened latent vector
+    offsets, n = {}, 0
+    for k in names:
+        offsets[k] = n
+        n += math.prod(shapes[k])
+    L = data.n_legs
+
+    # a parameter the fit sums out (a step delay effect's threshold) has no site: its entries
+    # of the screen's vector are dropped, and the Laplace covariance of the rest is the block of it
+    kept = np.concatenate([np.full(s.size, f"{s.name}_s_leg" in offsets) for s in scr.specs] + [np.ones(2, bool)])
+
+    def positions(i):
+        """Where leg i's screen vector (z per parameter, log σ, log ν; kept entries) sits in the latent vector."""
+        out = []
+        for s in scr.specs:
+            site = f"{s.name}_s_leg"
+            if site in offsets:
+                out += [offsets[site] + (c * L + i if s.shape else i) for c in range(s.size)]
+        return np.asarray(out + [offsets["sigma"] + i, offsets["nu"] + i])
+
+    inits = np.zeros((chains, n))
+    imm = np.zeros((n, n))
+    covered = np.zeros(n, bool)
+    for i in range(L):
+        idx = positions(i)
+        imm[np.ix_(idx, idx)] = scr.covariance[i][np.ix_(kept, kept)]
+        inits[:, idx] = scr.draws[i, :chains][:, kept]
+        covered[idx] = True
+    if not covered.all():
+        missing = [k for k in names if not covered[offsets[k] : offsets[k] + math.prod(shapes[k])].all()]
+        raise ValueError(f"the screen gives no start for {', '.join(missing)}; use start='classical' or 'prior'")
+    init_params = {}
+    for k in names:
+        shape = shapes[k]
+        v = inits[:, offsets[k] : offsets[k] + math.prod(shape)].reshape((chains, *shape))
+        init_params[k] = jnp.asarray(v if chains > 1 else v[0], jnp.result_type(float))
+    return init_params, {tuple(names): jnp.asarray(imm, jnp.result_type(float))}
+
+
+def fit(
+    cohort: Cohort,
+    model: Model,
+    settings: FitSettings = FitSettings(),
+    legs=None,
+    progress: bool = True,
+    log_delay_prior=None,
+    screen=None,
+):
+    """Run NUTS; returns (mcmc, data).  ``log_delay_prior``: see :func:`delay_prior_from`;
+    ``screen``: the chains' start (:func:`fit_screen`, then :func:`delay_start`), made here
+    when needed and not given.
+
+    Samples in double precision, as the screen optimises: the log density of five
+    5-minute legs is ~1e6, where single precision rounds it to ~0.06, and NUTS,
+    seeing that noise in every energy difference, shrinks its step until the trees
+    reach their depth (model 3 + angle_delay, 5 legs × 5 min: 255 leapfrog steps per
+    draw in single precision, 12 in double).
+    """
+    with jax.enable_x64(True):
+        return _fit(cohort, model, settings, legs, progress, log_delay_prior, screen)
+
+
+def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen):
+    data = prepare(cohort, model, trials=settings.trials, legs=legs)
+    arrays = {k: v.astype(jnp.float64) if jnp.issubdtype(v.dtype, jnp.floating) else v for k, v in data.leg_arrays().items()}
+    if log_delay_prior is not None:
+        log_delay_prior = np.asarray(log_delay_prior, np.float32)
+        if log_delay_prior.shape != (data.n_legs, N_DELAYS):
+            raise ValueError(f"log_delay_prior must have shape ({data.n_legs}, {N_DELAYS})")
+
+    # the model and data are closed over, not passed as arguments: numpyro maps its
+    # arguments as pytrees, and a Model must not be rebuilt from placeholder leaves
+    def conditioned(arrays):
+        return numpyro_model(model, data, arrays, settings.centred, log_delay_prior)
+
+    init = init_to_median(num_samples=15)
+    init_params, imm = None, None
+    if uses_screen(model, settings):
+        if screen is None:
+            screen = fit_screen(cohort, model, settings, legs=data.legs, progress=progress)
+            if settings.delay_evidence:
+                screen = delay_start(cohort, settings, screen, log_delay_prior, progress=progress)[0]
+        init_params, imm = screen_start(model, data, settings, conditioned, arrays, screen)
+        init = init_to_uniform  # the start numpyro finds is replaced by init_params: no prior draws for it
+        if not settings.dense_mass:
+            imm = {k: jnp.diagonal(v) for k, v in imm.items()}
+    elif settings.start in ("screen", "classical") and settings.centred:
+        start = classical_start(cohort, model, data, settings.trials[0])
+        init = functools.partial(_init_near, values=start, fallback=init)
+    kernel = NUTS(
+        conditioned,
+        target_accept_prob=settings.target_accept,
+        max_tree_depth=settings.max_tree_depth,
+        init_strategy=init,
+        dense_mass=settings.dense_mass,
+        inverse_mass_matrix=imm,
+        adapt_mass_matrix=settings.adapt_metric or imm is None,
+    )
+    mcmc = MCMC(
+        kernel,
+        num_warmup=settings.warmup,
+        num_samples=settings.draws,
+        num_chains=settings.chains,
+        chain_method=chain_method(settings, data),
+        progress_bar=progress,
+        # the data are arguments of the jitted sampler, not constants folded into it:
+        # the chains (and later fits of the same shapes) compile it once
+        jit_model_args=True,
+    )
+    mcmc.run(jax.random.PRNGKey(settings.seed), arrays, extra_fields=("diverging", "energy", "num_steps"), init_params=init_params)
+    return mcmc, data
+
+
+# ============================================================================ after sampling
+
+
