@@ -43,11 +43,20 @@ import numpy as np
 import pandas as pd
 
 import quadshank
-from quadshank import evaluate_cohort, identify_cohort, predictions, sign_tests, simulate_cohort, table_v
-from quadshank.data._paper import HORIZON_MS, TABLE_V
-from quadshank.evaluation._classical_recovery import TOLERANCES, recovery
-from quadshank.outputs._figures import plot_delay_scan, plot_j_vs_horizon, plot_predictions, plot_signals, plot_twitch_dependence
-from quadshank.outputs._tables import table_i, table_ii, table_iii, table_passive
+from quadshank import __version__, evaluate_cohort, identify_cohort, predictions, sign_tests, simulate_cohort, table_v
+from quadshank.data import TABLE_V
+from quadshank.evaluation import TOLERANCES, recovery
+from quadshank.outputs import (
+    plot_delay_scan,
+    plot_j_vs_horizon,
+    plot_predictions,
+    plot_signals,
+    plot_twitch_dependence,
+    table_i,
+    table_ii,
+    table_iii,
+    table_passive,
+)
 
 # %matplotlib inline
 plt.rcParams["figure.dpi"] = 72
@@ -70,7 +79,7 @@ else:
     LEGS, MINUTES = ("TN-left", "TN-right", "JM-left", "JM-right", "OT-left"), 5.0
 WORK = Path("_work") / "a_reproduce_paper"  # nothing is written outside it
 WORK.mkdir(parents=True, exist_ok=True)
-print(f"quadshank {quadshank.__version__}: legs {', '.join(LEGS)}; {MINUTES:g} min per trial; seed {SEED}")
+print(f"quadshank {__version__}: legs {', '.join(LEGS)}; {MINUTES:g} min per trial; seed {SEED}")
 
 # %% [markdown]
 # ## 1. The simulated cohort

@@ -46,11 +46,10 @@ import numpy as np
 import pandas as pd
 
 from quadshank import FitSettings, simulate_cohort
-from quadshank.inference._fitio import load_fit, read_summary, sampled_vars
-from quadshank.commands.fit import run_fit
-from quadshank.outputs._figures import plot_delay_angle, plot_posterior_j_vs_horizon
-from quadshank.commands.evaluate import run_posterior_evaluate
-from quadshank.outputs._report import _plot_delay_posterior, _plot_shrinkage, leg_parameters
+from quadshank.commands import run_fit, run_posterior_evaluate
+from quadshank.evaluation import leg_parameters
+from quadshank.inference import load_fit, read_summary, sampled_vars
+from quadshank.outputs import plot_delay_angle, plot_delay_posterior, plot_posterior_j_vs_horizon, plot_shrinkage
 
 # %matplotlib inline
 plt.rcParams["figure.dpi"] = 72
@@ -185,7 +184,7 @@ axes = az.plot_pair(idata, var_names=["damping", "k1", "k2"], coords=sel, diverg
 fit_summary = read_summary(WORK / "fit")
 params = leg_parameters(idata, desc, fit_summary)
 tn_legs = [leg for leg in LEGS if leg.startswith("TN")]
-fig = _plot_shrinkage("TN", tn_legs, params)
+fig = plot_shrinkage("TN", tn_legs, params)
 
 # %% [markdown]
 # The same numbers for one parameter, γ_angle, with the simulator's truth:
@@ -212,7 +211,7 @@ pd.DataFrame(rows).set_index("leg")
 # falls on one or two whole samples:
 
 # %%
-fig = _plot_delay_posterior(list(LEGS), fit_summary)
+fig = plot_delay_posterior(list(LEGS), fit_summary)
 print("true delays [samples]:", {leg: truth["legs"][leg]["active"]["delay_samples"] for leg in LEGS})
 
 # %% [markdown]

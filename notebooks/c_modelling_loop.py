@@ -48,13 +48,10 @@ import pandas as pd
 from IPython.display import Image, display
 
 from quadshank import build_model, simulate_cohort
-from quadshank.evaluation._residuals import leg_residuals
-from quadshank.loop._diagnose import rank_effects, verdict_sentence
-from quadshank.outputs._loop import residual_figures
-from quadshank.evaluation._prediction import prediction_starts
-from quadshank.outputs._figures import plot_posterior_predictions
-from quadshank.evaluation._posterior import posterior_predictions
-from quadshank.inference._screen import laplace_fit, leg_draw_models
+from quadshank.evaluation import leg_residuals, posterior_predictions, prediction_starts
+from quadshank.inference import laplace_fit, leg_draw_models
+from quadshank.loop import rank_effects, verdict_sentence
+from quadshank.outputs import plot_posterior_predictions, residual_figures
 
 # %matplotlib inline
 plt.rcParams["figure.dpi"] = 72

@@ -52,9 +52,9 @@ from quadshank import (
     simulate_angles,
     simulate_cohort,
 )
-from quadshank.loop._diagnose import candidates, rank_effects, verdict_sentence
-from quadshank.model._model import measure
-from quadshank.inference._screen import leg_draw_models
+from quadshank.inference import leg_draw_models
+from quadshank.loop import candidates, rank_effects, verdict_sentence
+from quadshank.model import measure
 
 # %matplotlib inline
 plt.rcParams["figure.dpi"] = 72

@@ -149,7 +149,7 @@ def test_recovery_reuses_a_finished_fit_of_the_same_truth_settings_and_code(tmp_
         return summary
 
     monkeypatch.setattr(recovery, "run_fit", fake_run_fit)
-    monkeypatch.setattr(recovery, "_add_pulls", lambda *a: None)  # the legs' own likelihood: not tested here
+    monkeypatch.setattr(recovery, "add_pulls", lambda *a: None)  # the legs' own likelihood: not tested here
     settings = FitSettings(chains=1, warmup=5, draws=5)
     kw = dict(models=["model1"], seeds=[0, 1], legs=["TN-left"], minutes=0.2, settings=settings)
     run_recovery = recovery.run_recovery
@@ -160,7 +160,7 @@ def test_recovery_reuses_a_finished_fit_of_the_same_truth_settings_and_code(tmp_
     assert calls == [0, 1]  # both reused
     assert [f["reused"] for f in result["models"]["model1"]["fits"]] == [True, True]
     with monkeypatch.context() as m:
-        m.setattr(provenance, "code_fingerprint", lambda: "another-code")
+        m.setattr(recovery, "code_fingerprint", lambda: "another-code")
         run_recovery(tmp_path, **kw)
     assert calls == [0, 1, 0, 1]  # the package changed: refitted
     run_recovery(tmp_path, **{**kw, "minutes": 0.3})

@@ -18,9 +18,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import quadshank.commands.report as report_command
 import quadshank.outputs._report as report
 from quadshank.cli import main
-from quadshank.inference._fitio import INTERVAL, load_fit
+from quadshank.inference._summaries import INTERVAL
+from quadshank.inference._fitio import load_fit
 
 LEGS = ("TN-left", "JM-left")
 CHROMIUM = Path("/usr/bin/chromium")
@@ -225,9 +227,9 @@ def test_an_interrupted_report_leaves_no_summary(made, passing, monkeypatch):
     def boom(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(report, "_plot_shrinkage", boom)
+    monkeypatch.setattr(report, "plot_shrinkage", boom)
     with pytest.raises(KeyboardInterrupt):
-        report.run_report(passing["fit"], out, evaluation=passing["out"].parent / "eval")
+        report_command.run_report(passing["fit"], out, evaluation=passing["out"].parent / "eval")
     assert not (out / "summary.json").exists()
 
 
@@ -274,13 +276,13 @@ def test_a_discover_folder_shows_the_ranking_of_each_round(tmp_path):
     for k, (r, effect) in enumerate(zip(rounds, ("fatigue", "hill_velocity")), 1):
         (tmp_path / f"round-{k}").mkdir()
         (tmp_path / f"round-{k}" / "summary.json").write_text(json.dumps({**r, "ranking": [rank(effect)]}))
-    section = report._diagnosis_section(report._read_diagnosis(tmp_path, "model3"))
+    section = report._diagnosis_section(report_command._read_diagnosis(tmp_path, "model3"))
     assert "<h3>round 1</h3>" in section and "<h3>round 2</h3>" in section
     assert "fatigue" in section and "hill_velocity" in section and "model3s+fatigue" in section
     assert "this fit is of model3" in section  # the loop screened another model than this fit's
     (tmp_path / "summary.json").write_text(json.dumps({"something": "else"}))
     with pytest.raises(ValueError, match="not an output of `quadshank diagnose`"):
-        report._read_diagnosis(tmp_path, "model3")
+        report_command._read_diagnosis(tmp_path, "model3")
 
 
 def test_the_diagnostics_table_shows_the_delay_checks_and_omits_them_for_older_fits():

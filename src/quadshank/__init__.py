@@ -3,20 +3,53 @@
 After Franken et al., IEEE Trans. Rehab. Eng. 1995.  Models are compositions of
 effects (:class:`Effect`) run in JAX; classical identification follows the
 paper's eqs. (8)–(11); predictions are scored by J_φ,p (eq. 12).
+
+The subpackages are the pipeline's stages, each importing only those below it:
+:mod:`quadshank.data` → :mod:`quadshank.model` → :mod:`quadshank.inference` →
+:mod:`quadshank.evaluation` → :mod:`quadshank.loop` → :mod:`quadshank.outputs` →
+:mod:`quadshank.commands`.  The names here are the ones most scripts need.
 """
 
-from .data._cohort import Cohort, Trial, derive_velocity, leg_key
-from .model._effects import (
+from .common import __version__
+from .data import (
+    EFFECTS,
+    Cohort,
+    InterchangeError,
+    Trial,
+    convert,
+    default_truth,
+    derive_velocity,
+    leg_key,
+    load_cohort,
+    read_interchange,
+    simulate_cohort,
+    write_interchange,
+)
+from .evaluation import evaluate_cohort, prediction_errors, predictions, sign_tests, table_v
+from .inference import (
+    FitSettings,
+    IdentificationError,
+    build_model,
+    fit,
+    identify_cohort,
+    identify_leg,
+    identify_passive,
+    load_fit,
+    save_fit,
+    to_inference_data,
+)
+from .model import (
+    AngleDelay,
     Damping,
     Darma,
     Effect,
     ExponentialElasticity,
+    Fatigue,
     Gravity,
+    HillTorqueVelocity,
     LinearTorqueAngle,
     LinearTorqueVelocity,
-    AngleDelay,
-    Fatigue,
-    HillTorqueVelocity,
+    Model,
     Param,
     PeakTorqueAngle,
     Potentiation,
@@ -24,20 +57,15 @@ from .model._effects import (
     RecruitmentPower,
     StepContext,
     ZeroOrderActivation,
+    equivalent_acceleration,
     get_effect,
+    paper_model,
+    passive_effects,
+    predict_ahead,
     register_effect,
     registered_effects,
+    simulate_angles,
 )
-from .evaluation._prediction import evaluate_cohort, prediction_errors, predictions, sign_tests, table_v
-from .inference._nuts import FitSettings, fit
-from .inference._priors import build_model
-from .inference._fitio import load_fit, save_fit, to_inference_data
-from .inference._identify import IdentificationError, identify_cohort, identify_leg, identify_passive
-from .data._interchange import InterchangeError, convert, load_cohort, read_interchange, write_interchange
-from .model._model import Model, equivalent_acceleration, paper_model, passive_effects, predict_ahead, simulate_angles
-from .data._simulate import EFFECTS, default_truth, simulate_cohort
-
-from .common._provenance import __version__
 
 __all__ = [
     "Cohort", "Trial", "derive_velocity", "leg_key",

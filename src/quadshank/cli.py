@@ -18,6 +18,7 @@ from .commands.evaluate import run_evaluate, run_posterior_evaluate
 from .commands.fit import run_fit
 from .commands.identify import run_identify
 from .commands.recovery import run_likelihood_calibration, run_recovery
+from .commands.report import run_report
 from .commands.reproduce import run_reproduce
 from .common._io import read_json
 from .data._interchange import convert, load_cohort, write_interchange
@@ -27,7 +28,6 @@ from .inference._fitio import load_fit, read_summary
 from .inference._identify import load_identification, models_from_summary
 from .inference._nuts import SEQUENTIAL_FROM_SAMPLES, STARTS, FitSettings
 from .model._model import MODELS
-from .outputs._report import run_report
 
 __all__ = ["main"]
 

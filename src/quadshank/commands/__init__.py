@@ -1,0 +1,20 @@
+"""One module per subcommand: load, call the stages, hand the results to the writers.
+
+Each ``run_*`` takes data in memory, writes its output folder (every file atomically,
+``summary.json`` last) and returns the summary.
+"""
+
+from .demo import run_demo
+from .diagnose import run_diagnose
+from .discover import run_discover
+from .evaluate import run_evaluate, run_posterior_evaluate
+from .fit import run_fit
+from .identify import run_identify
+from .recovery import run_likelihood_calibration, run_recovery
+from .report import run_report
+from .reproduce import run_reproduce
+
+__all__ = [
+    "run_identify", "run_evaluate", "run_posterior_evaluate", "run_fit", "run_reproduce", "run_recovery",
+    "run_likelihood_calibration", "run_diagnose", "run_discover", "run_report", "run_demo",
+]  # fmt: skip

@@ -28,10 +28,10 @@ from ..data._interchange import load_cohort
 from ..data._paper import LEGS
 from ..inference._nuts import FitSettings
 from ..inference._priors import build_model
-from ..outputs._report import run_report
 from .diagnose import run_diagnose
 from .evaluate import run_posterior_evaluate
 from .fit import run_fit
+from .report import run_report
 from .reproduce import run_reproduce
 
 __all__ = ["run_demo", "DEMO_LEGS", "DEMO_EFFECTS"]

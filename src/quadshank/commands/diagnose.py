@@ -16,20 +16,20 @@ from ..loop._diagnose import (
     J_DRAWS,
     J_START_STRIDE,
     Ranking,
-    _bar,
-    _trials_of,
+    evidence_bar,
     nuts_j_draws,
     nuts_sentence,
     rank_effects,
+    trials_of,
     verdict_sentence,
 )
 from ..model._effects import registered_effects
 from ..model._model import Model
 from ..outputs._loop import (
-    _screen_residuals,
     predictive_checks,
     ranking_markdown,
     residual_figures,
+    screen_residuals,
 )
 from .fit import run_fit
 
@@ -64,7 +64,7 @@ def confirm_with_nuts(
         (base,) = load_fits([base])
     desc = base.desc
     settings = FitSettings(**{**desc["settings"], "trials": tuple(desc["trials"])})
-    trials = tuple(eval_trials) if eval_trials is not None else _trials_of(cohort, desc["legs"])
+    trials = tuple(eval_trials) if eval_trials is not None else trials_of(cohort, desc["legs"])
     base_name, *adds = desc["model"].split("+")
     s = run_fit(cohort, out, base_name, [*adds, effect], settings, legs=desc["legs"], progress=progress,
                 data_source=base.summary.get("data"))
@@ -80,7 +80,7 @@ def confirm_with_nuts(
         "effect": effect,
         "model": s["model"],
         "folder": str(Path(out)),
-        **_bar(d, se, J_base, J_ext, registered_effects()[effect].predicts_angle),
+        **evidence_bar(d, se, J_base, J_ext, registered_effects()[effect].predicts_angle),
         "pareto_k_max": float(np.max(np.asarray(loo_b.pareto_k))),
         "diagnostics": s["diagnostics"],
         "banner": s.get("banner"),
@@ -97,7 +97,7 @@ def confirm_leaders(cohort: Cohort, ranking: Ranking, base_folder, out, *, n_con
     if not leaders:
         return "none"
     (base,) = load_fits([base_folder])
-    trials = _trials_of(cohort, base.desc["legs"])
+    trials = trials_of(cohort, base.desc["legs"])
     J0 = nuts_j_draws(base, cohort, trials, n_draws=J_DRAWS, start_stride=J_START_STRIDE)
     for r in progress_bar(leaders, desc="confirming with NUTS", enabled=progress):
         r["nuts"] = confirm_with_nuts(cohort, base, r["effect"], Path(out) / f"fit-{r['effect']}",
@@ -153,10 +153,10 @@ def run_diagnose(
     if figures:
         paths, checks = predictive_checks(ranking.base, cohort, out, "baseline")
         summary["predictive_checks"] = checks
-        more, notes = residual_figures(_screen_residuals(ranking.base), out, "baseline", dt)
+        more, notes = residual_figures(screen_residuals(ranking.base), out, "baseline", dt)
         paths += more
         if ranking.verdict != "none":
-            more, after = residual_figures(_screen_residuals(ranking.fits[ranking.verdict]), out, "with_" + ranking.verdict, dt)
+            more, after = residual_figures(screen_residuals(ranking.fits[ranking.verdict]), out, "with_" + ranking.verdict, dt)
             paths += more
             summary["residual_findings_after"] = after
         summary["residual_findings"] = notes

@@ -8,8 +8,6 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import numpy as np
-
 from ..common._io import atomic_write_text, save_figure, write_json
 from ..data._cohort import Cohort, Trial
 from ..data._paper import HORIZON_MS, HORIZONS, TABLE_V
@@ -17,17 +15,19 @@ from ..evaluation._posterior import (
     FIGURE_WINDOW_S,
     PARETO_K_BAD,
     LoadedFit,
-    _check_legs,
-    _medians,
+    check_fit_legs,
+    figure_window,
     load_fits,
     loo_report,
     posterior_j,
-    posterior_predictions,
+    posterior_medians,
     summarise_j,
+    window_predictions,
 )
 from ..evaluation._prediction import evaluate_cohort, predictions, sign_tests, table_v
 from ..evaluation._residuals import fit_residuals
-from ..inference._fitio import INTERVAL, posterior_models
+from ..inference._fitio import posterior_models
+from ..inference._summaries import INTERVAL
 from ..model._likelihood import prepare
 from ..model._model import Model
 from ..outputs._figures import (
@@ -108,18 +108,15 @@ def _figure_case(fits: list[LoadedFit], cohort: Cohort) -> tuple[str, Trial]:
 def _prediction_figures(fits, cohort, J_legs, out: Path, *, n_draws: int, seed: int) -> list[Path]:
     """Figs. 5-6 with a 90 % band over draws: 100 ms and 1 s ahead over a 20-s window."""
     leg, trial = _figure_case(fits, cohort)
-    dt = trial.sampling_period_s
-    start_s = min(FIGURE_WINDOW_S[0], max(0.0, trial.n_samples * dt - FIGURE_WINDOW_S[1]))
-    i0 = int(round(start_s / dt))
-    i1 = min(trial.n_samples, i0 + int(round(FIGURE_WINDOW_S[1] / dt)))
+    window = figure_window(trial, FIGURE_WINDOW_S)
     models = {f.label: posterior_models(f.idata, f.model, leg, n_draws, seed)[0] for f in fits if leg in f.desc["legs"]}
     paths = []
-    for p, name in ((10, "fig5_posterior_predictions_100ms.png"), (100, "fig6_posterior_predictions_1s.png")):
-        starts = np.arange(max(0, i0 - p), min(i1, trial.n_samples) - p)
-        predicted = {label: (starts, posterior_predictions(m, trial, starts, (p,))[:, :, 0])
-                     for label, m in models.items()}
+    horizons = {10: "fig5_posterior_predictions_100ms.png", 100: "fig6_posterior_predictions_1s.png"}
+    predicted = {label: window_predictions(m, trial, horizons, window) for label, m in models.items()}
+    for p, name in horizons.items():
         j = {label: J_legs[label][leg][str(trial.trial)][str(HORIZON_MS[p])] for label in models}
-        fig = plot_posterior_predictions(trial, predicted, p, j=j, start_s=start_s, length_s=FIGURE_WINDOW_S[1])
+        fig = plot_posterior_predictions(trial, {label: pr[p] for label, pr in predicted.items()}, p, j=j,
+                                         start_s=window[0], length_s=FIGURE_WINDOW_S[1])
         paths.append(save_figure(fig, out / "figures" / name))
     return paths
 
@@ -164,14 +161,14 @@ def run_posterior_evaluate(
         raise ValueError(f"--start-stride must be at least 1, not {start_stride}")
     out = Path(out)
     fits = load_fits(folders)
-    _check_legs(fits, cohort)
+    check_fit_legs(fits, cohort)
     labels = [f.label for f in fits]
 
     t0 = time.perf_counter()
     draws = posterior_j(fits, cohort, n_draws=n_draws, start_stride=start_stride, seed=seed, progress=progress)
     elapsed = time.perf_counter() - t0
     J, J_legs = summarise_j(draws)
-    tests = sign_tests(_medians(J_legs)) if len(fits) >= 2 else []
+    tests = sign_tests(posterior_medians(J_legs)) if len(fits) >= 2 else []
     loo = loo_report(fits)
 
     md = ["# Posterior evaluation: k-step-ahead angle prediction (eq. 12) and PSIS-LOO", ""]

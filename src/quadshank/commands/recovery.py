@@ -17,8 +17,8 @@ from ..evaluation._recovery import (
     DELAY_SEEN,
     MATCHING_NOISE,
     LegMaximumLikelihood,
-    _add_pulls,
     _binomial_band,
+    add_pulls,
     coverage_rows,
     likelihood_calibration,
     simulate_matching,
@@ -115,7 +115,7 @@ def run_recovery(
             diags.append(info)
             seed_rows = coverage_rows(summary, truth)
             if ml is not None:
-                _add_pulls(seed_rows, ml, cohort, truth)
+                add_pulls(seed_rows, ml, cohort, truth)
             for r in seed_rows:
                 rows.append({"model": name, "seed": seed, **r})
         params = [r for r in rows if r["param"] not in ("delay", "shift")]

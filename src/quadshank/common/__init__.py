@@ -1,0 +1,20 @@
+"""What every stage may use: atomic file writes, progress bars, the code's provenance.
+
+Nothing here knows the model or the data; the other subpackages import it, never the reverse.
+"""
+
+from ._io import (
+    atomic_path,
+    atomic_write_bytes,
+    atomic_write_text,
+    read_json,
+    save_figure,
+    write_json,
+)
+from ._progress import progress_bar
+from ._provenance import __version__, code_fingerprint, code_provenance
+
+__all__ = [
+    "atomic_path", "atomic_write_bytes", "atomic_write_text", "read_json", "write_json", "save_figure",
+    "progress_bar", "code_fingerprint", "code_provenance", "__version__",
+]  # fmt: skip

@@ -1,0 +1,49 @@
+"""Data: validated cohorts of recorded trials, the interchange format, the simulator, the paper's numbers.
+
+A :class:`Cohort` is what every later stage reads; :func:`load_cohort` takes an interchange
+folder or a NetCDF file, :func:`simulate_cohort` makes the built-in simulated cohort.
+"""
+
+from ._cohort import VELOCITY_WINDOW, Cohort, Trial, derive_velocity, leg_key
+from ._interchange import (
+    DEFAULT_SAMPLING_PERIOD_S,
+    MANIFEST_NAME,
+    InterchangeError,
+    Problem,
+    convert,
+    load_cohort,
+    read_interchange,
+    write_interchange,
+)
+from ._paper import (
+    HORIZON_MS,
+    HORIZONS,
+    LEGS,
+    MAX_DELAY,
+    SAMPLING_PERIOD_S,
+    TABLE_I,
+    TABLE_II,
+    TABLE_III,
+    TABLE_IV,
+    TABLE_V,
+    TWITCH_SAMPLES,
+)
+from ._simulate import (
+    EFFECTS,
+    PASSIVE_TRUTH,
+    default_truth,
+    simulate_cohort,
+    simulate_response,
+    stimulation_sequence,
+    write_truth,
+)
+
+__all__ = [
+    "Cohort", "Trial", "derive_velocity", "leg_key", "VELOCITY_WINDOW",
+    "InterchangeError", "Problem", "read_interchange", "write_interchange", "load_cohort", "convert",
+    "MANIFEST_NAME", "DEFAULT_SAMPLING_PERIOD_S",
+    "EFFECTS", "PASSIVE_TRUTH", "default_truth", "simulate_cohort", "simulate_response", "stimulation_sequence",
+    "write_truth",
+    "SAMPLING_PERIOD_S", "HORIZONS", "HORIZON_MS", "MAX_DELAY", "TWITCH_SAMPLES", "LEGS",
+    "TABLE_I", "TABLE_II", "TABLE_III", "TABLE_IV", "TABLE_V",
+]  # fmt: skip

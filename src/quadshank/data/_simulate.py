@@ -328,7 +328,7 @@ def _check_effects(effects) -> tuple[str, ...]:
     return tuple(e for e in EFFECTS if e in effects)
 
 
-def _check_legs(legs) -> tuple[str, ...]:
+def check_legs(legs) -> tuple[str, ...]:
     if isinstance(legs, str):
         legs = (legs,)
     legs = tuple(legs)
@@ -340,7 +340,7 @@ def _check_legs(legs) -> tuple[str, ...]:
     return legs
 
 
-def _check_trials(trials) -> tuple[int, ...]:
+def check_trials(trials) -> tuple[int, ...]:
     trials = tuple(int(t) for t in trials)
     bad = [t for t in trials if t not in TRIAL_RECRUITMENT]
     if bad:
@@ -395,7 +395,7 @@ def default_truth(legs: Sequence[str] = LEGS, effects: Iterable[str] = ()) -> di
     d = floor(delay_samples)).  Also the sensor chain, the stimulation density
     and the protocol.
     """
-    legs = _check_legs(legs)
+    legs = check_legs(legs)
     effects = _check_effects(effects)
     out_legs = {}
     for leg in legs:
@@ -695,7 +695,7 @@ def _pulse_gains(pulses: np.ndarray, effects: tuple[str, ...], n_start: float) -
     return gain
 
 
-def _plan_leg(leg: str, n_samples: int, seed: int, effects: tuple[str, ...]) -> dict:
+def plan_leg(leg: str, n_samples: int, seed: int, effects: tuple[str, ...]) -> dict:
     """IPIs, pulse gains and fatigue state for all protocol trials of a leg, in order."""
     plans = {}
     n_carry = 0.0
@@ -757,16 +757,16 @@ def simulate_cohort(
     depends on it), so a subset of legs or trials gets the same data as the
     full run.
     """
-    legs = _check_legs(legs)
+    legs = check_legs(legs)
     effects = _check_effects(effects)
-    trials = _check_trials(trials)
+    trials = check_trials(trials)
     if not minutes > 0:
         raise ValueError(f"minutes must be positive, got {minutes}")
     n = int(round(minutes * 60.0 / SAMPLING_PERIOD_S))
     truth = default_truth(legs, effects)
     jobs = []
     for leg in legs:
-        plans = _plan_leg(leg, n, seed, effects)
+        plans = plan_leg(leg, n, seed, effects)
         G2 = TABLE_III[leg]["G2"]
         for trial in trials:
             plan = plans[trial]
@@ -838,7 +838,7 @@ def simulate_response(
     the f·g modulation).  ``twitch_variability`` draws its random factors
     in the cohort's protocol only; here it is not applied.
     """
-    (leg,) = _check_legs((leg,))
+    (leg,) = check_legs((leg,))
     effects = _check_effects(effects)
     stim = np.asarray(stimulation, dtype=float)
     pulses = np.flatnonzero(stim > 0)

@@ -1,0 +1,56 @@
+"""Evaluation: J_φ,p (classical and over posterior draws), PSIS-LOO, residual statistics, calibration.
+
+Numbers only: nothing here plots or writes files (:mod:`quadshank.outputs` does).
+"""
+
+from ._checks import elpd_in_time, loo_pit
+from ._classical_recovery import TOLERANCES, recovery
+from ._parameters import leg_parameters, population_spreads
+from ._posterior import (
+    LoadedFit,
+    figure_window,
+    load_fits,
+    loo_report,
+    posterior_j,
+    posterior_prediction_errors,
+    posterior_predictions,
+    psis_loo,
+    summarise_j,
+    window_predictions,
+)
+from ._prediction import (
+    evaluate_cohort,
+    prediction_errors,
+    prediction_starts,
+    predictions,
+    sign_tests,
+    table_v,
+)
+from ._recovery import (
+    coverage_rows,
+    likelihood_calibration,
+    matching_values,
+    simulate_matching,
+)
+from ._residuals import (
+    acf,
+    binned_trend,
+    ccf,
+    features,
+    findings,
+    fit_residuals,
+    leg_residuals,
+    point_residuals,
+    spectrum,
+    twitch_triggered_average,
+)
+
+__all__ = [
+    "prediction_errors", "prediction_starts", "predictions", "evaluate_cohort", "sign_tests", "table_v",
+    "LoadedFit", "load_fits", "posterior_predictions", "posterior_prediction_errors", "posterior_j", "summarise_j",
+    "psis_loo", "loo_report", "figure_window", "window_predictions",
+    "leg_parameters", "population_spreads",
+    "features", "binned_trend", "acf", "ccf", "twitch_triggered_average", "spectrum", "findings",
+    "point_residuals", "fit_residuals", "leg_residuals", "loo_pit", "elpd_in_time",
+    "recovery", "TOLERANCES", "matching_values", "simulate_matching", "coverage_rows", "likelihood_calibration",
+]  # fmt: skip

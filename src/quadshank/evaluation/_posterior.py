@@ -56,12 +56,12 @@ from ..common._progress import progress_bar
 from ..data._cohort import Cohort, Trial
 from ..data._paper import HORIZON_MS, HORIZONS
 from ..inference._fitio import (
-    INTERVAL,
     load_fit,
     posterior_models,
     read_summary,
     sampled_vars,
 )
+from ..inference._summaries import interval
 from ..model._model import Model, predict_ahead
 from ._prediction import prediction_starts
 
@@ -75,6 +75,8 @@ __all__ = [
     "summarise_j",
     "psis_loo",
     "loo_report",
+    "figure_window",
+    "window_predictions",
     "CHUNK_ELEMENTS",
     "PARETO_K_BAD",
 ]
@@ -114,7 +116,7 @@ def load_fits(folders) -> list[LoadedFit]:
     return fits
 
 
-def _check_legs(fits: list[LoadedFit], cohort: Cohort) -> None:
+def check_fit_legs(fits: list[LoadedFit], cohort: Cohort) -> None:
     for f in fits:
         missing = [leg for leg in f.desc["legs"] if leg not in cohort.legs]
         if missing:
@@ -162,6 +164,26 @@ def posterior_predictions(models: Model, trial: Trial, starts, horizons=HORIZONS
     return np.concatenate(list(_prediction_chunks(models, trial, np.asarray(starts), horizons)), axis=0)
 
 
+def figure_window(trial: Trial, window_s: tuple[float, float]) -> tuple[float, int, int]:
+    """``(start_s, i0, i1)`` of a figure's window ``(start, length)`` [s] in ``trial``: samples
+    i0 … i1 − 1; on a trial too short for it the start moves earlier."""
+    dt = trial.sampling_period_s
+    start_s = min(window_s[0], max(0.0, trial.n_samples * dt - window_s[1]))
+    i0 = int(round(start_s / dt))
+    return start_s, i0, min(trial.n_samples, i0 + int(round(window_s[1] / dt)))
+
+
+def window_predictions(models: Model, trial: Trial, horizons, window: tuple[float, int, int]) -> dict:
+    """Per horizon p [samples]: ``(starts, predicted)``, the angles predicted p samples after each
+    start whose target falls in the :func:`figure_window` ``window``; predicted is (draws, starts)."""
+    _, i0, i1 = window
+    out = {}
+    for p in horizons:
+        starts = np.arange(max(0, i0 - p), i1 - p)
+        out[p] = (starts, posterior_predictions(models, trial, starts, (p,))[:, :, 0])
+    return out
+
+
 def posterior_prediction_errors(models: Model, trial: Trial, horizons=HORIZONS, start_stride: int = 1) -> np.ndarray:
     """J_φ,p [deg] (eq. 12) per draw and horizon: array (draws, len(horizons))."""
     starts = prediction_starts(trial, max(horizons), start_stride)
@@ -196,12 +218,6 @@ def posterior_j(
     return out
 
 
-def interval(values) -> dict[str, float]:
-    """Median and 90 % band (quantiles :data:`quadshank.inference._fitio.INTERVAL`) of draws."""
-    lo, hi = np.quantile(values, INTERVAL)
-    return {"median": float(np.median(values)), "lo": float(lo), "hi": float(hi)}
-
-
 def summarise_j(draws: dict, horizons=HORIZONS) -> tuple[dict, dict]:
     """(cohort, per leg) summaries of :func:`posterior_j`'s draws, horizon keys in ms (str).
 
@@ -224,7 +240,7 @@ def summarise_j(draws: dict, horizons=HORIZONS) -> tuple[dict, dict]:
     return cohort, legs
 
 
-def _medians(J_legs: dict) -> dict:
+def posterior_medians(J_legs: dict) -> dict:
     """Posterior-median J shaped as :func:`quadshank.evaluation._prediction.sign_tests` expects (horizon keys int)."""
     return {
         label: {leg: {tr: {int(h): v["median"] for h, v in hv.items()} for tr, hv in trials.items()}

@@ -54,10 +54,10 @@ import numpy as np
 from ..common._progress import progress_bar
 from ..data._cohort import Cohort, Trial
 from ..data._paper import LEGS, SAMPLING_PERIOD_S, TABLE_I, TABLE_II, TABLE_III
-from ..data._simulate import PASSIVE_TRUTH, _check_legs, _check_trials, _plan_leg
+from ..data._simulate import PASSIVE_TRUTH, check_legs, check_trials, plan_leg
 from ..inference._priors import build_model
 from ..model._likelihood import leg_loglik_by_delay, max_shift, prepare, response_length
-from ..model._model import _passive_acc, simulate_angles
+from ..model._model import passive_acceleration, simulate_angles
 
 __all__ = [
     "MATCHING_NOISE",
@@ -132,8 +132,8 @@ def simulate_matching(
     """
 
 
-    legs = _check_legs(legs)
-    trials = _check_trials(trials)
+    legs = check_legs(legs)
+    trials = check_trials(trials)
     noise = dict(MATCHING_NOISE if noise is None else noise)
     if not minutes > 0:
         raise ValueError(f"minutes must be positive, got {minutes}")
@@ -147,7 +147,7 @@ def simulate_matching(
         m = base.with_params({k: jnp.asarray(v, jnp.float32) for k, v in true["params"].items()}, delay=true["delay"])
         if "shift" in true["discrete"]:
             m = m.with_delay_shift(true["discrete"]["shift"])
-        plans = _plan_leg(leg, n, seed, ())
+        plans = plan_leg(leg, n, seed, ())
         for trial in trials:
             for u in (plans[trial]["u"], *RECRUITMENT_FALLBACK):
                 stim = np.zeros(n)
@@ -158,7 +158,7 @@ def simulate_matching(
             else:
                 raise ValueError(f"{leg} trial {trial}: the {model} matching truth leaves {ANGLE_RANGE} deg at every recruitment")
             recruitment.setdefault(leg, {})[str(trial)] = float(u)
-            passive = np.asarray(_passive_acc(m, angle, velocity), np.float64)
+            passive = np.asarray(passive_acceleration(m, angle, velocity), np.float64)
             ss = np.random.SeedSequence(int(seed), spawn_key=(LEGS.index(leg), int(trial), 7))  # not the simulator's keys
             rng = np.random.default_rng(ss)
             acc = em + passive + noise["sigma"] * rng.standard_t(noise["nu"], size=n)
@@ -222,7 +222,7 @@ def coverage_rows(summary: dict, truth: dict) -> list[dict]:
     return rows
 
 
-def _add_pulls(rows: list[dict], ml: "LegMaximumLikelihood", cohort: Cohort, truth: dict) -> None:
+def add_pulls(rows: list[dict], ml: "LegMaximumLikelihood", cohort: Cohort, truth: dict) -> None:
     """Add to each parameter row the leg's own maximum likelihood at the true delay (``ml``,
     ``ml_se``) and ``pull`` = (posterior median − ml) / ml_se: how far the prior and the
     pooling of legs moved the posterior from what the leg's data say.  Nothing where no

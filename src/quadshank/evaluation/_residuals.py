@@ -23,6 +23,7 @@ import numpy as np
 from scipy import signal, stats
 
 from ..inference._screen import LaplaceFit
+from ..inference._summaries import pooled_draws
 from ..model._likelihood import leg_active_output
 from ..model._model import Model, equivalent_acceleration
 
@@ -40,7 +41,7 @@ FEATURE_LABELS = {
     "u": "recruitment level u of last pulse [-]",
 }
 # (words, unit) of each feature for the sentences of :func:`findings`
-_FEATURE_WORDS = {
+FEATURE_WORDS = {
     "angle": ("knee angle", "deg"),
     "velocity": ("angular velocity", "deg/s"),
     "time": ("time in trial", "s"),
@@ -81,7 +82,7 @@ def _lag1(residual, mask) -> float:
     return float(_lagged_products(x, x, 1)[1] / (x @ x))
 
 
-def _fmt_p(p: float) -> str:
+def format_p(p: float) -> str:
     return "p < 0.001" if p < 0.001 else f"p = {p:.3f}"
 
 
@@ -396,7 +397,7 @@ def findings(trends: dict[str, dict], acf_result: dict, ccf_result: dict, alpha:
     for key, t in trends.items():
         if not t["p_value"] < alpha:
             continue
-        words, unit = _FEATURE_WORDS.get(key, (key, ""))
+        words, unit = FEATURE_WORDS.get(key, (key, ""))
         unit = f" {unit}" if unit else ""
         lo, hi = (
             f"{_fmt_num(t['mean'][b])} deg/s² near {_fmt_centre(t['centre'][b])}{unit}"
@@ -404,7 +405,7 @@ def findings(trends: dict[str, dict], acf_result: dict, ccf_result: dict, alpha:
         )
         out.append(
             f"the residual changes with {words} (χ² = {t['chi2']:.0f} on {len(t['mean'])} bins, "
-            f"{_fmt_p(t['p_value'])}): mean {lo}, {hi}"
+            f"{format_p(t['p_value'])}): mean {lo}, {hi}"
         )
     if _significant_lags(acf_result, alpha)[0]:
         n_lags = int(np.sum(acf_result["lags"] >= 1))
@@ -440,7 +441,7 @@ def fit_residuals(idata, model: Model, data, leg: str) -> dict[str, np.ndarray]:
     """:func:`leg_residuals` for a saved (NUTS) fit: at the posterior medians of ``leg`` and its modal d and shift."""
     post = idata.posterior
     i = list(post["leg"].values).index(leg)
-    flat = lambda name: np.asarray(post[name]).reshape(-1, *post[name].shape[2:])[:, i]  # noqa: E731
+    flat = lambda name: pooled_draws(post, name)[:, i]  # noqa: E731
     values = {p.name: np.median(flat(p.name), axis=0) for e in model.effects for p in e.declared_params()}
     d = int(np.bincount(flat("delay").astype(int)).argmax())
     shift = int(np.bincount(flat("delay_shift").astype(int)).argmax()) if "delay_shift" in post else 0

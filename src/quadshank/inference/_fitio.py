@@ -36,6 +36,7 @@ from ._draws import (
 )
 from ._nuts import FitSettings, chain_method
 from ._priors import NOISE_PARAMS, model_params, step_param
+from ._summaries import INTERVAL, interval, pooled_draws
 
 __all__ = [
     "to_inference_data",
@@ -57,9 +58,6 @@ DELAY_SPLIT_TV = 0.5
 #: A delay the per-delay Laplace evidence gives at least the first weight, and the chains' pooled
 #: P(d) less than the second, is a delay the chains never visited (a warning: see diagnose_sampling).
 DELAY_MISSED = (0.1, 0.01)
-#: Posterior quantiles of the reported interval (90 %).
-INTERVAL = (0.05, 0.95)
-
 
 class FitFolderError(FileNotFoundError):
     """A folder without a complete fit."""
@@ -293,11 +291,6 @@ def diagnose_sampling(idata) -> dict:
     }
 
 
-def _interval(values: np.ndarray) -> dict:
-    lo, hi = np.quantile(values, INTERVAL, axis=0)
-    return {"median": np.median(values, axis=0).tolist(), "lo": lo.tolist(), "hi": hi.tolist()}
-
-
 #: Knee angles of the delay–angle curve [deg]: the operating range of section II.
 ANGLE_GRID = np.arange(-40.0, 60.5, 1.0)
 #: A threshold counts as a change only where it splits a leg's pulses, between these quantiles of their angles.
@@ -305,8 +298,7 @@ SPLIT_QUANTILES = (0.05, 0.95)
 
 
 def _leg_draws(idata, name: str, i: int) -> np.ndarray:
-    v = idata.posterior[name]
-    return np.asarray(v).reshape(-1, *v.shape[2:])[:, i]
+    return pooled_draws(idata.posterior, name)[:, i]
 
 
 def delay_angle_curve(idata, i: int) -> np.ndarray:
@@ -343,10 +335,10 @@ def delay_angle_summary(idata, i: int, curve: np.ndarray) -> dict:
     return {
         "change_probability": change,
         "shift_posterior": p_shift.mean(axis=0).tolist(),
-        "threshold_deg": _interval(with_change) if with_change.size else None,
+        "threshold_deg": interval(with_change) if with_change.size else None,
         "pulse_angle_range_deg": [float(lo), float(hi)],
         "angle_deg": ANGLE_GRID.tolist(),
-        **_interval(curve),
+        **interval(curve),
     }
 
 
@@ -354,7 +346,7 @@ def fit_summary(idata) -> dict:
     """Per leg: delay posterior and each parameter's median and 90 % interval; diagnostics."""
     desc = from_json(idata.posterior.attrs["quadshank_model"])
     post = idata.posterior
-    flat = {v: np.asarray(post[v]).reshape(-1, *post[v].shape[2:]) for v in post.data_vars}
+    flat = {v: pooled_draws(post, v) for v in post.data_vars}
     delay_post = np.exp(flat["delay_logp"]).mean(axis=0)  # (legs, D)
     evidence = stored_delay_evidence(idata)
     curves = [delay_angle_curve(idata, i) for i in range(len(desc["legs"]))] if "delay_shift_logp" in flat else None
@@ -362,9 +354,9 @@ def fit_summary(idata) -> dict:
     for i, leg in enumerate(desc["legs"]):
         params = {}
         for name, info in desc["params"].items():
-            params[name] = {**_interval(flat[name][:, i]), "units": info["units"]}
+            params[name] = {**interval(flat[name][:, i]), "units": info["units"]}
         for name, (units, _doc) in {k: (v["units"], v["doc"]) for k, v in desc["noise"].items()}.items():
-            params[name] = {**_interval(flat[name][:, i]), "units": units}
+            params[name] = {**interval(flat[name][:, i]), "units": units}
         probs = delay_post[i]
         legs[leg] = {
             "subject": desc["subjects"][desc["leg_subject"][i]],
@@ -380,7 +372,7 @@ def fit_summary(idata) -> dict:
     extra = {}
     if curves:
         # the population curve: every leg's draws pooled
-        extra["delay_angle_population"] = {"angle_deg": ANGLE_GRID.tolist(), **_interval(np.concatenate(curves))}
+        extra["delay_angle_population"] = {"angle_deg": ANGLE_GRID.tolist(), **interval(np.concatenate(curves))}
     return {
         "model": desc["model"],
         "effects": desc["effects"],
@@ -445,14 +437,11 @@ def posterior_models(idata, model: Model, leg: str, n_draws: int | None = None, 
     idx = np.arange(total)
     if n_draws is not None and n_draws < total:
         idx = np.sort(np.random.default_rng(seed).choice(total, n_draws, replace=False))
-    values = {}
-    for p in model_params(model):
-        arr = np.asarray(post[p.name]).reshape(total, *post[p.name].shape[2:])[idx, i]
-        values[p.name] = jnp.asarray(arr)
-    delay = np.asarray(post["delay"]).reshape(total, -1)[idx, i]
+    values = {p.name: jnp.asarray(pooled_draws(post, p.name)[idx, i]) for p in model_params(model)}
+    delay = pooled_draws(post, "delay")[idx, i]
     stacked = model.with_params(values, delay=jnp.asarray(delay, jnp.int32))
     if "delay_shift" in post:
-        shift = np.asarray(post["delay_shift"]).reshape(total, -1)[idx, i]
+        shift = pooled_draws(post, "delay_shift")[idx, i]
         stacked = stacked.with_delay_shift(jnp.asarray(shift, jnp.int32))
     return stacked, delay
 

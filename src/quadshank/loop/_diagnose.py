@@ -38,10 +38,11 @@ import numpy as np
 
 from ..common._progress import progress_bar
 from ..data._cohort import Cohort
-from ..evaluation._posterior import interval, posterior_prediction_errors
+from ..evaluation._posterior import posterior_prediction_errors
 from ..inference._fitio import posterior_models
 from ..inference._priors import build_model
 from ..inference._screen import LaplaceFit, delta_elpd, laplace_fit, leg_draw_models
+from ..inference._summaries import interval
 from ..model._effects import registered_effects
 from ..model._model import Model
 
@@ -69,7 +70,7 @@ def candidates(model: Model) -> list[str]:
     return out
 
 
-def _trials_of(cohort: Cohort, legs) -> tuple[int, ...]:
+def trials_of(cohort: Cohort, legs) -> tuple[int, ...]:
     """Every trial number that some leg of ``legs`` has in ``cohort``."""
     return tuple(sorted({t.trial for leg in legs for t in cohort.trials_of(leg)}))
 
@@ -157,7 +158,7 @@ def rank_effects(
     model = build_model(model) if isinstance(model, str) else model
     legs = tuple(legs) if legs is not None else cohort.legs
     if eval_trials is None:
-        eval_trials = _trials_of(cohort, legs)
+        eval_trials = trials_of(cohort, legs)
     known = registered_effects()
     if effects is None:
         effects = candidates(model)
@@ -187,7 +188,7 @@ def rank_effects(
         fits[name] = ext
         row = {
             "effect": name,
-            **_bar(d, se, J0, J1, known[name].predicts_angle),
+            **evidence_bar(d, se, J0, J1, known[name].predicts_angle),
             "pareto_k_max": float(np.nanmax(ext.pareto_k)),
             # how well the Laplace Gaussian stands for the posterior (n_draws: exactly)
             "importance_ess_min": float(np.min(ext.weights_ess)),
@@ -204,7 +205,7 @@ def rank_effects(
     return Ranking(base=base, fits=fits, rows=rows, verdict=verdict, J_base=J_base, failed=failed)
 
 
-def _bar(d: float, se: float, J0: np.ndarray, J1: np.ndarray, predicts_angle: bool) -> dict:
+def evidence_bar(d: float, se: float, J0: np.ndarray, J1: np.ndarray, predicts_angle: bool) -> dict:
     """The evidence for one extension against its model, and whether it clears the bar (module docs):
     ΔELPD ± SE, J at J_HORIZONS_MS before and after (from per-draw J, (draws, horizons))."""
     out = {"delta_elpd": d, "delta_elpd_se": se}

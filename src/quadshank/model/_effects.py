@@ -286,10 +286,12 @@ def register_pytree(cls: type, data: list[str], meta: list[str]) -> None:
 
 
 def registered_effects() -> dict[str, type[Effect]]:
+    """Every registered effect class by name: the built-in ones and those a user registered."""
     return dict(_REGISTRY)
 
 
 def get_effect(name: str) -> type[Effect]:
+    """The registered effect class called ``name``; a ``KeyError`` naming the known effects otherwise."""
     try:
         return _REGISTRY[name]
     except KeyError:

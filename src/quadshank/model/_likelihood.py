@@ -91,10 +91,10 @@ from ..data._paper import MAX_DELAY, TWITCH_SAMPLES
 from ._effects import FIRST_IPI_S, Effect, PulseContext, StepContext
 from ._model import (
     Model,
-    _passive_acc,
     acceleration_response,
     causal_fir,
     measured_acceleration,
+    passive_acceleration,
     pulse_factors,
     true_angle,
 )
@@ -666,7 +666,7 @@ def _window_terms(model: Model, noise: dict, x: dict):
     take theirs from the table."""
     W = x["window_length_index"].shape[-1]
     # x["angle"] is already the true angle (see _sensed)
-    passive = jnp.where(x["sample_mask"], _passive_acc(model, x["angle"], x["velocity"]), 0.0)
+    passive = jnp.where(x["sample_mask"], passive_acceleration(model, x["angle"], x["velocity"]), 0.0)
     e = x["acceleration"] - measured_acceleration(model, passive)
     e = jnp.where(x["sample_mask"], e, 0.0)
     E = jax.ops.segment_sum(e, x["window"], num_segments=W)

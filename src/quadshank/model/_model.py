@@ -293,7 +293,8 @@ def pulse_factors(model: Model, pctx: PulseContext):
     return q
 
 
-def _passive_acc(model: Model, angle, velocity):
+def passive_acceleration(model: Model, angle, velocity):
+    """The passive effects' angular acceleration [deg/s²] at ``angle`` and ``velocity``."""
     acc = 0.0
     for e in model.passives:
         acc = acc + e.acceleration(angle, velocity)
@@ -333,7 +334,7 @@ def _active_step(model: Model, carry: ActiveCarry, u_now, angle, velocity):
 
 def _rk4(model: Model, angle, velocity, m, dt):
     def f(a, v):
-        return v, m + _passive_acc(model, a, v)
+        return v, m + passive_acceleration(model, a, v)
 
     k1a, k1v = f(angle, velocity)
     k2a, k2v = f(angle + 0.5 * dt * k1a, velocity + 0.5 * dt * k1v)
@@ -391,7 +392,7 @@ def causal_fir(x, g):
 def measure(model: Model, angle, velocity, m):
     """The sensors' view of a simulated trial (:func:`simulate_angles`'s true state and M/I):
     (measured angle, measured angular acceleration), both noise-free."""
-    acc = m + _passive_acc(model, angle, velocity)
+    acc = m + passive_acceleration(model, angle, velocity)
     return measured_angle(model, angle), measured_acceleration(model, acc)
 
 
@@ -403,7 +404,7 @@ def equivalent_acceleration(model: Model, angle, velocity, acceleration, mask=No
     through the same response), and ``mask`` (samples to keep) stops it from
     leaking out of padding.
     """
-    passive = _passive_acc(model, true_angle(model, angle), velocity)
+    passive = passive_acceleration(model, true_angle(model, angle), velocity)
     if acceleration_response(model) is not None:
         if mask is not None:
             passive = jnp.where(mask, passive, 0.0)

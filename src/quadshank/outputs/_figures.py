@@ -146,7 +146,7 @@ def plot_delay_scan(ident: dict):
     return fig
 
 
-def _horizon_axis(ax):
+def horizon_axis(ax):
     ax.set_xscale("log")
     ax.set_xticks(list(HORIZON_MS.values()))
     ax.set_xticklabels([str(h) for h in HORIZON_MS.values()])
@@ -177,7 +177,7 @@ def plot_posterior_j_vs_horizon(J: dict):
                 ax.errorbar([h * 1.04 for h in paper], [v[0] for v in paper.values()],
                             yerr=[v[1] for v in paper.values()], fmt=":x", capsize=3, color=line.get_color(),
                             label=f"{model} (paper, mean ± s.d.)")
-        _horizon_axis(ax)
+        horizon_axis(ax)
         ax.set_title(f"trial {trial}")
     axes[0, 0].set_ylabel("J_φ,p, mean over legs [deg]")
     axes[0, -1].legend(fontsize=7)

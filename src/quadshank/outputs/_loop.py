@@ -8,14 +8,14 @@ from ..common._io import save_figure
 from ..data._cohort import Cohort
 from ..evaluation import _residuals as R
 from ..evaluation._checks import elpd_in_time, loo_pit, worst_seconds_sentence
-from ..evaluation._posterior import FIGURE_WINDOW_S, posterior_predictions
+from ..evaluation._posterior import FIGURE_WINDOW_S, figure_window, window_predictions
 from ..evaluation._residuals import leg_residuals
 from ..inference._screen import LaplaceFit, leg_draw_models
 from ..loop._diagnose import ELPD_SE_BAR, J_DRAWS
 from ..outputs._figures import plot_posterior_predictions
 
 
-def _screen_residuals(fit: LaplaceFit) -> dict[str, dict]:
+def screen_residuals(fit: LaplaceFit) -> dict[str, dict]:
     return {leg: leg_residuals(fit, leg) for leg in fit.legs}
 
 
@@ -52,15 +52,10 @@ def predictive_checks(fit: LaplaceFit, cohort: Cohort, out, label: str) -> tuple
     paths, result = [], {"loo_pit": {}, "worst_seconds": {}, "notes": []}
     shown = "JM-left" if "JM-left" in fit.legs else fit.legs[0]
     trial = [t for t in cohort.trials_of(shown) if t.trial in fit.data.trials][-1]
-    dt = trial.sampling_period_s
-    start_s = min(FIGURE_WINDOW_S[0], max(0.0, trial.n_samples * dt - FIGURE_WINDOW_S[1]))
-    i0 = int(round(start_s / dt))
-    i1 = min(trial.n_samples, i0 + int(round(FIGURE_WINDOW_S[1] / dt)))
-    models = leg_draw_models(fit, shown, J_DRAWS)
+    window = figure_window(trial, FIGURE_WINDOW_S)
+    predicted = window_predictions(leg_draw_models(fit, shown, J_DRAWS), trial, (1, 100), window)
     for p, name in ((1, "one_step"), (100, "1s")):
-        starts = np.arange(max(0, i0 - p), i1 - p)
-        predicted = {fit.model.name: (starts, posterior_predictions(models, trial, starts, (p,))[:, :, 0])}
-        fig = plot_posterior_predictions(trial, predicted, p, start_s=start_s, length_s=FIGURE_WINDOW_S[1])
+        fig = plot_posterior_predictions(trial, {fit.model.name: predicted[p]}, p, start_s=window[0], length_s=FIGURE_WINDOW_S[1])
         paths.append(save_figure(fig, out / f"predictions_{name}_{label}_{shown}.png"))
     pits, seconds = {}, {}
     for leg in fit.legs:
@@ -82,6 +77,7 @@ def predictive_checks(fit: LaplaceFit, cohort: Cohort, out, label: str) -> tuple
 
 
 def ranking_markdown(summary: dict, command: str | None = None) -> str:
+    """A diagnosis summary (its ranking, verdict, NUTS confirmation, checks and findings) as Markdown."""
     rows = summary["ranking"]
     md = [f"# Which effect is missing from {summary['model']}", ""]
     if command:

@@ -38,28 +38,18 @@ import csv
 import html
 import io
 import re
-import time
 from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ..common._io import atomic_write_text, figure_bytes, read_json, write_json
+from ..common._io import atomic_write_text, figure_bytes, write_json
 from ..common._progress import progress_bar
-from ..data._interchange import load_cohort
 from ..data._paper import HORIZON_MS, TABLE_V
-from ..evaluation._posterior import (
-    _check_legs,
-    interval,
-    load_fits,
-    posterior_j,
-    posterior_predictions,
-    summarise_j,
-)
-from ..inference._fitio import INTERVAL, posterior_models
-from ._figures import _horizon_axis, plot_delay_angle
+from ..inference._summaries import INTERVAL, interval
+from ._figures import horizon_axis, plot_delay_angle
 
-__all__ = ["run_report", "leg_parameters"]
+__all__ = ["write_report", "plot_shrinkage", "plot_delay_posterior", "plot_leg_predictions", "PREDICTION_WINDOW_S", "PREDICTION_HORIZONS"]
 
 #: Prediction figures: (start, length) [s] of the window; on shorter trials the start moves earlier.
 PREDICTION_WINDOW_S = (30.0, 10.0)
@@ -73,72 +63,6 @@ _TRIAL_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple"
 # ============================================================================ numbers
 
 
-def _flat(post, name: str) -> np.ndarray:
-    """A posterior variable's draws, chains pooled, in double precision."""
-    v = np.asarray(post[name], np.float64)
-    return v.reshape(-1, *v.shape[2:])
-
-
-def _components(name: str, shape) -> list[tuple[str, tuple]]:
-    """(label, index) of each component: ``a[1]``, ``a[2]`` (the paper's a1, a2) for a vector parameter."""
-    if not shape:
-        return [(name, ())]
-    return [(f"{name}[{k + 1}]", (k,)) for k in range(int(np.prod(shape)))]
-
-
-def leg_parameters(idata, desc: dict, fit_summary: dict) -> dict:
-    """Credible parameters per leg at the leg, subject and population levels.
-
-    Returns ``{leg: {label: {"units", "doc", "prior", "leg", "subject", "population"}}}``
-    with each level ``{"median", "lo", "hi"}`` (None where the parameter has no such
-    level: the noise parameters).  A leg's level is the fit summary's numbers.
-    """
-    post = idata.posterior
-    subjects = list(desc["subjects"])
-    out: dict = {}
-    for i, leg in enumerate(desc["legs"]):
-        s_idx = int(desc["leg_subject"][i])
-        rows: dict = {}
-        for name, info in desc["params"].items():
-            family, loc, scale = info["prior"][:3]
-            shape = tuple(info["shape"])
-            sub = _flat(post, f"{name}_subject")[:, s_idx] if f"{name}_subject" in post else None
-            mu = _flat(post, f"{name}_mu") if f"{name}_mu" in post else None
-            if mu is not None and f"{name}_s_leg" not in post and family == "lognormal":
-                mu = np.exp(mu)  # sampled on the log scale (non-centred form); hyper_draws gives units
-            leg_q = fit_summary["legs"][leg]["params"][name]
-            for label, index in _components(name, info["shape"]):
-                rows[label] = {
-                    "units": info["units"],
-                    "doc": info.get("doc", ""),
-                    "prior": [family, float(np.broadcast_to(np.asarray(loc, float), shape)[index]),
-                              float(np.broadcast_to(np.asarray(scale, float), shape)[index])],
-                    "leg": {k: float(np.asarray(leg_q[k], float)[index]) for k in ("median", "lo", "hi")},
-                    "subject": None if sub is None else interval(sub[(slice(None), *index)]),
-                    "population": None if mu is None else interval(mu[(slice(None), *index)]),
-                }
-        for name, info in desc["noise"].items():
-            q = fit_summary["legs"][leg]["params"][name]
-            rows[name] = {"units": info["units"], "doc": info.get("doc", ""), "prior": None,
-                          "leg": {k: float(q[k]) for k in ("median", "lo", "hi")}, "subject": None, "population": None}
-        out[leg] = {"subject": subjects[s_idx], "params": rows}
-    return out
-
-
-def _population_spreads(idata, desc: dict) -> dict:
-    """Spread between subjects and between legs [units of the prior's scale] per parameter component."""
-    post = idata.posterior
-    out = {}
-    for name, info in desc["params"].items():
-        for label, index in _components(name, info["shape"]):
-            row = {}
-            for key, var in (("sd_subject", f"{name}_sd_subject"), ("sd_leg", f"{name}_sd_leg")):
-                if var in post:
-                    row[key] = interval(_flat(post, var)[(slice(None), *index)])
-            out[label] = row
-    return out
-
-
 def _standardise(x: float, prior) -> float:
     """(g(x) − loc)/scale, g = log for a log-normal prior: the value in prior scales from the prior's centre."""
     family, loc, scale = prior
@@ -150,21 +74,6 @@ def _standardise(x: float, prior) -> float:
 # ============================================================================ J
 
 
-def _j_from_evaluation(folder, label: str, legs) -> tuple[dict, dict, str]:
-    s = read_json(Path(folder) / "summary.json")
-    if "J_legs" not in s:
-        raise ValueError(f"{folder}: not an output of `quadshank evaluate --fit` (its summary.json has no J_legs)")
-    if label not in s["J_legs"]:
-        raise ValueError(f"{folder}: the evaluation has no fit of {label!r} (it has {', '.join(s['J_legs']) or 'none'})")
-    missing = [leg for leg in legs if leg not in s["J_legs"][label]]
-    if missing:
-        raise ValueError(f"{folder}: the evaluation of {label} lacks leg(s) {', '.join(missing)}")
-    n = s.get("fits", {}).get(label, {}).get("draws_used", s.get("n_draws"))
-    how = (f"from the evaluation in {folder} ({n} posterior draws, one start in every {s.get('start_stride', 1)} samples; "
-           f"fit {s.get('fits', {}).get(label, {}).get('folder', '?')})")
-    return s["J"].get(label, {}), s["J_legs"][label], how
-
-
 # ============================================================================ figures
 
 
@@ -172,7 +81,7 @@ def _data_uri(fig) -> str:
     return "data:image/png;base64," + base64.b64encode(figure_bytes(fig, "png", dpi=90)).decode("ascii")
 
 
-def _plot_shrinkage(subject: str, legs: list[str], params: dict):
+def plot_shrinkage(subject: str, legs: list[str], params: dict):
     """Forest plot in prior scales: population, the subject and its legs, per parameter component."""
 
     labels = [k for k, v in params[legs[0]]["params"].items() if v["prior"] is not None]
@@ -207,8 +116,8 @@ def _plot_shrinkage(subject: str, legs: list[str], params: dict):
     return fig
 
 
-def _plot_delay_posterior(legs: list[str], fit_summary: dict):
-
+def plot_delay_posterior(legs: list[str], fit_summary: dict):
+    """P(d | data) of each leg as bars, from a fit's summary."""
     fig, axes = plt.subplots(1, len(legs), figsize=(3.6 * len(legs), 2.8), squeeze=False, sharey=True)
     for ax, leg in zip(axes[0], legs):
         p = np.asarray(fit_summary["legs"][leg]["delay_posterior"])
@@ -243,7 +152,7 @@ def _plot_j_legs(legs: list[str], J_legs: dict, label: str):
                 ph = sorted(paper[tr])
                 ax.errorbar([h * 1.04 for h in ph], [paper[tr][h][0] for h in ph], yerr=[paper[tr][h][1] for h in ph],
                             fmt=":x", capsize=3, color=colour, label=f"paper {base}, trial {tr} (mean ± s.d.)")
-        _horizon_axis(ax)
+        horizon_axis(ax)
         ax.set_title(leg, fontsize=9)
     axes[0, 0].set_ylabel("J_φ,p [deg]")
     axes[0, -1].legend(fontsize=7)
@@ -251,30 +160,20 @@ def _plot_j_legs(legs: list[str], J_legs: dict, label: str):
     return fig
 
 
-def _prediction_case(cohort, leg: str):
-    numbers = [t.trial for t in cohort.trials_of(leg)]
-    return cohort.get(leg, 2 if 2 in numbers else numbers[0])
+def plot_leg_predictions(leg: str, trial, window, predictions: dict, J_legs: dict, fitted_trials=()):
+    """Measured angle and the angle predicted 100 ms and 1 s ahead: median and 90 % band over draws.
 
-
-def _plot_leg_predictions(fit, cohort, leg: str, J_legs: dict, n_draws: int, seed: int):
-    """Measured angle and the angle predicted 100 ms and 1 s ahead: median and 90 % band over draws."""
-
-
-    trial = _prediction_case(cohort, leg)
-    dt = trial.sampling_period_s
-    start_s = min(PREDICTION_WINDOW_S[0], max(0.0, trial.n_samples * dt - PREDICTION_WINDOW_S[1]))
-    i0 = int(round(start_s / dt))
-    i1 = min(trial.n_samples, i0 + int(round(PREDICTION_WINDOW_S[1] / dt)))
-    models, _ = posterior_models(fit.idata, fit.model, leg, n_draws, seed)
-    fig, axes = plt.subplots(len(PREDICTION_HORIZONS), 1, figsize=(9, 2.5 * len(PREDICTION_HORIZONS)), sharex=True)
-    for ax, p in zip(np.atleast_1d(axes), PREDICTION_HORIZONS):
-        starts = np.arange(max(0, i0 - p), i1 - p)
-        pred = posterior_predictions(models, trial, starts, (p,))[:, :, 0]  # (draws, starts)
+    ``window`` and ``predictions``: :func:`quadshank.evaluation.figure_window` and
+    :func:`quadshank.evaluation.window_predictions` of ``trial``.  Returns (figure, trial number).
+    """
+    _, i0, i1 = window
+    fig, axes = plt.subplots(len(predictions), 1, figsize=(9, 2.5 * len(predictions)), sharex=True)
+    for ax, (p, (starts, pred)) in zip(np.atleast_1d(axes), predictions.items()):
         t = trial.time_s[starts + p]
-        lo, med, hi = np.quantile(pred, (0.05, 0.5, 0.95), axis=0)
+        band = interval(pred, axis=0)
         ax.plot(trial.time_s[i0:i1], trial.angle_deg[i0:i1], "k-", lw=1.1, label="measured")
-        ax.plot(t, med, "--", color="tab:green", lw=1.1, label=f"predicted {HORIZON_MS.get(p, p * 10)} ms ahead (median)")
-        ax.fill_between(t, lo, hi, color="tab:green", alpha=0.3, lw=0, label="90 % band over draws")
+        ax.plot(t, band["median"], "--", color="tab:green", lw=1.1, label=f"predicted {HORIZON_MS.get(p, p * 10)} ms ahead (median)")
+        ax.fill_between(t, band["lo"], band["hi"], color="tab:green", alpha=0.3, lw=0, label="90 % band over draws")
         ax.set_xlim(trial.time_s[i0], trial.time_s[i1 - 1])
         j = J_legs.get(leg, {}).get(str(trial.trial), {}).get(str(HORIZON_MS.get(p, p * 10)))
         title = f"{HORIZON_MS.get(p, p * 10)} ms ahead"
@@ -284,7 +183,7 @@ def _plot_leg_predictions(fit, cohort, leg: str, J_legs: dict, n_draws: int, see
         ax.set_ylabel("angle [deg]")
         ax.legend(fontsize=7, loc="upper right")
     np.atleast_1d(axes)[-1].set_xlabel("time [s]")
-    fitted = "fitted on it" if trial.trial in fit.desc["trials"] else "not fitted on it"
+    fitted = "fitted on it" if trial.trial in fitted_trials else "not fitted on it"
     fig.suptitle(f"{leg}, trial {trial.trial} ({fitted}): measured and predicted knee angle", fontsize=10)
     fig.tight_layout()
     return fig, trial.trial
@@ -440,28 +339,6 @@ def _diagnosis_section(diagnosis: dict | None) -> str:
     return "\n".join(parts)
 
 
-def _read_diagnosis(folder, label: str) -> dict:
-    """A ``quadshank diagnose`` summary (one ranking) or a ``discover`` summary (one per round)."""
-    folder = Path(folder)
-    s = read_json(folder / "summary.json")
-    if "ranking" in s:
-        blocks = [{"title": None, "summary": s}]
-        models = [s.get("model")]
-    elif "rounds" in s:
-        blocks = []
-        for k, r in enumerate(s["rounds"], 1):
-            path = folder / f"round-{k}" / "summary.json"
-            rs = read_json(path) if path.exists() else {k2: r.get(k2) for k2 in ("model", "verdict", "sentence")}
-            blocks.append({"title": f"round {k}", "summary": rs})
-        models = [r.get("model") for r in s["rounds"]]
-    else:
-        raise ValueError(f"{folder}: not an output of `quadshank diagnose` or `discover` (summary.json has no ranking)")
-    out = {"folder": str(folder), "blocks": blocks, "final_model": s.get("final_model")}
-    if label.split("+")[0] not in {str(m).split("+")[0] for m in models}:
-        out["mismatch"] = f"The diagnosis screened {', '.join(map(str, models))}; this fit is of {label}."
-    return out
-
-
 def _param_rows(rows: dict) -> list[list[str]]:
     return [
         [f"<code>{_e(name)}</code>", _e(r["units"]), _q(r["leg"]), _q(r["subject"]), _q(r["population"]),
@@ -512,59 +389,31 @@ def _leg_csv(rows: dict) -> str:
     return buf.getvalue()
 
 
-def run_report(
-    fit_dir,
-    out,
+def write_report(
+    out: Path,
     *,
-    cohort=None,
-    evaluation=None,
-    diagnosis=None,
-    n_draws: int = 50,
-    start_stride: int = 10,
-    seed: int = 0,
+    fit_dir,
+    fit_summary: dict,
+    desc: dict,
+    label: str,
+    J: dict,
+    J_legs: dict,
+    j_how: str,
+    params: dict,
+    spreads: dict,
+    predictions: dict,
+    diagnosis: dict | None,
     progress: bool = False,
 ) -> dict:
-    """Write the report of the fit in ``fit_dir`` into ``out``; returns its summary.
+    """Write the pages, per-leg CSV and JSON of a fit's report into ``out`` (each file atomically);
+    returns what was written: pages, figures per page, files per leg, whether the fit passed its checks.
 
-    ``cohort``: the fit's data, for the prediction figures and, without
-    ``evaluation``, for J (loaded from the folder the fit records when None).
-    ``evaluation``: a ``quadshank evaluate --fit`` folder to take J's bands from;
-    otherwise J is computed here over ``n_draws`` posterior draws from every
-    ``start_stride``-th start.  ``diagnosis``: a ``quadshank diagnose`` or
-    ``discover`` folder whose ranking is shown.
+    ``params``/``spreads``: :func:`quadshank.evaluation.leg_parameters` and
+    :func:`quadshank.evaluation.population_spreads`; ``predictions[leg]``: (trial, window,
+    predictions) for :func:`plot_leg_predictions`; ``diagnosis``: a diagnosis or discovery
+    summary read for the report, or None.
     """
-
-    if n_draws < 1:
-        raise ValueError(f"--draws must be at least 1, not {n_draws}")
-    if start_stride < 1:
-        raise ValueError(f"--start-stride must be at least 1, not {start_stride}")
-    t0 = time.perf_counter()
-    fit_dir, out = Path(fit_dir), Path(out)
-    fit = load_fits([fit_dir])[0]
-    fs, desc, label = fit.summary, fit.desc, fit.label
-    legs = list(desc["legs"])
-    diag_info = _read_diagnosis(diagnosis, label) if diagnosis else None
-    if cohort is None:
-
-        if not fs.get("data"):
-            raise ValueError(f"{fit_dir}: the fit does not record its data; give the data (--data)")
-        cohort = load_cohort(Path(fs["data"]))
-    _check_legs([fit], cohort)
-    evaluated = _j_from_evaluation(evaluation, label, legs) if evaluation else None
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "summary.json").unlink(missing_ok=True)
-
-    if evaluated:
-        J, J_legs, j_how = evaluated
-    else:
-        draws = posterior_j([fit], cohort, n_draws=n_draws, start_stride=start_stride, seed=seed, progress=progress)
-        Jc, Jl = summarise_j(draws)
-        J, J_legs = Jc[label], Jl[label]
-        used = min(n_draws, fit.idata.posterior.sizes["chain"] * fit.idata.posterior.sizes["draw"])
-        j_how = (f"computed for this report over {used} posterior draws, one start in every {start_stride} samples "
-                 f"(eq. 12 uses every start; `quadshank evaluate --fit` with --start-stride 1 for the full count)")
-    params = leg_parameters(fit.idata, desc, fs)
-    spreads = _population_spreads(fit.idata, desc)
+    fs, legs, diag_info = fit_summary, list(desc["legs"]), diagnosis
     subjects = list(dict.fromkeys(params[leg]["subject"] for leg in legs))
     subject_legs = {s: [leg for leg in legs if params[leg]["subject"] == s] for s in subjects}
     pages = {s: f"subject-{_safe(s)}.html" for s in subjects}
@@ -608,9 +457,9 @@ def run_report(
         body.append('<p class="note">Each parameter in prior scales from the prior\'s centre (log value for a '
                     "log-normal prior); grey: the prior's 90 % interval. Legs pulled towards their subject and the "
                     "population show how much the hierarchy pools.</p>")
-        body.append(_figure(_data_uri(_plot_shrinkage(subject, sl, params)), f"shrinkage of subject {subject}"))
+        body.append(_figure(_data_uri(plot_shrinkage(subject, sl, params)), f"shrinkage of subject {subject}"))
         body.append('<h2 id="delay">Delay posterior</h2>')
-        body.append(_figure(_data_uri(_plot_delay_posterior(sl, fs)), f"delay posterior of subject {subject}"))
+        body.append(_figure(_data_uri(plot_delay_posterior(sl, fs)), f"delay posterior of subject {subject}"))
         figs += 2
         if any("delay_angle" in fs["legs"][leg] for leg in sl):
             body.append('<h2 id="delay-angle">Delay against knee angle</h2>')
@@ -636,7 +485,7 @@ def run_report(
             body.append(f"<h3>J_φ,p of {_e(leg)} [deg]</h3>")
             body.append(_table(["trial", "horizon [ms]", "median [90 %]", f"paper {base}: mean (s.d.)"],
                                _j_rows(J_legs.get(leg, {}), label), (2, 3)))
-            fig, trial_no = _plot_leg_predictions(fit, cohort, leg, J_legs, n_draws, seed)
+            fig, trial_no = plot_leg_predictions(leg, *predictions[leg], J_legs, desc["trials"])
             body.append(f"<h3>Measured and predicted angle, {_e(leg)}, trial {trial_no}</h3>")
             body.append(_figure(_data_uri(fig), f"predictions of {leg}"))
             figs += 1
@@ -692,21 +541,11 @@ def run_report(
     figures_per_page["index.html"] = index_figs
     files.insert(0, "index.html")
 
-    summary = {
-        "fit": str(fit_dir),
-        "model": label,
+    return {
         "pages": {"index": "index.html", **{f"subject {s}": p for s, p in pages.items()}},
         "figures": figures_per_page,
         "legs": {leg: {"subject": params[leg]["subject"], "page": pages[params[leg]["subject"]],
                        "csv": f"legs/{_safe(leg)}.csv", "json": f"legs/{_safe(leg)}.json"} for leg in legs},
         "files": files,
         "diagnostics_ok": diag_ok,
-        "J_source": "evaluation" if evaluation else "computed",
-        "J_how": j_how,
-        "n_draws": n_draws,
-        "start_stride": start_stride,
-        "diagnosis": str(diagnosis) if diagnosis else None,
-        "report_seconds": time.perf_counter() - t0,
     }
-    write_json(out / "summary.json", summary)
-    return summary

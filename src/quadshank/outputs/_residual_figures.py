@@ -14,7 +14,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from ..common._io import save_figure
-from ..evaluation._residuals import _FEATURE_WORDS, FEATURE_LABELS, _fmt_p
+from ..evaluation._residuals import FEATURE_LABELS, FEATURE_WORDS, format_p
 
 __all__ = ["plot_trends", "plot_correlations", "plot_twitch_average", "plot_spectrum", "plot_loo_pit", "plot_elpd_in_time"]
 
@@ -52,7 +52,7 @@ def plot_trends(trends: dict[str, dict], path, notes: list[str] | None = None):
         ax.errorbar(t["centre"], t["mean"], yerr=2 * t["se"], fmt="o-", ms=4, capsize=3)
         ax.set_xlabel(FEATURE_LABELS.get(key, key))
         ax.set_ylabel("mean residual ± 2 se [deg/s²]")
-        ax.set_title(f"{_FEATURE_WORDS.get(key, (key,))[0]}: {_fmt_p(t['p_value'])}", fontsize=10)
+        ax.set_title(f"{FEATURE_WORDS.get(key, (key,))[0]}: {format_p(t['p_value'])}", fontsize=10)
     for ax in axes.flat[len(trends) :]:
         ax.set_visible(False)
     return _save(fig, path, notes)

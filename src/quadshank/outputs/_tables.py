@@ -39,6 +39,7 @@ def _fmt(v) -> str:
 
 
 def markdown_table(rows: list[dict], title: str = "") -> str:
+    """Rows (dicts with the same keys) as a Markdown table under a ``###`` title; numbers to 3 significant figures."""
     if not rows:
         return f"### {title}\n\n(no rows)\n" if title else "(no rows)\n"
     cols = list(rows[0])
@@ -71,6 +72,7 @@ def _leg_truth(truth: dict | None, leg: str) -> dict | None:
 
 
 def table_passive(ident: dict, truth: dict | None = None) -> list[dict]:
+    """Identified passive parameters per leg, beside the truth when given."""
     rows = []
     for leg, r in ident.items():
         t = _leg_truth(truth, leg)
@@ -86,6 +88,7 @@ def table_passive(ident: dict, truth: dict | None = None) -> list[dict]:
 
 
 def table_i(ident: dict, truth: dict | None = None) -> list[dict]:
+    """Table I analogue: model 1's gain and the delay per leg, beside the paper's and the truth."""
     rows = []
     for leg, r in ident.items():
         t = _leg_truth(truth, leg)
@@ -107,6 +110,7 @@ def table_i(ident: dict, truth: dict | None = None) -> list[dict]:
 
 
 def table_ii(ident: dict, truth: dict | None = None) -> list[dict]:
+    """Table II analogue: model 2's DARMA coefficients per leg, beside the paper's and the truth."""
     rows = []
     for leg, r in ident.items():
         p = r.models["model2"].flat_params()
@@ -123,6 +127,7 @@ def table_ii(ident: dict, truth: dict | None = None) -> list[dict]:
 
 
 def table_iii(ident: dict, truth: dict | None = None) -> list[dict]:
+    """Table III analogue: model 3's gain and torque–angle and torque–velocity factors per leg."""
     rows = []
     for leg, r in ident.items():
         p = r.models["model3"].flat_params()
@@ -149,6 +154,7 @@ def table_iii(ident: dict, truth: dict | None = None) -> list[dict]:
 
 
 def table_iv(ident: dict) -> list[dict]:
+    """Table IV analogue: the RMS error of models 1 and 3 on the integrated twitches [% of G'1] per leg, beside the paper's."""
     rows = []
     for leg, r in ident.items():
         row = {"leg": leg, "model 1 [%]": r.rms_error_pct["model1"], "model 3 [%]": r.rms_error_pct["model3"]}
@@ -176,6 +182,7 @@ def table_v_rows(table: dict) -> list[dict]:
 
 
 def sign_test_rows(tests: list[dict]) -> list[dict]:
+    """Sign tests between models as table rows."""
     return [
         {
             "horizon [ms]": t["horizon_ms"],

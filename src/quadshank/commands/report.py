@@ -1,0 +1,142 @@
+"""``quadshank report``: the credible-parameter report of a fit (pages written by :mod:`quadshank.outputs._report`)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from ..common._io import read_json, write_json
+from ..data._interchange import load_cohort
+from ..evaluation._parameters import leg_parameters, population_spreads
+from ..evaluation._posterior import (
+    check_fit_legs,
+    figure_window,
+    load_fits,
+    posterior_j,
+    summarise_j,
+    window_predictions,
+)
+from ..inference._fitio import posterior_models
+from ..outputs._report import PREDICTION_HORIZONS, PREDICTION_WINDOW_S, write_report
+
+
+def _j_from_evaluation(folder, label: str, legs) -> tuple[dict, dict, str]:
+    s = read_json(Path(folder) / "summary.json")
+    if "J_legs" not in s:
+        raise ValueError(f"{folder}: not an output of `quadshank evaluate --fit` (its summary.json has no J_legs)")
+    if label not in s["J_legs"]:
+        raise ValueError(f"{folder}: the evaluation has no fit of {label!r} (it has {', '.join(s['J_legs']) or 'none'})")
+    missing = [leg for leg in legs if leg not in s["J_legs"][label]]
+    if missing:
+        raise ValueError(f"{folder}: the evaluation of {label} lacks leg(s) {', '.join(missing)}")
+    n = s.get("fits", {}).get(label, {}).get("draws_used", s.get("n_draws"))
+    how = (f"from the evaluation in {folder} ({n} posterior draws, one start in every {s.get('start_stride', 1)} samples; "
+           f"fit {s.get('fits', {}).get(label, {}).get('folder', '?')})")
+    return s["J"].get(label, {}), s["J_legs"][label], how
+
+
+def _prediction_case(cohort, leg: str):
+    numbers = [t.trial for t in cohort.trials_of(leg)]
+    return cohort.get(leg, 2 if 2 in numbers else numbers[0])
+
+
+def _leg_predictions(fit, cohort, leg: str, n_draws: int, seed: int) -> tuple:
+    """(trial, window, predictions) of one leg's prediction figure: 100 ms and 1 s ahead over
+    :data:`quadshank.outputs._report.PREDICTION_WINDOW_S` of trial 2 (or the leg's first)."""
+    trial = _prediction_case(cohort, leg)
+    window = figure_window(trial, PREDICTION_WINDOW_S)
+    models, _ = posterior_models(fit.idata, fit.model, leg, n_draws, seed)
+    return trial, window, window_predictions(models, trial, PREDICTION_HORIZONS, window)
+
+
+def _read_diagnosis(folder, label: str) -> dict:
+    """A ``quadshank diagnose`` summary (one ranking) or a ``discover`` summary (one per round)."""
+    folder = Path(folder)
+    s = read_json(folder / "summary.json")
+    if "ranking" in s:
+        blocks = [{"title": None, "summary": s}]
+        models = [s.get("model")]
+    elif "rounds" in s:
+        blocks = []
+        for k, r in enumerate(s["rounds"], 1):
+            path = folder / f"round-{k}" / "summary.json"
+            rs = read_json(path) if path.exists() else {k2: r.get(k2) for k2 in ("model", "verdict", "sentence")}
+            blocks.append({"title": f"round {k}", "summary": rs})
+        models = [r.get("model") for r in s["rounds"]]
+    else:
+        raise ValueError(f"{folder}: not an output of `quadshank diagnose` or `discover` (summary.json has no ranking)")
+    out = {"folder": str(folder), "blocks": blocks, "final_model": s.get("final_model")}
+    if label.split("+")[0] not in {str(m).split("+")[0] for m in models}:
+        out["mismatch"] = f"The diagnosis screened {', '.join(map(str, models))}; this fit is of {label}."
+    return out
+
+
+def run_report(
+    fit_dir,
+    out,
+    *,
+    cohort=None,
+    evaluation=None,
+    diagnosis=None,
+    n_draws: int = 50,
+    start_stride: int = 10,
+    seed: int = 0,
+    progress: bool = False,
+) -> dict:
+    """Write the report of the fit in ``fit_dir`` into ``out``; returns its summary.
+
+    ``cohort``: the fit's data, for the prediction figures and, without
+    ``evaluation``, for J (loaded from the folder the fit records when None).
+    ``evaluation``: a ``quadshank evaluate --fit`` folder to take J's bands from;
+    otherwise J is computed here over ``n_draws`` posterior draws from every
+    ``start_stride``-th start.  ``diagnosis``: a ``quadshank diagnose`` or
+    ``discover`` folder whose ranking is shown.
+    """
+
+    if n_draws < 1:
+        raise ValueError(f"--draws must be at least 1, not {n_draws}")
+    if start_stride < 1:
+        raise ValueError(f"--start-stride must be at least 1, not {start_stride}")
+    t0 = time.perf_counter()
+    fit_dir, out = Path(fit_dir), Path(out)
+    fit = load_fits([fit_dir])[0]
+    fs, desc, label = fit.summary, fit.desc, fit.label
+    legs = list(desc["legs"])
+    diag_info = _read_diagnosis(diagnosis, label) if diagnosis else None
+    if cohort is None:
+        if not fs.get("data"):
+            raise ValueError(f"{fit_dir}: the fit does not record its data; give the data (--data)")
+        cohort = load_cohort(Path(fs["data"]))
+    check_fit_legs([fit], cohort)
+    evaluated = _j_from_evaluation(evaluation, label, legs) if evaluation else None
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "summary.json").unlink(missing_ok=True)
+
+    if evaluated:
+        J, J_legs, j_how = evaluated
+    else:
+        draws = posterior_j([fit], cohort, n_draws=n_draws, start_stride=start_stride, seed=seed, progress=progress)
+        Jc, Jl = summarise_j(draws)
+        J, J_legs = Jc[label], Jl[label]
+        used = min(n_draws, fit.idata.posterior.sizes["chain"] * fit.idata.posterior.sizes["draw"])
+        j_how = (f"computed for this report over {used} posterior draws, one start in every {start_stride} samples "
+                 f"(eq. 12 uses every start; `quadshank evaluate --fit` with --start-stride 1 for the full count)")
+    params = leg_parameters(fit.idata, desc, fs)
+    spreads = population_spreads(fit.idata, desc)
+    predictions = {leg: _leg_predictions(fit, cohort, leg, n_draws, seed) for leg in legs}
+    written = write_report(out, fit_dir=fit_dir, fit_summary=fs, desc=desc, label=label, J=J, J_legs=J_legs,
+                           j_how=j_how, params=params, spreads=spreads, predictions=predictions,
+                           diagnosis=diag_info, progress=progress)
+    summary = {
+        "fit": str(fit_dir),
+        "model": label,
+        **written,
+        "J_source": "evaluation" if evaluation else "computed",
+        "J_how": j_how,
+        "n_draws": n_draws,
+        "start_stride": start_stride,
+        "diagnosis": str(diagnosis) if diagnosis else None,
+        "report_seconds": time.perf_counter() - t0,
+    }
+    write_json(out / "summary.json", summary)
+    return summary
