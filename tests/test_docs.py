@@ -171,7 +171,7 @@ def test_no_development_diary(path: Path):
 # ---------------------------------------------------------------------------- examples use the public API
 
 PRIVATE_IMPORT = [
-    re.compile(r"\bquadshank(\.\w+)*\._"),  # quadshank._fit, quadshank.inference._fit, quadshank._x.y
+    re.compile(r"\bquadshank(\.\w+)*\._"),  # quadshank._fit, quadshank.inference._nuts, quadshank._x.y
     re.compile(r"^\s*from\s+quadshank[\w.]*\s+import\s+(\([^)]*\)|[^\n]*)", re.M),  # checked for _names below
 ]
 
@@ -200,7 +200,7 @@ def public_names() -> set[str] | None:
 
 def test_private_use_detection():
     assert private_uses("from quadshank._fit import fit")
-    assert private_uses("import quadshank.inference._fit")
+    assert private_uses("import quadshank.inference._nuts")
     assert private_uses("from quadshank import fit, _helper")
     assert private_uses("import quadshank as qs\nqs._pipeline.run()")
     assert not private_uses("import quadshank as qs\nqs.fit(cohort, model)\nfrom quadshank import Effect, Param")

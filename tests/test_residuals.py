@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from quadshank import outputs
 from quadshank.evaluation import _residuals as rd
 DT = 0.01
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -279,10 +280,10 @@ def test_plots_write_pngs(tmp_path):
     tta = rd.twitch_triggered_average(resid, stim, mask, groups=groups)
     spec = rd.spectrum(resid, mask)
     paths = [
-        rd.plot_trends(trends, tmp_path / "trends.png", notes=notes),
-        rd.plot_correlations(a, c, tmp_path / "corr.png", notes=["a note"]),
-        rd.plot_twitch_average(tta, tmp_path / "tta.png", dt=DT),
-        rd.plot_spectrum(spec, tmp_path / "spec.png", notes=None),
+        outputs.plot_trends(trends, tmp_path / "trends.png", notes=notes),
+        outputs.plot_correlations(a, c, tmp_path / "corr.png", notes=["a note"]),
+        outputs.plot_twitch_average(tta, tmp_path / "tta.png", dt=DT),
+        outputs.plot_spectrum(spec, tmp_path / "spec.png", notes=None),
     ]
     for p in paths:
         assert _is_png(p), p

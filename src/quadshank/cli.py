@@ -50,7 +50,6 @@ def _say(args, *lines: str) -> None:
 
 
 def _truth_beside(data: Path) -> dict | None:
-
     path = data / "truth.json" if data.is_dir() else data.with_name("truth.json")
     return read_json(path) if path.exists() else None
 
@@ -59,7 +58,6 @@ def _truth_beside(data: Path) -> dict | None:
 
 
 def cmd_simulate(args) -> int:
-
     legs = _csv_list(args.legs) if args.legs else list(LEGS)
     effects = _csv_list(args.effects) if args.effects else []
     trials = [int(t) for t in _csv_list(args.trials)]
@@ -74,14 +72,12 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_convert(args) -> int:
-
     dst = convert(args.src, args.dst)
     _say(args, f"converted {args.src} -> {dst}")
     return 0
 
 
 def cmd_identify(args) -> int:
-
     data = Path(args.data)
     cohort = load_cohort(data)
     summary = run_identify(cohort, args.out, truth=_truth_beside(data), trial=args.trial, progress=not args.quiet)
@@ -91,7 +87,6 @@ def cmd_identify(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-
     data = Path(args.data)
     out = Path(args.out)
     if args.fit:
@@ -134,7 +129,6 @@ def cmd_evaluate(args) -> int:
 
 
 def run_evaluate_and_report(args, cohort, models, out):
-
     summary = run_evaluate(cohort, models, out, progress=not args.quiet)
     for model, trials in summary["J"].items():
         _say(args, f"{model}: " + "; ".join(
@@ -145,7 +139,6 @@ def run_evaluate_and_report(args, cohort, models, out):
 
 
 def cmd_fit(args) -> int:
-
     cohort = load_cohort(Path(args.data))
     settings = FitSettings(
         chains=args.chains,
@@ -193,7 +186,6 @@ def cmd_fit(args) -> int:
 
 
 def cmd_recovery(args) -> int:
-
     command = _command_line(args)
     settings = FitSettings(
         chains=args.chains, warmup=args.warmup, draws=args.draws, start=args.start, adapt_metric=args.adapt_metric,
@@ -223,7 +215,6 @@ def cmd_recovery(args) -> int:
 
 
 def cmd_likelihood_check(args) -> int:
-
     command = _command_line(args)
     result = run_likelihood_calibration(
         args.out,
@@ -247,7 +238,6 @@ def cmd_likelihood_check(args) -> int:
 
 
 def _loop_data(args, fit_summary: dict | None = None):
-
     data = args.data or (fit_summary or {}).get("data")
     if not data:
         raise ValueError("no data: give --data (the fit does not record where its data came from)")
@@ -265,7 +255,6 @@ def _say_ranking(args, summary: dict) -> None:
 
 
 def cmd_diagnose(args) -> int:
-
     fit_summary = read_summary(args.fitdir)
     _, model, desc = load_fit(args.fitdir)
     cohort, _ = _loop_data(args, fit_summary)
@@ -283,7 +272,6 @@ def cmd_diagnose(args) -> int:
 
 
 def cmd_discover(args) -> int:
-
     cohort, data = _loop_data(args)
     command = _command_line(args)
     trials = tuple(int(t) for t in _csv_list(args.trials))
@@ -306,7 +294,6 @@ def cmd_discover(args) -> int:
 
 
 def cmd_compare(args) -> int:
-
     cohort, _ = _loop_data(args, read_summary(args.fit_a))
     summary = run_posterior_evaluate(cohort, [args.fit_a, args.fit_b], args.out, n_draws=args.draws,
                                      start_stride=args.start_stride, progress=not args.quiet, residuals=True)
@@ -321,7 +308,6 @@ def cmd_compare(args) -> int:
 
 
 def cmd_report(args) -> int:
-
     fit_summary = read_summary(args.fitdir)
     cohort, _ = _loop_data(args, fit_summary)
     summary = run_report(args.fitdir, args.out, cohort=cohort, evaluation=args.evaluation or None,
@@ -334,7 +320,6 @@ def cmd_report(args) -> int:
 
 
 def cmd_reproduce(args, default_out: str | None = None) -> int:
-
     out = Path(args.out or default_out)
     command = _command_line(args)
     t0 = time.perf_counter()
@@ -360,7 +345,6 @@ def cmd_reproduce(args, default_out: str | None = None) -> int:
 
 
 def cmd_demo(args) -> int:
-
     command = _command_line(args)
     t0 = time.perf_counter()
     summary = run_demo(

@@ -59,7 +59,6 @@ def confirm_with_nuts(
     is reported, not hidden).
     """
 
-
     if not isinstance(base, LoadedFit):
         (base,) = load_fits([base])
     desc = base.desc
@@ -91,7 +90,6 @@ def confirm_leaders(cohort: Cohort, ranking: Ranking, base_folder, out, *, n_con
     """Confirm the ``n_confirm`` best candidates that clear the screen's bar with NUTS (each
     row gets ``nuts``: :func:`confirm_with_nuts`, its fit in ``out/fit-EFFECT``); returns the
     verdict under NUTS: the best of them that clears the bar there too, or ``none``."""
-
 
     leaders = [r for r in ranking.rows if r["clears_bar"]][:n_confirm]
     if not leaders:

@@ -57,7 +57,7 @@ def run_discover(
 ) -> dict:
     """The whole loop: diagnose, add the leading effect, diagnose again, while an effect clears the bar.
 
-    ``confirm`` (a :class:`quadshank.inference._fit.FitSettings`): then every round's leader
+    ``confirm`` (a :class:`quadshank.inference._nuts.FitSettings`): then every round's leader
     is confirmed with hierarchical NUTS before it is added: the starting model is
     fitted (``confirm/fit-start``), each round refits its leader against the
     previous round's fit (``round-K/confirm/fit-EFFECT``, see :func:`run_diagnose`)

@@ -32,7 +32,7 @@ def run_fit(
     ``quadshank diagnose`` and ``compare``).
 
     ``delay_from``: a fit folder whose delay posterior becomes this fit's delay prior
-    (see :func:`quadshank.inference._fit.delay_prior_from`).
+    (see :func:`quadshank.inference._priors.delay_prior_from`).
     """
 
     settings = settings or FitSettings()

@@ -89,7 +89,6 @@ def read_json(path: str | os.PathLike):
 def figure_bytes(fig, fmt: str = "png", dpi: int = 110, tight: bool = True) -> bytes:
     """A matplotlib figure rendered (``tight``: cropped to its content) and closed."""
 
-
     buf = io.BytesIO()
     fig.savefig(buf, format=fmt, dpi=dpi, bbox_inches="tight" if tight else None)
     plt.close(fig)

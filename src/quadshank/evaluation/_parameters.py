@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..inference._summaries import interval, pooled_draws
+from ..model._effects import from_unconstrained, prior_arrays
 
 
 def _pooled64(post, name: str) -> np.ndarray:
@@ -33,19 +34,18 @@ def leg_parameters(idata, desc: dict, fit_summary: dict) -> dict:
         s_idx = int(desc["leg_subject"][i])
         rows: dict = {}
         for name, info in desc["params"].items():
-            family, loc, scale = info["prior"][:3]
             shape = tuple(info["shape"])
+            loc, scale = prior_arrays(info["prior"], shape)
             sub = _pooled64(post, f"{name}_subject")[:, s_idx] if f"{name}_subject" in post else None
             mu = _pooled64(post, f"{name}_mu") if f"{name}_mu" in post else None
-            if mu is not None and f"{name}_s_leg" not in post and family == "lognormal":
-                mu = np.exp(mu)  # sampled on the log scale (non-centred form); hyper_draws gives units
+            if mu is not None and f"{name}_s_leg" not in post:
+                mu = from_unconstrained(mu, info["prior"])  # the non-centred form samples it unconstrained
             leg_q = fit_summary["legs"][leg]["params"][name]
             for label, index in _components(name, info["shape"]):
                 rows[label] = {
                     "units": info["units"],
                     "doc": info.get("doc", ""),
-                    "prior": [family, float(np.broadcast_to(np.asarray(loc, float), shape)[index]),
-                              float(np.broadcast_to(np.asarray(scale, float), shape)[index])],
+                    "prior": [info["prior"][0], float(loc[index]), float(scale[index])],
                     "leg": {k: float(np.asarray(leg_q[k], float)[index]) for k in ("median", "lo", "hi")},
                     "subject": None if sub is None else interval(sub[(slice(None), *index)]),
                     "population": None if mu is None else interval(mu[(slice(None), *index)]),

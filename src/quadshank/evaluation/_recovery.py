@@ -45,11 +45,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy import optimize
 
 from ..common._progress import progress_bar
 from ..data._cohort import Cohort, Trial
@@ -130,7 +132,6 @@ def simulate_matching(
     "recruitment": {leg: {trial: u}}}``.  Deterministic in ``seed``; the noise
     streams are separate from the simulator's.
     """
-
 
     legs = check_legs(legs)
     trials = check_trials(trials)
@@ -251,8 +252,8 @@ def _binomial_band(n: int, p: float = 0.9) -> tuple[float, float]:
 # The likelihood alone: noise replicates of one matching truth, maximum likelihood per leg
 # --------------------------------------------------------------------------------------------
 
-#: Newton's method on the log likelihood: at most this many steps, stopping below this step.
-_NEWTON_STEPS, _NEWTON_TOL = 60, 1e-7
+#: The maximum likelihood's search: at most this many trust-region steps, converged below this gradient norm.
+_MAX_STEPS, _MAX_GRADIENT = 200, 1e-6
 #: The two-sided 90 % point of the standard normal.
 Z90 = 1.6448536269514722
 
@@ -349,13 +350,11 @@ class LegMaximumLikelihood:
     """One leg's maximum likelihood at a given delay, with σ and ν free, and its Hessian
     standard errors (float64; no prior, no other legs).
 
-    The parameters are moved in steps of 5 % of a reference value (the truth; a zero
+    The parameters are measured in units of 5 % of a reference value (the truth; a zero
     reference: 0.05 in its own units), starting from it.  Compiled once per data shape.
     """
 
     def __init__(self, model, noise: dict):
-
-
         if max_shift(model):
             raise ValueError(f"{model.name}: the single-leg maximum likelihood takes models without an angle-dependent delay")
         self.model, self.noise = model, dict(noise)
@@ -381,8 +380,6 @@ class LegMaximumLikelihood:
         """(estimate, standard error) of the flattened parameters then σ and ν for ``leg`` of
         ``cohort`` at the delay ``true["delay"]``, starting from ``true["params"]``; None where
         no maximum is found."""
-
-
         _, ref = _flat_truth(true["params"])
         shapes = tuple((k, tuple(np.shape(v))) for k, v in true["params"].items())
         unit = np.where(ref != 0.0, 0.05 * np.abs(ref), 0.05)
@@ -390,7 +387,7 @@ class LegMaximumLikelihood:
         with jax.enable_x64(True):
             x = {k: jnp.asarray(v[0], jnp.float64 if v.dtype.kind == "f" else v.dtype) for k, v in data.leg_arrays().items()}
             args = (jnp.asarray(ref), jnp.asarray(unit), jnp.asarray(int(true["delay"])), x, shapes)
-            z = _newton(
+            z = _minimum(
                 lambda z: self._f(z, *args), lambda z: self._grad(z, *args), lambda z: self._hess(z, *args),
                 jnp.zeros(ref.size + 2, jnp.float64),
             )  # fmt: skip
@@ -405,29 +402,15 @@ class LegMaximumLikelihood:
         return est, np.concatenate([unit * se[: ref.size], est[-2:] * se[-2:]])
 
 
-def _newton(f, grad, hess, z):
-    """The minimum of ``f`` from ``z``, or None: Newton's method, its Hessian damped
-    (Levenberg–Marquardt) where a full step does not lower ``f``."""
-
-    eye = jnp.eye(z.size, dtype=z.dtype)
-    lam = 0.0
-    for _ in range(_NEWTON_STEPS):
-        f0, g, H = f(z), grad(z), hess(z)
-        if not bool(jnp.isfinite(f0) & jnp.all(jnp.isfinite(g))):
-            return None
-        while True:
-            step = jnp.linalg.solve(H + lam * eye, g)
-            if bool(jnp.all(jnp.isfinite(step))) and f(z - step) <= f0:
-                break
-            lam = max(1e-3, 10.0 * lam)
-            if lam > 1e8:
-                return None
-        z = z - step
-        lam /= 10.0
-        if lam < 1e-6:
-            lam = 0.0
-        if float(jnp.max(jnp.abs(step))) < _NEWTON_TOL:
-            return z
-    return None
+def _minimum(f, grad, hess, z):
+    """The minimum of ``f`` from ``z`` by scipy's trust-region Newton method on the exact
+    Hessian, or None where it does not converge or leaves the finite."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a trial step into overflow is refused, not fatal
+        res = optimize.minimize(
+            lambda v: float(f(v)), np.asarray(z), jac=lambda v: np.asarray(grad(v)), hess=lambda v: np.asarray(hess(v)),
+            method="trust-exact", options={"gtol": _MAX_GRADIENT, "maxiter": _MAX_STEPS},
+        )  # fmt: skip
+    return res.x if res.success and np.all(np.isfinite(res.x)) and np.isfinite(res.fun) else None
 
 

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.stats import truncnorm
 
+from ..model._effects import prior_arrays
 from ..model._likelihood import N_DELAYS, LikelihoodData, leg_pointwise, step_edges
 from ..model._model import Model
 from ._density import cohort_loglik_by_threshold
@@ -52,7 +53,6 @@ def hyper_draws(model: Model, samples: dict, leg_subject, n_subjects: int, seed:
     for p in model_params(model):
         if f"{p.name}_s_leg" not in samples:
             continue
-        family, loc, scale = p.prior[:3]
         shape = tuple(p.shape)
         lead = np.shape(samples[f"{p.name}_s_leg"])[:2]
         C = int(np.prod(shape)) if shape else 1
@@ -70,12 +70,9 @@ def hyper_draws(model: Model, samples: dict, leg_subject, n_subjects: int, seed:
         draw = mean + np.einsum("...ij,...j->...i", chol, z)  # (ch, dr, C, 1 + S)
         mu_std = draw[..., 0]
         subj_std = draw[..., :1] + draw[..., 1:]  # (ch, dr, C, S)
-        loc_a = np.broadcast_to(np.asarray(loc, np.float64), shape).reshape(-1)
-        scale_a = np.broadcast_to(np.asarray(scale, np.float64), shape).reshape(-1)
-        tf = np.exp if family == "lognormal" else (lambda v: v)
-        out[f"{p.name}_mu"] = tf(loc_a + scale_a * mu_std).reshape(*lead, *shape)
-        subj = tf(loc_a[:, None] + scale_a[:, None] * subj_std)  # (ch, dr, C, S)
-        out[f"{p.name}_subject"] = np.moveaxis(subj, -1, 2).reshape(*lead, n_subjects, *shape)
+        out[f"{p.name}_mu"] = p.from_standard(mu_std, flat=True).reshape(*lead, *shape)
+        subj = p.from_standard(np.moveaxis(subj_std, -1, -2), flat=True)  # (ch, dr, S, C)
+        out[f"{p.name}_subject"] = subj.reshape(*lead, n_subjects, *shape)
     return {**spreads, **out}
 
 
@@ -100,7 +97,7 @@ def spread_draws(model: Model, samples: dict, leg_subject, seed: int) -> dict:
         s_leg = np.asarray(samples[site], np.float64).reshape(*lead, -1, len(leg_subject))  # (ch, dr, C, L)
         logp = spread_log_weights(s_leg, leg_subject)
         g = np.argmax(logp + rng.gumbel(size=logp.shape), axis=-1)  # (ch, dr, C)
-        scale = np.broadcast_to(np.asarray(p.prior[2], np.float64), shape).reshape(-1)
+        scale = prior_arrays(p.prior, shape)[1].reshape(-1)
         for key, r in (("subject", r_s[g]), ("leg", r_l[g])):
             out[f"{p.name}_sd_{key}_rel"] = r.reshape(*lead, *shape)
             out[f"{p.name}_sd_{key}"] = (r * scale).reshape(*lead, *shape)
@@ -147,7 +144,6 @@ def sample_step_states(model: Model, data: LikelihoodData, posterior: dict, log_
 
 
 def _sample_step_states(model, data, posterior, log_delay_prior, seed, chunk):
-
     step = step_param(model, data)
     loc, scale = step.prior[1:3]
     x = data.leg_arrays()

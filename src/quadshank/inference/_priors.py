@@ -17,7 +17,7 @@ import numpyro
 import numpyro.distributions as dist
 from scipy.special import erf
 
-from ..model._effects import Param, get_effect
+from ..model._effects import Param, from_unconstrained, get_effect, prior_arrays
 from ..model._likelihood import N_DELAYS, LikelihoodData
 from ..model._model import Model, paper_model
 
@@ -51,10 +51,6 @@ def build_model(name: str, add_effects=()) -> Model:
 def model_params(model: Model) -> list[Param]:
     """The declared parameters of every effect, in order."""
     return [p for e in model.effects for p in e.declared_params()]
-
-
-def _arr(v, shape):
-    return jnp.broadcast_to(jnp.asarray(v, jnp.float32), shape)
 
 
 #: Relative spreads r = τ/scale (between subjects, between legs) on which their HalfNormal(1)
@@ -131,11 +127,8 @@ def _spread_log_prob(value, leg_subject: tuple[int, ...]):
 
 def _hierarchical(p: Param, n_legs: int, n_subjects: int, leg_subject, centred: bool = True):
     """Sample one parameter down to its level; returns the leg values (and records subject values)."""
-    family, loc, scale = p.prior[:3]
     shape = tuple(p.shape)
-    loc = _arr(loc, shape)
-    scale = _arr(scale, shape)
-    transform = jnp.exp if family == "lognormal" else (lambda x: x)
+    loc, scale = (jnp.asarray(v) for v in prior_arrays(p.prior, shape, np.float32))
     ev = len(shape)
     if p.level == "leg" and centred:
         # Legs sampled directly, standardised by the prior (x = loc + scale·s), with the
@@ -148,8 +141,7 @@ def _hierarchical(p: Param, n_legs: int, n_subjects: int, leg_subject, centred: 
         prior = SpreadMixture(np.asarray(leg_subject), batch_shape=shape)
         # (L,) for a scalar parameter, (C, L) for a vector one
         s_leg = numpyro.sample(f"{p.name}_s_leg", prior.to_event(ev))
-        x_leg = loc + scale * jnp.reshape(s_leg.T, (n_legs, *shape))
-        return numpyro.deterministic(p.name, transform(x_leg))
+        return numpyro.deterministic(p.name, p.from_standard(jnp.reshape(s_leg.T, (n_legs, *shape)), xp=jnp, dtype=np.float32))
     mu = numpyro.sample(f"{p.name}_mu", dist.Normal(loc, scale).to_event(ev))
     x_subject = jnp.broadcast_to(mu, (n_subjects, *shape))
     if p.level in ("subject", "leg"):
@@ -166,8 +158,8 @@ def _hierarchical(p: Param, n_legs: int, n_subjects: int, leg_subject, centred: 
         with numpyro.plate("legs", n_legs):
             z = numpyro.sample(f"{p.name}_z_leg", dist.Normal(jnp.zeros(shape), 1.0).to_event(ev))
             x_leg = x_leg + tau_l * z
-    leg_values = numpyro.deterministic(p.name, transform(x_leg))
-    numpyro.deterministic(f"{p.name}_subject", transform(x_subject))
+    leg_values = numpyro.deterministic(p.name, from_unconstrained(x_leg, p.prior, jnp))
+    numpyro.deterministic(f"{p.name}_subject", from_unconstrained(x_subject, p.prior, jnp))
     return leg_values
 
 

@@ -39,6 +39,7 @@ import numpy as np
 from scipy import optimize, special
 
 from ..data._cohort import Cohort
+from ..model._effects import Param
 from ..model._likelihood import (
     N_DELAYS,
     LikelihoodData,
@@ -62,11 +63,17 @@ __all__ = ["LaplaceFit", "laplace_fit", "DelayModes", "delay_modes", "delay_evid
 
 @dataclasses.dataclass(frozen=True)
 class _Spec:
-    name: str
-    shape: tuple
-    family: str
-    loc: np.ndarray
-    scale: np.ndarray
+    """A parameter's place in the screen's unconstrained vector: its standardised components."""
+
+    param: Param
+
+    @property
+    def name(self) -> str:
+        return self.param.name
+
+    @property
+    def shape(self) -> tuple:
+        return tuple(self.param.shape)
 
     @property
     def size(self) -> int:
@@ -74,14 +81,7 @@ class _Spec:
 
 
 def _specs(model: Model) -> list[_Spec]:
-    out = []
-    for p in model_params(model):
-        family, loc, scale = p.prior[:3]
-        shape = tuple(p.shape)
-        out.append(
-            _Spec(p.name, shape, family, np.broadcast_to(np.asarray(loc, np.float64), shape), np.broadcast_to(np.asarray(scale, np.float64), shape))
-        )
-    return out
+    return [_Spec(p) for p in model_params(model)]
 
 
 def _unpack(specs: list[_Spec], vec):
@@ -90,8 +90,7 @@ def _unpack(specs: list[_Spec], vec):
     for s in specs:
         z = jnp.reshape(vec[i : i + s.size], s.shape)
         i += s.size
-        x = s.loc + s.scale * z
-        values[s.name] = jnp.exp(x) if s.family == "lognormal" else x
+        values[s.name] = s.param.from_standard(z, xp=jnp)
         zs.append(jnp.reshape(z, (-1,)))
     return values, jnp.exp(vec[i]), jnp.exp(vec[i + 1]), jnp.concatenate(zs) if zs else jnp.zeros(0)
 
@@ -103,8 +102,7 @@ def _values_np(specs, vecs: np.ndarray) -> dict[str, np.ndarray]:
     for s in specs:
         z = vecs[..., i : i + s.size].reshape(lead + tuple(s.shape))
         i += s.size
-        x = s.loc + s.scale * z
-        values[s.name] = np.exp(x) if s.family == "lognormal" else x
+        values[s.name] = s.param.from_standard(z)
     return values
 
 
@@ -304,7 +302,6 @@ def _laplace_fit(
     max_iter: int = 400,
     loo: bool = True,
 ) -> LaplaceFit:
-
     data = prepare(cohort, model, trials=trials, legs=legs)
     specs = _specs(model)
     R, K = data.response_length, data.max_shift
@@ -444,7 +441,7 @@ def delay_modes(screen: LaplaceFit, max_iter: int = 400) -> DelayModes:
     span three decades, and unwhitened it took 150–450 iterations per delay where
     whitened it takes 20–250.  Eleven optimisations per leg: a check of the
     delay's modes, and the start of the chains where the screen missed the best
-    (:func:`quadshank.inference._fit.delay_start`).
+    (:func:`quadshank.inference._nuts.delay_start`).
     """
     with jax.enable_x64(True):
         return _delay_modes(screen, max_iter)

@@ -57,18 +57,12 @@ def classical_start(cohort: Cohort, model: Model, data: LikelihoodData, trial: i
     for p in model_params(model):
         if p.level != "leg" or not any(p.name in v for v in per_leg):
             continue
-        family, loc, scale = p.prior[:3]
-        loc = np.broadcast_to(np.asarray(loc, np.float64), p.shape)
-        scale = np.broadcast_to(np.asarray(scale, np.float64), p.shape)
         cols = []
         for v in per_leg:
             if p.name not in v:
                 cols.append(np.zeros(p.shape))
                 continue
-            x = np.asarray(v[p.name], np.float64)
-            if family == "lognormal":
-                x = np.log(np.maximum(x, 1e-30))
-            z = (x - loc) / scale
+            z = p.to_standard(v[p.name])
             # beyond INIT_MAX_Z prior scales the least squares ran along a ridge the data do
             # not close (k1 with k2 and G' when the knee stays out of flexion): prior median
             cols.append(np.where(np.isfinite(z) & (np.abs(z) <= INIT_MAX_Z), z, 0.0))

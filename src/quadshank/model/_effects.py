@@ -79,8 +79,13 @@ from typing import Any, ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 __all__ = [
+    "prior_arrays",
+    "from_standard",
+    "to_standard",
+    "from_unconstrained",
     "sin_deg",
     "Param",
     "Effect",
@@ -113,6 +118,39 @@ KINDS = ("activation", "gain", "pulse", "passive", "delay", "output", "measureme
 SUPPORTS = ("real", "positive", "negative", "unit_interval")
 
 
+def prior_arrays(prior, shape=(), dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
+    """(loc, scale) of a declared prior ``(family, loc, scale)``, broadcast to ``shape``."""
+    return (np.broadcast_to(np.asarray(prior[1], dtype), shape), np.broadcast_to(np.asarray(prior[2], dtype), shape))
+
+
+def from_unconstrained(x, prior, xp=np):
+    """A value from its unconstrained form: exp(x) for a log-normal prior, x itself for a normal one."""
+    return xp.exp(x) if prior[0] == "lognormal" else x
+
+
+def from_standard(z, prior, shape=(), *, xp=np, dtype=np.float64, flat: bool = False):
+    """The value ``z`` prior scales from the prior's centre: g⁻¹(loc + scale·z), g = log for a
+    log-normal prior.  ``flat``: the components (of a vector parameter) lie flattened on z's last axis.
+
+    This standardisation is the one every stage uses: the fit samples z, the screen optimises
+    it, starts and reports are stated in it.
+    """
+    loc, scale = prior_arrays(prior, shape, dtype)
+    if flat:
+        loc, scale = loc.reshape(-1), scale.reshape(-1)
+    return from_unconstrained(loc + scale * z, prior, xp)
+
+
+def to_standard(x, prior, shape=(), dtype=np.float64) -> np.ndarray:
+    """The inverse of :func:`from_standard`: (g(x) − loc)/scale (−∞ for x ≤ 0 under a log-normal prior)."""
+    loc, scale = prior_arrays(prior, shape, dtype)
+    x = np.asarray(x, dtype)
+    if prior[0] == "lognormal":
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = np.where(x > 0, np.log(np.where(x > 0, x, 1.0)), -np.inf)
+    return (x - loc) / scale
+
+
 @dataclasses.dataclass(frozen=True)
 class Param:
     """Declaration of one parameter of an effect.
@@ -122,7 +160,7 @@ class Param:
     population-level belief in the parameter's own units; for a vector
     parameter loc and scale may be tuples, one entry per component.  ``shape``
     is ``()`` for a scalar, or a tuple for a vector parameter.  The hierarchical
-    fit (:mod:`quadshank.inference._fit`) turns each declaration into population, subject
+    fit (:mod:`quadshank.inference._nuts`) turns each declaration into population, subject
     and leg levels down to ``level``.
     """
 
@@ -149,6 +187,14 @@ class Param:
         if isinstance(loc, (tuple, list)):
             return tuple(math.exp(x) if family == "lognormal" else float(x) for x in loc)
         return math.exp(loc) if family == "lognormal" else float(loc)
+
+    def from_standard(self, z, *, xp=np, dtype=np.float64, flat: bool = False):
+        """:func:`from_standard` with this parameter's prior and shape."""
+        return from_standard(z, self.prior, self.shape, xp=xp, dtype=dtype, flat=flat)
+
+    def to_standard(self, x, dtype=np.float64) -> np.ndarray:
+        """:func:`to_standard` with this parameter's prior and shape."""
+        return to_standard(x, self.prior, self.shape, dtype)
 
 
 class StepContext(NamedTuple):

@@ -12,7 +12,8 @@ from ..evaluation._posterior import FIGURE_WINDOW_S, figure_window, window_predi
 from ..evaluation._residuals import leg_residuals
 from ..inference._screen import LaplaceFit, leg_draw_models
 from ..loop._diagnose import ELPD_SE_BAR, J_DRAWS
-from ..outputs._figures import plot_posterior_predictions
+from . import _residual_figures as F
+from ._figures import plot_posterior_predictions
 
 
 def screen_residuals(fit: LaplaceFit) -> dict[str, dict]:
@@ -32,15 +33,15 @@ def residual_figures(residuals: dict[str, dict], out, label: str, dt: float) -> 
         found = R.findings(trends, ac, cc)
         notes[leg] = found
         stem = f"{label}_{leg}"
-        paths.append(R.plot_trends(trends, out / f"residual_trends_{stem}.png", notes=found))
-        paths.append(R.plot_correlations(ac, cc, out / f"residual_correlation_{stem}.png", notes=found))
+        paths.append(F.plot_trends(trends, out / f"residual_trends_{stem}.png", notes=found))
+        paths.append(F.plot_correlations(ac, cc, out / f"residual_correlation_{stem}.png", notes=found))
         groups = np.where(r["angle"] < -20.0, "pulse below -20°", "pulse above -20°")
         tta = R.twitch_triggered_average(r["residual"], r["stimulation"], r["sample_mask"], groups=groups)
-        paths.append(R.plot_twitch_average(tta, out / f"twitch_average_{stem}.png", dt, notes=found))
+        paths.append(F.plot_twitch_average(tta, out / f"twitch_average_{stem}.png", dt, notes=found))
         spec = R.spectrum(r["residual"], r["sample_mask"], dt)
         peak = R.spectrum_finding(spec)
         found.extend(peak)
-        paths.append(R.plot_spectrum(spec, out / f"residual_spectrum_{stem}.png", notes=peak))
+        paths.append(F.plot_spectrum(spec, out / f"residual_spectrum_{stem}.png", notes=peak))
     return paths, notes
 
 
@@ -70,8 +71,8 @@ def predictive_checks(fit: LaplaceFit, cohort: Cohort, out, label: str) -> tuple
         result["worst_seconds"][leg] = sorted(seconds[leg], key=lambda r: r["elpd"])[:3]
         result.setdefault("elpd_total", {})[leg] = float(sum(r["elpd"] for r in seconds[leg]))
     worst = [worst_seconds_sentence(leg, rows) for leg, rows in seconds.items()]
-    paths.append(R.plot_loo_pit(pits, out / f"loo_pit_{label}.png", notes=list(result["notes"])))
-    paths.append(R.plot_elpd_in_time(seconds, out / f"elpd_in_time_{label}.png", notes=worst))
+    paths.append(F.plot_loo_pit(pits, out / f"loo_pit_{label}.png", notes=list(result["notes"])))
+    paths.append(F.plot_elpd_in_time(seconds, out / f"elpd_in_time_{label}.png", notes=worst))
     result["notes"] += worst
     return paths, result
 

@@ -26,7 +26,7 @@ and the advice.
 
 Levels.  A leg's values are the fit summary's (``summary.json`` of the fit); the
 subject and population values are the posterior draws ``<name>_subject`` and
-``<name>_mu`` (:func:`quadshank.inference._fit.hyper_draws`), summarised the same way
+``<name>_mu`` (:func:`quadshank.inference._draws.hyper_draws`), summarised the same way
 (median, 5 % and 95 % quantiles).  The noise parameters σ and ν are per leg and
 have no hierarchy.
 """
@@ -47,6 +47,7 @@ from ..common._io import atomic_write_text, figure_bytes, write_json
 from ..common._progress import progress_bar
 from ..data._paper import HORIZON_MS, TABLE_V
 from ..inference._summaries import INTERVAL, interval
+from ..model._effects import to_standard
 from ._figures import horizon_axis, plot_delay_angle
 
 __all__ = ["write_report", "plot_shrinkage", "plot_delay_posterior", "plot_leg_predictions", "PREDICTION_WINDOW_S", "PREDICTION_HORIZONS"]
@@ -58,17 +59,6 @@ PREDICTION_HORIZONS = (10, 100)
 #: The z of the 5 % and 95 % quantiles of a normal: the prior's 90 % interval in prior scales.
 _Z90 = 1.6448536269514722
 _TRIAL_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
-
-
-# ============================================================================ numbers
-
-
-def _standardise(x: float, prior) -> float:
-    """(g(x) − loc)/scale, g = log for a log-normal prior: the value in prior scales from the prior's centre."""
-    family, loc, scale = prior
-    if family == "lognormal":
-        x = np.log(x) if x > 0 else -np.inf
-    return float((x - loc) / scale)
 
 
 # ============================================================================ J
@@ -101,7 +91,7 @@ def plot_shrinkage(subject: str, legs: list[str], params: dict):
             if q is None:
                 continue
             prior = params[legs[0]]["params"][label]["prior"]
-            lo, med, hi = (_standardise(q[x], prior) for x in ("lo", "median", "hi"))
+            lo, med, hi = (float(to_standard(q[x], prior)) for x in ("lo", "median", "hi"))
             y = base + k
             ax.plot([lo, hi], [y, y], "-", color=colours[level], lw=2)
             first = j == 0 and (level != "leg" or k == 2)
@@ -137,7 +127,6 @@ def _paper_table_v(label: str) -> tuple[str, dict]:
 
 def _plot_j_legs(legs: list[str], J_legs: dict, label: str):
     """J against horizon per leg: median and 90 % band per trial, the paper's Table V (mean ± s.d.) beside."""
-
 
     base, paper = _paper_table_v(label)
     fig, axes = plt.subplots(1, len(legs), figsize=(4.4 * len(legs), 3.6), squeeze=False, sharey=True)
