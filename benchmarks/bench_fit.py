@@ -18,7 +18,7 @@ sampled by nutpie, on the same data with the same chains, warm-up and draws;
 it needs the optional ``bench`` extra (``pip install -e ".[bench]"``).  Its
 log density is checked against quadshank's at a common point first.  nutpie
 runs its chains in parallel threads, numpyro here as the fit runs them
-(``--chain-method auto``, the default: one after another at the issue's size,
+(``--chain-method auto``, the default: one after another at the full size,
 one batched program on small data): the comparison is ESS per second of wall
 time, each sampler used as it is meant to be.  ``--no-peer`` skips it.
 """
@@ -201,14 +201,14 @@ def render(record: dict, section: str) -> str:
         "",
         f"Command: `{r['command']}`",
         "",
-        f"Machine: {r['machine']}; measured {r['date']}. Record: `{section}.json` beside this file "
+        f"Machine: {r['machine']}. Record: `{section}.json` beside this file "
         f"(`python benchmarks/bench_fit.py --from-record results/{section}.json` writes this section again from it).",
         "",
         f"{r['model']} + {', '.join(effects) or 'nothing'} on the simulated cohort ({len(legs)} legs, trial 1 of "
         f"{r['minutes']:g} min, data simulated with {', '.join(effects) or 'no hidden effect'}), "
         f"{r['chains']} chains ({r['chain_method']}) × {r['draws']} draws after {r['warmup']} warm-up, "
         f"chains started from the {r['start']} (`--start {r['start']}`)"
-        + ("" if full else " — **smaller than the issue's configuration (5 legs × 5 min, 4 × 1000 + 1000)**")
+        + ("" if full else " — **smaller than the full configuration (5 legs × 5 min, 4 × 1000 + 1000)**")
         + ".",
         "",
         "| measure | value | target |",

@@ -76,7 +76,7 @@ def main(argv=None) -> int:
         f"Command: `python benchmarks/bench_jphi.py --minutes {args.minutes:g} --loop-starts {args.loop_starts}`",
         "",
         f"Machine: {platform.machine()}, {jax.devices()[0].platform.upper()} ({jax.__version__}), "
-        f"Python {platform.python_version()}; measured {time.strftime('%Y-%m-%d')}.",
+        f"Python {platform.python_version()}.",
         "",
         f"One {args.minutes:g}-minute trial (TN-left trial 2, simulated, seed 0), model 3 identified from trial 1, "
         f"{n_starts} starts × 100-step rollouts, read at p = 10, 25, 50, 100.",

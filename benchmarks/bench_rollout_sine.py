@@ -88,7 +88,7 @@ def main(argv=None) -> int:
 
 Regenerate: `{command}`
 
-Machine: {platform.machine()}, {jax.default_backend().upper()} (jax {jax.__version__}), Python {platform.python_version()}; measured {time.strftime('%Y-%m-%d')}.
+Machine: {platform.machine()}, {jax.default_backend().upper()} (jax {jax.__version__}), Python {platform.python_version()}.
 Posterior J of one 5-minute trial (TN-left trial 2, simulated with angle_delay, seed 0): model 3 + angle_delay
 (hard step) identified from trial 1, {args.draws} jittered draws, {starts} starts × 100-step rollouts, read at p = 10, 25, 50, 100.
 Median of {args.repeats} alternating rounds, compilation excluded.

@@ -25,7 +25,7 @@ def cohort_with(effect):
 
 
 def rankings(effects) -> dict:
-    """The baseline's ranking per dataset; with a hidden effect the five of the issue are
+    """The baseline's ranking per dataset; with a hidden effect the five of HIDDEN are
     screened, with none every registered candidate (built-in and user-written).
 
     With a hidden effect each extension's mode is sought from one start only (the

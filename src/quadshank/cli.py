@@ -542,7 +542,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = argv
-    # the command line draws only into files: no window, whatever the session's display
+    # the command line draws only into files: no window, whatever the display
     matplotlib.use("Agg")
     try:
         return int(args.func(args) or 0)

@@ -219,9 +219,9 @@ _COMPILED: dict = {}
 
 
 def _compiled(model: Model, specs: list[_Spec], R: int, K: int, n_segments: int):
-    """The jitted functions of one model structure, made once per session (screens of many
-    datasets of one shape then compile once)."""
-    key = (jax.tree_util.tree_structure(model), tuple(dataclasses.astuple(s)[:3] for s in specs), R, K, n_segments)
+    """The jitted functions of one model structure and its priors, made once per process
+    (screens of many datasets of one shape then compile once)."""
+    key = (jax.tree_util.tree_structure(model), tuple((s.name, s.shape, repr(s.param.prior)) for s in specs), R, K, n_segments)
     if key in _COMPILED:
         return _COMPILED[key]
     joint, neg_logpost = _objective(model, specs, R, K)
