@@ -50,7 +50,6 @@ from quadshank.inference._fitio import THRESHOLDS
 from quadshank.common._io import write_json
 from quadshank.data._paper import LEGS
 import quadshank.inference._nuts as fit_module
-import quadshank.inference._screen as screen_module
 from quadshank.commands.fit import run_fit
 from quadshank.evaluation._posterior import load_fits, posterior_j
 from quadshank.data._simulate import simulate_cohort
@@ -320,7 +319,7 @@ def main(argv=None) -> int:
     # the per-delay Laplace evidence runs before sampling: its time (less its compilation, which
     # the compilation row holds) is reported on its own, not as sampling
     evidence = {"wall": 0.0, "compile": 0.0}
-    evidence_fn = screen_module.delay_modes
+    evidence_fn = fit_module.delay_modes
 
     def timed_evidence(*a, **k):
         c0, t0 = clock.seconds, time.perf_counter()
@@ -328,7 +327,7 @@ def main(argv=None) -> int:
         evidence.update(wall=time.perf_counter() - t0, compile=clock.seconds - c0)
         return out
 
-    screen_module.delay_modes = timed_evidence  # delay_start imports it when called
+    fit_module.delay_modes = timed_evidence  # what delay_start calls
     # the fit's starting points, for the peer's chains (--peer-start fit)
     fit_starts = {}
     screen_start = fit_module.screen_start
@@ -342,7 +341,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         fit_dir = Path(tmp) / "fit"
         summary, wall, compile_s = clock.timed(run_fit, cohort, fit_dir, args.model, effects, settings, progress=True)
-        diag = summary["diagnostics"]
+        diag = summary.diagnostics
         stats = az.from_netcdf(fit_dir / "fit.nc").sample_stats
         steps_per_draw = float(stats["n_steps"].mean()) if "n_steps" in stats else None
         evidence_s = evidence["wall"] - evidence["compile"]
@@ -364,7 +363,7 @@ def main(argv=None) -> int:
         "legs": legs,
         "minutes": args.minutes,
         "chains": args.chains,
-        "chain_method": summary["chain_method"],
+        "chain_method": summary.chain_method,
         "start": args.start,
         "warmup": args.warmup,
         "draws": args.draws,
@@ -380,7 +379,7 @@ def main(argv=None) -> int:
         "divergences": diag["divergences"],
         "ess_bulk_min_per_s": ess_per_s,
         "steps_per_draw": steps_per_draw,
-        "delay_mode": {leg: s["delay_mode_samples"] for leg, s in summary["legs"].items()},
+        "delay_mode": {leg: s["delay_mode_samples"] for leg, s in summary.legs.items()},
         "j_draws": args.j_draws,
         "j_trials": n_trials,
         "j_wall_s": j_wall,

@@ -94,7 +94,7 @@ cohort, truth = simulate_cohort(legs=LEGS, minutes=MINUTES, seed=SEED, effects=[
 print("hidden:", truth["effect_parameters"])
 summary = run_fit(cohort, WORK / "fit", "model3s", ["angle_delay"], SETTINGS, legs=LEGS, progress=False)
 idata, model, desc = load_fit(WORK / "fit")  # InferenceData, the model, its description
-print(f"sampling took {summary['sampling_seconds']:.0f} s")
+print(f"sampling took {summary.sampling_seconds:.0f} s")
 idata
 
 # %% [markdown]
@@ -107,8 +107,8 @@ idata
 # says so in its summary, in its reports and with the CLI's exit code.
 
 # %%
-diag = summary["diagnostics"]
-print(summary["banner"] or "The fit passed its checks.")
+diag = summary.diagnostics
+print(summary.banner or "The fit passed its checks.")
 pd.Series({k: diag[k] for k in ("rhat_max", "ess_bulk_min", "ess_tail_min", "divergences", "bfmi_min")})
 
 # %% [markdown]
@@ -182,7 +182,7 @@ axes = az.plot_pair(idata, var_names=["damping", "k1", "k2"], coords=sel, diverg
 
 # %%
 fit_summary = read_summary(WORK / "fit")
-params = leg_parameters(idata, desc, fit_summary)
+params = leg_parameters(idata, desc, fit_summary.legs)
 tn_legs = [leg for leg in LEGS if leg.startswith("TN")]
 fig = plot_shrinkage("TN", tn_legs, params)
 
@@ -211,7 +211,7 @@ pd.DataFrame(rows).set_index("leg")
 # falls on one or two whole samples:
 
 # %%
-fig = plot_delay_posterior(list(LEGS), fit_summary)
+fig = plot_delay_posterior(list(LEGS), fit_summary.legs)
 print("true delays [samples]:", {leg: truth["legs"][leg]["active"]["delay_samples"] for leg in LEGS})
 
 # %% [markdown]
@@ -223,7 +223,7 @@ print("true delays [samples]:", {leg: truth["legs"][leg]["active"]["delay_sample
 # within the pulses' range. The paper's −20° is dotted.
 
 # %%
-fig = plot_delay_angle(fit_summary, "model3s + angle_delay")
+fig = plot_delay_angle(fit_summary.legs, "model3s + angle_delay", fit_summary.delay_angle_population)
 
 # %%
 pd.DataFrame({
@@ -232,7 +232,7 @@ pd.DataFrame({
         "threshold median [deg]": (s["delay_angle"]["threshold_deg"] or {}).get("median"),
         "threshold 90 %": (lambda t: f"[{t['lo']:.1f}, {t['hi']:.1f}]" if t else "–")(s["delay_angle"]["threshold_deg"]),
     }
-    for leg, s in fit_summary["legs"].items()
+    for leg, s in fit_summary.legs.items()
 }).T
 
 # %% [markdown]
@@ -245,13 +245,13 @@ pd.DataFrame({
 
 # %%
 ev = run_posterior_evaluate(cohort, [WORK / "fit"], WORK / "evaluate", n_draws=N_J_DRAWS, start_stride=STRIDE)
-fig = plot_posterior_j_vs_horizon(ev["J"])
+fig = plot_posterior_j_vs_horizon(ev.J)
 
 # %%
-label = next(iter(ev["J"]))
+label = next(iter(ev.J))
 pd.DataFrame({
     f"trial {trial}": {f"{h} ms": f"{v['median']:.2f} [{v['lo']:.2f}, {v['hi']:.2f}]" for h, v in by_h.items()}
-    for trial, by_h in ev["J"][label].items()
+    for trial, by_h in ev.J[label].items()
 })
 
 # %% [markdown]
@@ -277,8 +277,8 @@ result = {
     "small": SMALL,
     "fit_ok": bool(diag["ok"]),
     "rhat_max": round(diag["rhat_max"], 3),
-    "delay_mode": {leg: fit_summary["legs"][leg]["delay_mode_samples"] for leg in LEGS},
-    "change_probability": {leg: round(fit_summary["legs"][leg]["delay_angle"]["change_probability"], 3) for leg in LEGS},
-    "J_trial1_1000ms": ev["J"][label]["1"]["1000"],
+    "delay_mode": {leg: fit_summary.legs[leg]["delay_mode_samples"] for leg in LEGS},
+    "change_probability": {leg: round(fit_summary.legs[leg]["delay_angle"]["change_probability"], 3) for leg in LEGS},
+    "J_trial1_1000ms": ev.J[label]["1"]["1000"],
 }
 print(json.dumps(result))

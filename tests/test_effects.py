@@ -237,7 +237,7 @@ def test_simulate_then_recover(name):
         size = spec.size
         if spec.name in truth:
             t = np.asarray(truth[spec.name], float).reshape(-1)
-            z_true = ((np.log(t) if spec.family == "lognormal" else t) - spec.loc.reshape(-1)) / spec.scale.reshape(-1)
+            z_true = spec.param.to_standard(np.reshape(t, spec.shape)).reshape(-1)
             z_mode = fit.mode[0, j : j + size]
             z_sd = fit.draws[0, :, j : j + size].std(axis=0)  # the Laplace Gaussian, in prior scales
             err = np.abs(z_mode - z_true)

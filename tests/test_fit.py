@@ -231,7 +231,7 @@ def test_delay_prior_from_another_fit(fitted, data_dir):
     _, _, desc = load_fit(out)
     assert desc["delay_prior"]["source"] == str(source)
     with pytest.raises(KeyError, match="OT-left"):
-        delay_prior_from(src, ["OT-left"])
+        delay_prior_from(src["legs"], ["OT-left"])
     assert main(["-q", "fit", str(data_dir / "data"), *TINY, "--delay-from", str(data_dir / "nowhere"),
                  "--out", str(data_dir / "bad2")]) == 2
 

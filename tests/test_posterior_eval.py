@@ -201,7 +201,7 @@ def test_delay_angle_figure_has_a_panel_per_leg_and_the_population():
     summary = {"legs": {"TN-left": {"delay_angle": da}, "JM-left": {"delay_angle": {**da, "change_probability": 0.1}},
                         "OT-left": {}},
                "delay_angle_population": {k: da[k] for k in ("angle_deg", "median", "lo", "hi")}}  # fmt: skip
-    fig = plot_delay_angle(summary, "model2+angle_delay")
+    fig = plot_delay_angle(summary["legs"], "model2+angle_delay", summary["delay_angle_population"])
     visible = [ax for ax in fig.axes if ax.get_visible()]
     assert [ax.get_title() for ax in visible] == [
         "TN-left: P(change) 0.97", "JM-left: P(change) 0.10", "population (legs pooled)"

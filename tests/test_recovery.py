@@ -63,13 +63,13 @@ def test_coverage_rows_count_each_component_and_the_delay_mode():
                    "a": {"median": [-1.4, 0.6], "lo": [-1.45, 0.5], "hi": [-1.3, 0.7]}},
         "delay_posterior": p.tolist(),
     }}}  # fmt: skip
-    rows = {r["param"]: r for r in coverage_rows(summary, truth)}
+    rows = {r["param"]: r for r in coverage_rows(summary["legs"], truth)}
     assert set(rows) == {"gain", "a[0]", "a[1]", "delay"}
     assert rows["gain"]["covered"] and rows["a[1]"]["covered"]
     assert not rows["a[0]"]["covered"]  # -1.5 is below the interval [-1.45, -1.3]
     assert not rows["delay"]["covered"] and rows["delay"]["median"] == 3.0
     with pytest.raises(KeyError, match="B-left"):
-        coverage_rows(summary, {"legs": {"B-left": truth["legs"]["A-left"]}})
+        coverage_rows(summary["legs"], {"legs": {"B-left": truth["legs"]["A-left"]}})
 
 
 def test_matching_values_follow_the_paper_tables():
@@ -132,7 +132,8 @@ def test_the_angle_delay_likelihood_finds_the_step_of_matching_data(with_step):
 def test_recovery_reuses_a_finished_fit_of_the_same_truth_settings_and_code(tmp_path, monkeypatch):
     import quadshank.commands.recovery as recovery
     import quadshank.common._provenance as provenance
-    from quadshank.inference._nuts import FitSettings
+    from quadshank.inference import FitResult, FitSettings
+
     calls = []
 
     def fake_run_fit(cohort, out, model, add_effects, settings, progress=False):
@@ -140,11 +141,13 @@ def test_recovery_reuses_a_finished_fit_of_the_same_truth_settings_and_code(tmp_
         truth = json.loads((out / "truth.json").read_text())
         legs = {leg: {"params": {k: {"median": v, "lo": v, "hi": v} for k, v in t["params"].items()},
                       "delay_posterior": [0.0] * 4 + [1.0] + [0.0] * 6} for leg, t in truth["legs"].items()}  # fmt: skip
-        summary = {"legs": legs, "diagnostics": {"rhat_max": 1.0, "ess_bulk_min": 500.0, "divergences": 0, "ok": True},
-                   "code": provenance.code_provenance(),
-                   "settings": json.loads(json.dumps({k: list(v) if isinstance(v, tuple) else v
-                                                      for k, v in settings.__dict__.items()}))}  # fmt: skip
-        (out / "summary.json").write_text(json.dumps(summary))
+        summary = FitResult(
+            model="model1", effects=[], trials=[1], legs=legs, banner=None, chain_method="vectorized",
+            diagnostics={"rhat_max": 1.0, "ess_bulk_min": 500.0, "divergences": 0, "ok": True},
+            settings=json.loads(json.dumps({k: list(v) if isinstance(v, tuple) else v for k, v in settings.__dict__.items()})),
+            sampling_period_s=0.01, interval=[0.05, 0.95], code=provenance.code_provenance(),
+        )
+        summary.write(out)
         (out / "fit.nc").write_text("")
         return summary
 

@@ -24,9 +24,10 @@ from .common._io import read_json
 from .data._interchange import convert, load_cohort, write_interchange
 from .data._paper import LEGS
 from .data._simulate import simulate_cohort, write_truth
-from .inference._fitio import load_fit, read_summary
+from .inference._fitio import FitResult, load_fit, read_summary
 from .inference._identify import load_identification, models_from_summary
 from .inference._nuts import SEQUENTIAL_FROM_SAMPLES, STARTS, FitSettings
+from .loop._diagnose import Diagnosis
 from .model._model import MODELS
 
 __all__ = ["main"]
@@ -62,7 +63,8 @@ def cmd_simulate(args) -> int:
     effects = _csv_list(args.effects) if args.effects else []
     trials = [int(t) for t in _csv_list(args.trials)]
     cohort, truth = simulate_cohort(
-        legs=legs, minutes=args.minutes, seed=args.seed, effects=effects, trials=trials, progress=not args.quiet
+        legs=legs, minutes=args.minutes, seed=args.seed, effects=effects, trials=trials, progress=not args.quiet,
+        sampling_period_s=args.sampling_period_ms / 1000.0,
     )
     out = Path(args.out)
     write_interchange(cohort, out)
@@ -97,19 +99,19 @@ def cmd_evaluate(args) -> int:
             load_cohort(data), args.fit, out, n_draws=args.draws, start_stride=args.start_stride,
             progress=not args.quiet,
         )
-        for model, info in summary["fits"].items():
+        for model, info in summary.fits.items():
             if info["banner"]:
                 print(f"quadshank: warning: {model} ({info['folder']}): {info['banner']}", file=sys.stderr)
-        for model, trials in summary["J"].items():
+        for model, trials in summary.J.items():
             _say(args, f"{model}: " + "; ".join(
                 f"trial {t}: " + ", ".join(f"{h} ms {v['median']:.1f}° [{v['lo']:.1f}, {v['hi']:.1f}]"
                                            for h, v in hv.items())
                 for t, hv in trials.items()
             ))
-        for model, v in summary["loo"]["fits"].items():
+        for model, v in summary.loo["fits"].items():
             _say(args, f"{model}: elpd_loo {v['elpd_loo']:.1f} ± {v['se']:.1f}, p_loo {v['p_loo']:.1f}, "
                        f"{v['pareto_k_over_0.7']} segment(s) with Pareto k > 0.7")
-        for group in summary["loo"]["compare"]:
+        for group in summary.loo["compare"]:
             ranked = sorted(group["table"].items(), key=lambda kv: kv[1]["rank"])
             _say(args, "LOO ranking: " + ", ".join(
                 f"{m} (Δelpd {r['elpd_diff']:.1f} ± {r['dse']:.1f}, weight {r['weight']:.2f})" for m, r in ranked
@@ -118,11 +120,12 @@ def cmd_evaluate(args) -> int:
         return 0
     cohort = load_cohort(data)
     if args.identified:
-        models = load_identification(args.identified)
+        models = load_identification(args.identified, cohort.sampling_period_s)
     else:
         _say(args, f"no --identified folder given: identifying from trial 1 into {out / 'identify'}")
         models = models_from_summary(
-            run_identify(cohort, out / "identify", truth=_truth_beside(data), progress=not args.quiet)
+            run_identify(cohort, out / "identify", truth=_truth_beside(data), progress=not args.quiet),
+            cohort.sampling_period_s,
         )
     summary = run_evaluate_and_report(args, cohort, models, out)
     return 0 if summary else 1
@@ -164,10 +167,10 @@ def cmd_fit(args) -> int:
         progress=not args.quiet,
         data_source=str(Path(args.data).resolve()),
     )
-    for leg, s in summary["legs"].items():
+    for leg, s in summary.legs.items():
         p = s["delay_posterior"]
         _say(args, f"{leg}: P(d) mode {s['delay_mode_samples']} samples ({max(p):.2f})")
-    diag = summary["diagnostics"]
+    diag = summary.diagnostics
     _say(
         args,
         f"R-hat max {diag['rhat_max']:.3f}, bulk ESS min {diag['ess_bulk_min']:.0f}, "
@@ -176,7 +179,7 @@ def cmd_fit(args) -> int:
     for w in diag.get("warnings", []):
         print(f"quadshank: warning: {w}", file=sys.stderr)
     if not diag["ok"]:
-        print(f"quadshank: {summary['banner']}", file=sys.stderr)
+        print(f"quadshank: {summary.banner}", file=sys.stderr)
         for a in diag["advice"]:
             print(f"quadshank: advice: {a}", file=sys.stderr)
         print(f"quadshank: the fit is saved in {args.out} but should not be trusted", file=sys.stderr)
@@ -237,21 +240,21 @@ def cmd_likelihood_check(args) -> int:
     return 0
 
 
-def _loop_data(args, fit_summary: dict | None = None):
-    data = args.data or (fit_summary or {}).get("data")
+def _loop_data(args, fit_summary: FitResult | None = None):
+    data = args.data or (fit_summary.data if fit_summary is not None else None)
     if not data:
         raise ValueError("no data: give --data (the fit does not record where its data came from)")
     return load_cohort(Path(data)), data
 
 
-def _say_ranking(args, summary: dict) -> None:
-    for i, r in enumerate(summary["ranking"], 1):
+def _say_ranking(args, summary: Diagnosis) -> None:
+    for i, r in enumerate(summary.ranking, 1):
         mark = "  <- clears the bar" if r["clears_bar"] else ""
         _say(args, f"{i}. {r['effect']}: dELPD {r['delta_elpd']:.1f} +- {r['delta_elpd_se']:.1f}, "
                    f"J at 1 s {r['J_1000ms']['before']['median']:.3f} -> {r['J_1000ms']['after']['median']:.3f} deg{mark}")
-    for f in summary.get("failed", []):
+    for f in summary.failed:
         _say(args, f"not screened: {f['effect']} ({f['error']})")
-    _say(args, f"verdict: {summary['verdict']}. {summary['sentence']}")
+    _say(args, f"verdict: {summary.verdict}. {summary.sentence}")
 
 
 def cmd_diagnose(args) -> int:
@@ -285,11 +288,11 @@ def cmd_discover(args) -> int:
         max_rounds=args.max_rounds, command=command, progress=not args.quiet, confirm=confirm,
         data_source=str(Path(data).resolve()),
     )
-    for k, r in enumerate(summary["rounds"], 1):
+    for k, r in enumerate(summary.rounds, 1):
         _say(args, f"round {k}: {r['model']}: verdict {r['verdict']}")
-    if "confirm" in summary:
-        _say(args, summary["confirm"]["sentence"])
-    _say(args, f"final model: {summary['final_model']}; report: {Path(args.out) / 'report.md'}")
+    if summary.confirm is not None:
+        _say(args, summary.confirm["sentence"])
+    _say(args, f"final model: {summary.final_model}; report: {Path(args.out) / 'report.md'}")
     return 0
 
 
@@ -297,10 +300,10 @@ def cmd_compare(args) -> int:
     cohort, _ = _loop_data(args, read_summary(args.fit_a))
     summary = run_posterior_evaluate(cohort, [args.fit_a, args.fit_b], args.out, n_draws=args.draws,
                                      start_stride=args.start_stride, progress=not args.quiet, residuals=True)
-    for group in summary.get("loo", {}).get("compare", []):
+    for group in summary.loo.get("compare", []):
         for label, row in group["table"].items():
             _say(args, f"{label}: rank {row['rank']}, elpd difference {row['elpd_diff']:.1f} +- {row['dse']:.1f}")
-    for label, legs in summary["residual_findings"].items():
+    for label, legs in summary.residual_findings.items():
         for leg, lines in legs.items():
             _say(args, f"{label} {leg} residuals: " + (" ".join(lines) if lines else "nothing stands out."))
     _say(args, f"J bands, PSIS-LOO, residuals before and after, figures: {Path(args.out) / 'report.md'}")
@@ -314,7 +317,7 @@ def cmd_report(args) -> int:
                          diagnosis=args.diagnosis or None, n_draws=args.draws, start_stride=args.start_stride,
                          progress=not args.quiet)
     if not summary["diagnostics_ok"]:
-        print(f"quadshank: warning: {args.fitdir}: {fit_summary['banner']}", file=sys.stderr)
+        print(f"quadshank: warning: {args.fitdir}: {fit_summary.banner}", file=sys.stderr)
     _say(args, f"{len(summary['pages']) - 1} subject page(s), per-leg CSV and JSON; open {Path(args.out) / 'index.html'}")
     return 0
 
@@ -392,6 +395,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True)
     sim_options(s, 5.0)
     s.add_argument("--trials", default="1,2,3", help="trial numbers, comma-separated")
+    s.add_argument("--sampling-period-ms", type=float, default=10.0,
+                   help="the recordings' sampling period [ms], a whole number from 1 to 32 (default: the paper's 10)")
     s.set_defaults(func=cmd_simulate)
 
     c = sub.add_parser("convert", help="interchange folder <-> NetCDF file, losslessly")

@@ -100,7 +100,7 @@ def run_demo(
     step("evaluate")
 
     say(f"4/5 which effect is missing: {', '.join(DEMO_EFFECTS)} screened -> {out / 'diagnose'}")
-    diag = run_diagnose(fit_cohort, build_model("model3s"), out / "diagnose", legs=fit_legs, effects=DEMO_EFFECTS,
+    diag = run_diagnose(fit_cohort, build_model("model3s", sampling_period_s=fit_cohort.sampling_period_s), out / "diagnose", legs=fit_legs, effects=DEMO_EFFECTS,
                         command=command, progress=progress, seed=seed, n_starts=DEMO_N_STARTS)
     step("diagnose")
 
@@ -109,7 +109,7 @@ def run_demo(
                         diagnosis=out / "diagnose", progress=progress)
     step("report")
 
-    diagnostics = fit["diagnostics"]
+    diagnostics = fit.diagnostics
     summary = {
         "command": command,
         "minutes": minutes,
@@ -120,8 +120,8 @@ def run_demo(
         "fit_settings": {"model": "model3s", "chains": chains, "warmup": warmup, "draws": draws,
                          "max_tree_depth": max_tree_depth, "trials": [1]},
         "fit_ok": bool(diagnostics["ok"]),
-        "fit_banner": fit.get("banner"),
-        "verdict": diag["verdict"],
+        "fit_banner": fit.banner,
+        "verdict": diag.verdict,
         "recovery_ok": rep["recovery_ok"],
         "report": str(out / "report" / "index.html"),
         "folders": {k: str(out / k) for k in ("reproduce", "fit", "evaluate", "diagnose", "report")},
@@ -144,9 +144,9 @@ def run_demo(
         "(`reproduce/report.md`).",
         f"- Fit: model3s on trial 1 of {', '.join(fit_legs)}, {chains} chains × {draws} draws after {warmup} warm-up "
         f"(tree depth {max_tree_depth}): "
-        + ("passed its checks." if diagnostics["ok"] else f"**{fit.get('banner')}** — chains this short are a demo, "
+        + ("passed its checks." if diagnostics["ok"] else f"**{fit.banner}** — chains this short are a demo, "
            "not a result; see the advice in `fit/summary.json`."),
-        f"- Diagnosis: verdict `{diag['verdict']}`. {diag['sentence']}",
+        f"- Diagnosis: verdict `{diag.verdict}`. {diag.sentence}",
         "- Report: `report/index.html`.",
         "",
     ]

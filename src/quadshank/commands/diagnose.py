@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..common._io import write_json
+from ..common._io import atomic_write_text
 from ..common._progress import progress_bar
 from ..data._cohort import Cohort
 from ..evaluation._posterior import LoadedFit, load_fits, psis_loo
@@ -15,6 +15,7 @@ from ..inference._screen import LaplaceFit, paired_difference
 from ..loop._diagnose import (
     J_DRAWS,
     J_START_STRIDE,
+    Diagnosis,
     Ranking,
     evidence_bar,
     nuts_j_draws,
@@ -66,7 +67,7 @@ def confirm_with_nuts(
     trials = tuple(eval_trials) if eval_trials is not None else trials_of(cohort, desc["legs"])
     base_name, *adds = desc["model"].split("+")
     s = run_fit(cohort, out, base_name, [*adds, effect], settings, legs=desc["legs"], progress=progress,
-                data_source=base.summary.get("data"))
+                data_source=base.summary.data)
     (ext,) = load_fits([out])
     loo_a, loo_b = psis_loo(base.idata, str(base.folder)), psis_loo(ext.idata, str(ext.folder))
     if list(loo_a.loo_i["observation"].values) != list(loo_b.loo_i["observation"].values):
@@ -77,12 +78,12 @@ def confirm_with_nuts(
     J_ext = nuts_j_draws(ext, cohort, trials, n_draws=n_j_draws, start_stride=start_stride)
     return {
         "effect": effect,
-        "model": s["model"],
+        "model": s.model,
         "folder": str(Path(out)),
         **evidence_bar(d, se, J_base, J_ext, registered_effects()[effect].predicts_angle),
         "pareto_k_max": float(np.max(np.asarray(loo_b.pareto_k))),
-        "diagnostics": s["diagnostics"],
-        "banner": s.get("banner"),
+        "diagnostics": s.diagnostics,
+        "banner": s.banner,
     }
 
 
@@ -119,7 +120,7 @@ def run_diagnose(
     n_starts: int = 3,
     confirm_from=None,
     n_confirm: int = 1,
-) -> dict:
+) -> Diagnosis:
     """Rank the candidate effects for ``model``; writes figures, report.md and summary.json (last).
 
     ``n_starts``: see :func:`rank_effects`.  ``confirm_from``: a NUTS fit folder of
@@ -136,30 +137,26 @@ def run_diagnose(
     if confirm_from is not None:
         ranking.verdict = confirm_leaders(cohort, ranking, confirm_from, out / "confirm", n_confirm=n_confirm,
                                           progress=progress)
-    summary = ranking.to_json()
-    summary["sentence"] = verdict_sentence(ranking)
+    result = Diagnosis(**ranking.to_json(), sentence=verdict_sentence(ranking), trials=[int(t) for t in trials],
+                       screened=ranking)
     if confirm_from is not None:
-        summary["screen_verdict"] = screen_verdict
-        summary["confirmed_from"] = str(confirm_from)
-        said = nuts_sentence(summary)
+        result.screen_verdict = screen_verdict
+        result.confirmed_from = str(confirm_from)
+        said = nuts_sentence(result.ranking)
         if ranking.verdict == "none" and screen_verdict != "none":
-            summary["sentence"] = f"The screen's leader, {screen_verdict}, is not confirmed by NUTS. {said}"
+            result.sentence = f"The screen's leader, {screen_verdict}, is not confirmed by NUTS. {said}"
         elif said:
-            summary["sentence"] += " " + said
-    summary["trials"] = [int(t) for t in trials]
+            result.sentence += " " + said
     dt = ranking.base.model.sampling_period_s
     if figures:
-        paths, checks = predictive_checks(ranking.base, cohort, out, "baseline")
-        summary["predictive_checks"] = checks
-        more, notes = residual_figures(screen_residuals(ranking.base), out, "baseline", dt)
+        paths, result.predictive_checks = predictive_checks(ranking.base, cohort, out, "baseline")
+        more, result.residual_findings = residual_figures(screen_residuals(ranking.base), out, "baseline", dt)
         paths += more
         if ranking.verdict != "none":
-            more, after = residual_figures(screen_residuals(ranking.fits[ranking.verdict]), out, "with_" + ranking.verdict, dt)
+            more, result.residual_findings_after = residual_figures(
+                screen_residuals(ranking.fits[ranking.verdict]), out, "with_" + ranking.verdict, dt)
             paths += more
-            summary["residual_findings_after"] = after
-        summary["residual_findings"] = notes
-        summary["figures"] = [p.name for p in paths]
-    (out / "report.md").write_text(ranking_markdown(summary, command))
-    write_json(out / "summary.json", summary)
-    summary["_ranking"] = ranking
-    return summary
+        result.figures = [p.name for p in paths]
+    atomic_write_text(out / "report.md", ranking_markdown(result, command))
+    result.write(out)
+    return result

@@ -4,17 +4,18 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..common._io import write_json
+from ..common._io import atomic_write_text
 from ..data._cohort import Cohort
 from ..inference._priors import build_model
+from ..loop._diagnose import Discovery
 from ..model._model import Model
 from .diagnose import run_diagnose
 from .evaluate import run_posterior_evaluate
 from .fit import run_fit
 
 
-def _fit_entry(summary: dict, folder: str) -> dict:
-    return {"folder": folder, "model": summary["model"], "banner": summary.get("banner"), "diagnostics": summary["diagnostics"]}
+def _fit_entry(folder: str, model: str, banner: str | None, diagnostics: dict) -> dict:
+    return {"folder": folder, "model": model, "banner": banner, "diagnostics": diagnostics}
 
 
 def _compare_start_final(cohort, out, fits: dict, *, n_draws, start_stride, progress) -> dict:
@@ -24,8 +25,8 @@ def _compare_start_final(cohort, out, fits: dict, *, n_draws, start_stride, prog
     cmp = run_posterior_evaluate(cohort, [out / fits["start"]["folder"], out / fits["final"]["folder"]], out / "confirm" / "compare",
                                  n_draws=n_draws, start_stride=start_stride, progress=progress, residuals=True)
     a, b = fits["start"]["model"], fits["final"]["model"]
-    group = (cmp["loo"]["compare"] or [{}])[0].get("table", {})
-    J = cmp["J"]
+    group = (cmp.loo["compare"] or [{}])[0].get("table", {})
+    J = cmp.J
     trial = sorted(J[a])[-1]
     ja, jb = J[a][trial]["1000"], J[b][trial]["1000"]
     elpd = group.get(a, {})
@@ -54,7 +55,7 @@ def run_discover(
     data_source: str | None = None,
     compare_draws: int = 100,
     compare_stride: int = 10,
-) -> dict:
+) -> Discovery:
     """The whole loop: diagnose, add the leading effect, diagnose again, while an effect clears the bar.
 
     ``confirm`` (a :class:`quadshank.inference._nuts.FitSettings`): then every round's leader
@@ -68,41 +69,39 @@ def run_discover(
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    current = build_model(model) if isinstance(model, str) else model
+    current = build_model(model, sampling_period_s=cohort.sampling_period_s) if isinstance(model, str) else model
     fits, nuts_folder = {}, None
     if confirm is not None:
-
         base_name, *adds = current.name.split("+")
         nuts_folder = out / "confirm" / "fit-start"
         s = run_fit(cohort, nuts_folder, base_name, adds, confirm, legs=legs, progress=progress, data_source=data_source)
-        fits["start"] = fits["final"] = _fit_entry(s, "confirm/fit-start")
+        fits["start"] = fits["final"] = _fit_entry("confirm/fit-start", s.model, s.banner, s.diagnostics)
     rounds, base = [], None
     for k in range(1, max_rounds + 1):
         s = run_diagnose(
             cohort, current, out / f"round-{k}", trials=trials, legs=legs, effects=effects, base=base, progress=progress,
             confirm_from=nuts_folder,
         )
-        ranking = s.pop("_ranking")
-        rounds.append({"model": current.name, "verdict": s["verdict"], "sentence": s["sentence"], "J_ms": s["J_ms"], "elpd": s["elpd"]})
-        if "screen_verdict" in s:
-            rounds[-1]["screen_verdict"] = s["screen_verdict"]
-        if s["verdict"] == "none":
+        rounds.append({"model": current.name, "verdict": s.verdict, "sentence": s.sentence, "J_ms": s.J_ms, "elpd": s.elpd})
+        if s.screen_verdict is not None:
+            rounds[-1]["screen_verdict"] = s.screen_verdict
+        if s.verdict == "none":
             break
-        base = ranking.fits[s["verdict"]]
+        base = s.screened.fits[s.verdict]
         current = base.model
         if confirm is not None:
-            row = next(r for r in s["ranking"] if r["effect"] == s["verdict"])
-            nuts_folder = Path(row["nuts"]["folder"])
-            fits["final"] = _fit_entry(row["nuts"], nuts_folder.relative_to(out).as_posix())
-    summary = {"model": rounds[0]["model"], "final_model": current.name, "rounds": rounds,
-               "added": [r["verdict"] for r in rounds if r["verdict"] != "none"]}
+            nuts = next(r for r in s.ranking if r["effect"] == s.verdict)["nuts"]
+            nuts_folder = Path(nuts["folder"])
+            fits["final"] = _fit_entry(nuts_folder.relative_to(out).as_posix(), nuts["model"], nuts["banner"], nuts["diagnostics"])
+    summary = Discovery(model=rounds[0]["model"], final_model=current.name, rounds=rounds,
+                        added=[r["verdict"] for r in rounds if r["verdict"] != "none"])
     if confirm is not None:
-        summary["confirm"] = dict(fits)
-        if summary["added"]:
-            summary["confirm"].update(_compare_start_final(cohort, out, fits, n_draws=compare_draws,
-                                                           start_stride=compare_stride, progress=progress))
+        summary.confirm = dict(fits)
+        if summary.added:
+            summary.confirm.update(_compare_start_final(cohort, out, fits, n_draws=compare_draws,
+                                                        start_stride=compare_stride, progress=progress))
         else:
-            summary["confirm"]["sentence"] = "Nothing was added; the start model's fit is in confirm/fit-start."
+            summary.confirm["sentence"] = "Nothing was added; the start model's fit is in confirm/fit-start."
     md = ["# The modelling loop (`quadshank discover`)", ""]
     if command:
         md += [f"Regenerate: `{command}`", ""]
@@ -115,10 +114,10 @@ def run_discover(
         )
     md += ["", f"Final model: **{current.name}**."]
     if confirm is not None:
-        c = summary["confirm"]
+        c = summary.confirm
         md += ["", "## Confirmed with hierarchical NUTS", "", c["sentence"], "",
                f"Fits: [{c['start']['folder']}]({c['start']['folder']}), [{c['final']['folder']}]({c['final']['folder']}); "
                f"comparison with residuals before and after: [confirm/compare/report.md](confirm/compare/report.md)."]
-    (out / "report.md").write_text("\n".join(md) + "\n")
-    write_json(out / "summary.json", summary)
+    atomic_write_text(out / "report.md", "\n".join(md) + "\n")
+    summary.write(out)
     return summary

@@ -10,11 +10,12 @@ from pathlib import Path
 
 from ..common._io import atomic_write_text, save_figure, write_json
 from ..data._cohort import Cohort, Trial
-from ..data._paper import HORIZON_MS, HORIZONS, TABLE_V
+from ..data._paper import HORIZONS_MS, TABLE_V
 from ..evaluation._posterior import (
     FIGURE_WINDOW_S,
     PARETO_K_BAD,
     LoadedFit,
+    PosteriorEvaluation,
     check_fit_legs,
     figure_window,
     load_fits,
@@ -24,7 +25,13 @@ from ..evaluation._posterior import (
     summarise_j,
     window_predictions,
 )
-from ..evaluation._prediction import evaluate_cohort, predictions, sign_tests, table_v
+from ..evaluation._prediction import (
+    evaluate_cohort,
+    horizon_samples,
+    predictions,
+    sign_tests,
+    table_v,
+)
 from ..evaluation._residuals import fit_residuals
 from ..inference._fitio import posterior_models
 from ..inference._summaries import INTERVAL
@@ -46,7 +53,7 @@ def _table_v_rows(J: dict, labels: list[str]) -> list[dict]:
     """Posterior Table V: median and 90 % band of the mean over legs, the paper's mean (s.d.) beside."""
     rows = []
     for tr in sorted({tr for by_trial in J.values() for tr in by_trial}, key=int):
-        for h in (str(HORIZON_MS[p]) for p in HORIZONS):
+        for h in map(str, HORIZONS_MS):
             row: dict = {"trial": tr, "horizon [ms]": int(h)}
             for label in labels:
                 v = J[label].get(tr, {}).get(h, {})
@@ -111,10 +118,12 @@ def _prediction_figures(fits, cohort, J_legs, out: Path, *, n_draws: int, seed: 
     window = figure_window(trial, FIGURE_WINDOW_S)
     models = {f.label: posterior_models(f.idata, f.model, leg, n_draws, seed)[0] for f in fits if leg in f.desc["legs"]}
     paths = []
-    horizons = {10: "fig5_posterior_predictions_100ms.png", 100: "fig6_posterior_predictions_1s.png"}
-    predicted = {label: window_predictions(m, trial, horizons, window) for label, m in models.items()}
-    for p, name in horizons.items():
-        j = {label: J_legs[label][leg][str(trial.trial)][str(HORIZON_MS[p])] for label in models}
+    hs = horizon_samples(trial.sampling_period_s, (100, 1000))
+    names = {100: "fig5_posterior_predictions_100ms.png", 1000: "fig6_posterior_predictions_1s.png"}
+    predicted = {label: window_predictions(m, trial, hs.values(), window) for label, m in models.items()}
+    for h, name in names.items():
+        p = hs[h]
+        j = {label: J_legs[label][leg][str(trial.trial)][str(h)] for label in models}
         fig = plot_posterior_predictions(trial, {label: pr[p] for label, pr in predicted.items()}, p, j=j,
                                          start_s=window[0], length_s=FIGURE_WINDOW_S[1])
         paths.append(save_figure(fig, out / "figures" / name))
@@ -149,7 +158,7 @@ def run_posterior_evaluate(
     seed: int = 0,
     progress: bool = False,
     residuals: bool = False,
-) -> dict:
+) -> PosteriorEvaluation:
     """Posterior J (Table V with bands), sign tests, PSIS-LOO, Figs. 5-6 with bands; summary.json last.
 
     ``residuals``: also each fit's residual diagnostics at its posterior medians
@@ -173,7 +182,7 @@ def run_posterior_evaluate(
 
     md = ["# Posterior evaluation: k-step-ahead angle prediction (eq. 12) and PSIS-LOO", ""]
     for f in fits:
-        banner = f.summary.get("banner")
+        banner = f.summary.banner
         md.append(f"- {f.label}: fit {f.folder}, fitted on trial(s) {', '.join(map(str, f.desc['trials']))}"
                   + (f" — **{banner}**" if banner else ""))
     md.append("")
@@ -192,41 +201,40 @@ def run_posterior_evaluate(
     figures = [save_figure(plot_posterior_j_vs_horizon(J), out / "figures" / "table5_posterior_j_vs_horizon.png")]
     figures += _prediction_figures(fits, cohort, J_legs, out, n_draws=n_draws, seed=seed)
     for f in fits:
-        if any("delay_angle" in s for s in f.summary["legs"].values()):
-            fig = plot_delay_angle(f.summary, f.label)
+        if any("delay_angle" in s for s in f.summary.legs.values()):
+            fig = plot_delay_angle(f.summary.legs, f.label, f.summary.delay_angle_population)
             figures.append(save_figure(fig, out / "figures" / f"delay_angle_{f.label.replace('+', '_')}.png"))
     md += ["## Figures", "", *[f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in figures], ""]
     findings = _residual_section(fits, cohort, out, md) if residuals else None
 
-    summary = {
-        "method": "posterior",
-        "J": J,
-        "J_legs": J_legs,
-        "sign_tests": tests,
-        "loo": loo,
-        "fits": {
+    result = PosteriorEvaluation(
+        method="posterior",
+        J=J,
+        J_legs=J_legs,
+        sign_tests=tests,
+        loo=loo,
+        fits={
             f.label: {
                 "folder": str(f.folder),
                 "legs": list(f.desc["legs"]),
                 "trials_fitted": list(f.desc["trials"]),
                 "draws_used": min(n_draws, f.idata.posterior.sizes["chain"] * f.idata.posterior.sizes["draw"]),
-                "banner": f.summary.get("banner"),
+                "banner": f.summary.banner,
             }
             for f in fits
         },
-        "legs": list(dict.fromkeys(leg for f in fits for leg in f.desc["legs"])),
-        "horizons_samples": list(HORIZONS),
-        "interval": list(INTERVAL),
-        "n_draws": n_draws,
-        "start_stride": start_stride,
-        "seed": seed,
-        "evaluation_seconds": elapsed,
-    }
-    if findings is not None:
-        summary["residual_findings"] = findings
+        legs=list(dict.fromkeys(leg for f in fits for leg in f.desc["legs"])),
+        horizons_samples=list(horizon_samples(cohort.sampling_period_s).values()),
+        interval=list(INTERVAL),
+        n_draws=n_draws,
+        start_stride=start_stride,
+        seed=seed,
+        evaluation_seconds=elapsed,
+    )
+    result.residual_findings = findings
     atomic_write_text(out / "report.md", "\n".join(md))
-    write_json(out / "summary.json", summary)
-    return summary
+    result.write(out)
+    return result
 
 
 def run_evaluate(
@@ -259,8 +267,9 @@ def run_evaluate(
     trial_numbers = [t.trial for t in cohort.trials_of(leg)]
     trial = cohort.get(leg, 2 if 2 in trial_numbers else trial_numbers[0])
     preds = {name: predictions(m, trial) for name, m in models[leg].items()}
-    save_figure(plot_predictions(trial, preds, 10), out / "figures" / "fig5_predictions_100ms.png")
-    save_figure(plot_predictions(trial, preds, 100), out / "figures" / "fig6_predictions_1s.png")
+    hs = horizon_samples(trial.sampling_period_s, (100, 1000))
+    save_figure(plot_predictions(trial, preds, hs[100]), out / "figures" / "fig5_predictions_100ms.png")
+    save_figure(plot_predictions(trial, preds, hs[1000]), out / "figures" / "fig6_predictions_1s.png")
 
     summary = {
         "J": {m: {tr: {str(h): v[0] for h, v in hv.items()} for tr, hv in _by_model(T, m).items()} for m in J},
@@ -269,7 +278,7 @@ def run_evaluate(
                           for leg, trials in legs.items()} for m, legs in J.items()},
         "sign_tests": tests,
         "legs": list(cohort.legs),
-        "horizons_samples": list(HORIZONS),
+        "horizons_samples": list(horizon_samples(cohort.sampling_period_s).values()),
         "evaluation_seconds": elapsed,
     }
     atomic_write_text(out / "report.md", "\n".join(md))

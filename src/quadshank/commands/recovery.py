@@ -23,7 +23,7 @@ from ..evaluation._recovery import (
     likelihood_calibration,
     simulate_matching,
 )
-from ..inference._fitio import from_json, read_summary, to_json
+from ..inference._fitio import FitResult, from_json, read_summary, to_json
 from ..inference._nuts import FitSettings
 from ..inference._priors import build_model
 from ..model._likelihood import max_shift
@@ -31,7 +31,7 @@ from ..outputs._recovery import coverage_markdown, likelihood_markdown
 from .fit import run_fit
 
 
-def _finished_fit(fit_dir: Path, truth: dict, settings) -> dict | None:
+def _finished_fit(fit_dir: Path, truth: dict, settings) -> FitResult | None:
     """The summary of a complete earlier fit of the same truth with the same settings by the
     same code (its source fingerprint, :func:`quadshank.common._provenance.code_fingerprint`), else None.
 
@@ -44,8 +44,8 @@ def _finished_fit(fit_dir: Path, truth: dict, settings) -> dict | None:
         same_truth = read_json(fit_dir / "truth.json") == json.loads(json.dumps(truth))
     except (FileNotFoundError, ValueError, KeyError):
         return None
-    same_code = summary.get("code", {}).get("fingerprint") == code_fingerprint()
-    return summary if same_truth and same_code and summary.get("settings") == _settings_json(settings) else None
+    same_code = summary.code.get("fingerprint") == code_fingerprint()
+    return summary if same_truth and same_code and summary.settings == _settings_json(settings) else None
 
 
 def _settings_json(settings) -> dict:
@@ -103,17 +103,17 @@ def run_recovery(
                 fit_dir.mkdir(parents=True, exist_ok=True)
                 write_json(fit_dir / "truth.json", truth)
                 summary = run_fit(cohort, fit_dir, model, add_effects, fs, progress=progress)
-            diag = summary["diagnostics"]
+            diag = summary.diagnostics
             info = {"seed": seed, "reused": reused, **{k: diag[k] for k in ("rhat_max", "ess_bulk_min", "divergences", "ok")},
-                    "sampling_seconds": summary.get("sampling_seconds"), "delay_splits": diag.get("delay_splits", {}),
+                    "sampling_seconds": summary.sampling_seconds, "delay_splits": diag.get("delay_splits", {}),
                     "delay_missed": diag.get("delay_missed", {})}  # fmt: skip
-            changes = {leg: s["delay_angle"]["change_probability"] for leg, s in summary["legs"].items() if "delay_angle" in s}
+            changes = {leg: s["delay_angle"]["change_probability"] for leg, s in summary.legs.items() if "delay_angle" in s}
             if changes:
                 info["change_probability"] = changes
-                info["threshold_deg"] = {leg: s["delay_angle"]["threshold_deg"] for leg, s in summary["legs"].items()
+                info["threshold_deg"] = {leg: s["delay_angle"]["threshold_deg"] for leg, s in summary.legs.items()
                                          if "delay_angle" in s}  # fmt: skip
             diags.append(info)
-            seed_rows = coverage_rows(summary, truth)
+            seed_rows = coverage_rows(summary.legs, truth)
             if ml is not None:
                 add_pulls(seed_rows, ml, cohort, truth)
             for r in seed_rows:

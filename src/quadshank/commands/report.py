@@ -6,9 +6,11 @@ import time
 from pathlib import Path
 
 from ..common._io import read_json, write_json
+from ..common._results import SchemaError
 from ..data._interchange import load_cohort
 from ..evaluation._parameters import leg_parameters, population_spreads
 from ..evaluation._posterior import (
+    PosteriorEvaluation,
     check_fit_legs,
     figure_window,
     load_fits,
@@ -16,23 +18,27 @@ from ..evaluation._posterior import (
     summarise_j,
     window_predictions,
 )
+from ..evaluation._prediction import horizon_samples
 from ..inference._fitio import posterior_models
-from ..outputs._report import PREDICTION_HORIZONS, PREDICTION_WINDOW_S, write_report
+from ..loop._diagnose import Diagnosis, Discovery
+from ..outputs._report import PREDICTION_HORIZONS_MS, PREDICTION_WINDOW_S, write_report
 
 
 def _j_from_evaluation(folder, label: str, legs) -> tuple[dict, dict, str]:
-    s = read_json(Path(folder) / "summary.json")
-    if "J_legs" not in s:
-        raise ValueError(f"{folder}: not an output of `quadshank evaluate --fit` (its summary.json has no J_legs)")
-    if label not in s["J_legs"]:
-        raise ValueError(f"{folder}: the evaluation has no fit of {label!r} (it has {', '.join(s['J_legs']) or 'none'})")
-    missing = [leg for leg in legs if leg not in s["J_legs"][label]]
+    path = Path(folder) / "summary.json"
+    doc = read_json(path)
+    if not isinstance(doc, dict) or doc.get("schema") != PosteriorEvaluation.schema():
+        raise SchemaError(f"{path}: not an output of `quadshank evaluate --fit` (its schema is {doc.get('schema') if isinstance(doc, dict) else None!r})")
+    s = PosteriorEvaluation.from_json(doc, str(path))
+    if label not in s.J_legs:
+        raise ValueError(f"{folder}: the evaluation has no fit of {label!r} (it has {', '.join(s.J_legs) or 'none'})")
+    missing = [leg for leg in legs if leg not in s.J_legs[label]]
     if missing:
         raise ValueError(f"{folder}: the evaluation of {label} lacks leg(s) {', '.join(missing)}")
-    n = s.get("fits", {}).get(label, {}).get("draws_used", s.get("n_draws"))
-    how = (f"from the evaluation in {folder} ({n} posterior draws, one start in every {s.get('start_stride', 1)} samples; "
-           f"fit {s.get('fits', {}).get(label, {}).get('folder', '?')})")
-    return s["J"].get(label, {}), s["J_legs"][label], how
+    fit = s.fits.get(label, {})
+    how = (f"from the evaluation in {folder} ({fit.get('draws_used', s.n_draws)} posterior draws, one start in every "
+           f"{s.start_stride} samples; fit {fit.get('folder', '?')})")
+    return s.J.get(label, {}), s.J_legs[label], how
 
 
 def _prediction_case(cohort, leg: str):
@@ -46,26 +52,34 @@ def _leg_predictions(fit, cohort, leg: str, n_draws: int, seed: int) -> tuple:
     trial = _prediction_case(cohort, leg)
     window = figure_window(trial, PREDICTION_WINDOW_S)
     models, _ = posterior_models(fit.idata, fit.model, leg, n_draws, seed)
-    return trial, window, window_predictions(models, trial, PREDICTION_HORIZONS, window)
+    horizons = horizon_samples(trial.sampling_period_s, PREDICTION_HORIZONS_MS).values()
+    return trial, window, window_predictions(models, trial, horizons, window)
 
 
 def _read_diagnosis(folder, label: str) -> dict:
-    """A ``quadshank diagnose`` summary (one ranking) or a ``discover`` summary (one per round)."""
+    """A ``quadshank diagnose`` result (one ranking) or a ``discover`` one (a ranking per round):
+    ``{"folder", "blocks": [{"title", "summary": Diagnosis}], "final_model"}``."""
     folder = Path(folder)
-    s = read_json(folder / "summary.json")
-    if "ranking" in s:
-        blocks = [{"title": None, "summary": s}]
-        models = [s.get("model")]
-    elif "rounds" in s:
+    path = folder / "summary.json"
+    doc = read_json(path)
+    schema = doc.get("schema") if isinstance(doc, dict) else None
+    final = None
+    if schema == Diagnosis.schema():
+        d = Diagnosis.from_json(doc, str(path))
+        blocks, models = [{"title": None, "summary": d}], [d.model]
+    elif schema == Discovery.schema():
+        s = Discovery.from_json(doc, str(path))
         blocks = []
-        for k, r in enumerate(s["rounds"], 1):
-            path = folder / f"round-{k}" / "summary.json"
-            rs = read_json(path) if path.exists() else {k2: r.get(k2) for k2 in ("model", "verdict", "sentence")}
-            blocks.append({"title": f"round {k}", "summary": rs})
-        models = [r.get("model") for r in s["rounds"]]
+        for k, r in enumerate(s.rounds, 1):
+            round_dir = folder / f"round-{k}"
+            rd = (Diagnosis.read(round_dir) if (round_dir / "summary.json").exists() else
+                  Diagnosis(model=r["model"], legs=[], elpd=r.get("elpd", {}), J_ms=r.get("J_ms", {}), ranking=[],
+                            verdict=r["verdict"], bar={}, sentence=r["sentence"], trials=[]))
+            blocks.append({"title": f"round {k}", "summary": rd})
+        models, final = [r["model"] for r in s.rounds], s.final_model
     else:
-        raise ValueError(f"{folder}: not an output of `quadshank diagnose` or `discover` (summary.json has no ranking)")
-    out = {"folder": str(folder), "blocks": blocks, "final_model": s.get("final_model")}
+        raise SchemaError(f"{path}: not an output of `quadshank diagnose` or `discover` (its schema is {schema!r})")
+    out = {"folder": str(folder), "blocks": blocks, "final_model": final}
     if label.split("+")[0] not in {str(m).split("+")[0] for m in models}:
         out["mismatch"] = f"The diagnosis screened {', '.join(map(str, models))}; this fit is of {label}."
     return out
@@ -104,9 +118,9 @@ def run_report(
     legs = list(desc["legs"])
     diag_info = _read_diagnosis(diagnosis, label) if diagnosis else None
     if cohort is None:
-        if not fs.get("data"):
+        if not fs.data:
             raise ValueError(f"{fit_dir}: the fit does not record its data; give the data (--data)")
-        cohort = load_cohort(Path(fs["data"]))
+        cohort = load_cohort(Path(fs.data))
     check_fit_legs([fit], cohort)
     evaluated = _j_from_evaluation(evaluation, label, legs) if evaluation else None
     out.mkdir(parents=True, exist_ok=True)
@@ -121,7 +135,7 @@ def run_report(
         used = min(n_draws, fit.idata.posterior.sizes["chain"] * fit.idata.posterior.sizes["draw"])
         j_how = (f"computed for this report over {used} posterior draws, one start in every {start_stride} samples "
                  f"(eq. 12 uses every start; `quadshank evaluate --fit` with --start-stride 1 for the full count)")
-    params = leg_parameters(fit.idata, desc, fs)
+    params = leg_parameters(fit.idata, desc, fs.legs)
     spreads = population_spreads(fit.idata, desc)
     predictions = {leg: _leg_predictions(fit, cohort, leg, n_draws, seed) for leg in legs}
     written = write_report(out, fit_dir=fit_dir, fit_summary=fs, desc=desc, label=label, J=J, J_legs=J_legs,

@@ -37,7 +37,7 @@ def run_reproduce(
     t_sim = time.perf_counter() - t0
     ident = run_identify(cohort, out / "identify", truth=truth, progress=progress)
     t_id = time.perf_counter() - t0 - t_sim
-    models = models_from_summary(ident)
+    models = models_from_summary(ident, cohort.sampling_period_s)
     ev = run_evaluate(cohort, models, out / "evaluate", progress=progress)
     t_ev = time.perf_counter() - t0 - t_sim - t_id
 

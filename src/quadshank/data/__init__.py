@@ -18,6 +18,7 @@ from ._interchange import (
 from ._paper import (
     HORIZON_MS,
     HORIZONS,
+    HORIZONS_MS,
     LEGS,
     MAX_DELAY,
     SAMPLING_PERIOD_S,
@@ -44,6 +45,6 @@ __all__ = [
     "MANIFEST_NAME", "DEFAULT_SAMPLING_PERIOD_S",
     "EFFECTS", "PASSIVE_TRUTH", "default_truth", "simulate_cohort", "simulate_response", "stimulation_sequence",
     "write_truth",
-    "SAMPLING_PERIOD_S", "HORIZONS", "HORIZON_MS", "MAX_DELAY", "TWITCH_SAMPLES", "LEGS",
+    "SAMPLING_PERIOD_S", "HORIZONS", "HORIZON_MS", "HORIZONS_MS", "MAX_DELAY", "TWITCH_SAMPLES", "LEGS",
     "TABLE_I", "TABLE_II", "TABLE_III", "TABLE_IV", "TABLE_V",
 ]  # fmt: skip

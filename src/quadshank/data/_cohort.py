@@ -29,6 +29,8 @@ VELOCITY_WINDOW = 7
 VELOCITY_POLYORDER = 2
 
 FORMAT_VERSION = "quadshank-cohort/1"
+#: Relative difference below which two sampling periods are the same period.
+PERIOD_TOLERANCE = 1e-6
 _SIGNALS = ("time_s", "angle_deg", "velocity_deg_s", "acceleration_deg_s2", "stimulation")
 
 
@@ -162,6 +164,17 @@ class Cohort:
     def legs(self) -> tuple[str, ...]:
         """Leg keys in order of first appearance."""
         return tuple(dict.fromkeys(t.key for t in self.trials))
+
+    @property
+    def sampling_period_s(self) -> float:
+        """The trials' common sampling period [s]; a ``ValueError`` naming the periods when they differ."""
+        periods = sorted({t.sampling_period_s for t in self.trials})
+        if not periods:
+            raise ValueError("the cohort has no trials, so no sampling period")
+        if periods[-1] - periods[0] > PERIOD_TOLERANCE * periods[0]:
+            where = ", ".join(f"{t.key} trial {t.trial}: {t.sampling_period_s * 1000:g} ms" for t in self.trials)
+            raise ValueError(f"the trials are sampled at different periods ({where}); one model runs at one period")
+        return periods[0]
 
     def trials_of(self, leg: str) -> tuple[Trial, ...]:
         return tuple(sorted((t for t in self.trials if t.key == leg), key=lambda t: t.trial))

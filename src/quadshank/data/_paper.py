@@ -8,9 +8,10 @@ deg/s², angles in deg, velocities in deg/s, delays in samples of T_s = 10 ms.
 from __future__ import annotations
 
 SAMPLING_PERIOD_S = 0.01
-#: Horizons of eq. (12) in samples, and in milliseconds for keys.
-HORIZONS = (10, 25, 50, 100)
-HORIZON_MS = {p: int(round(p * SAMPLING_PERIOD_S * 1000)) for p in HORIZONS}
+#: Horizons of eq. (12) in milliseconds; in samples of the paper's T_s; and the map between them.
+HORIZONS_MS = (100, 250, 500, 1000)
+HORIZONS = tuple(int(round(h / 1000 / SAMPLING_PERIOD_S)) for h in HORIZONS_MS)
+HORIZON_MS = dict(zip(HORIZONS, HORIZONS_MS))
 #: Largest delay scanned (samples), as in the paper.
 MAX_DELAY = 10
 #: Assumed twitch duration (samples) = length of an isolated-twitch epoch.

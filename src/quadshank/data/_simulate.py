@@ -236,7 +236,6 @@ TRUTH_FORMAT = "quadshank-truth/1"
 
 #: Internal integration step [s] and substeps per sample.
 INTERNAL_STEP_S = 0.001
-SUBSTEPS = int(round(SAMPLING_PERIOD_S / INTERNAL_STEP_S))
 #: Rest between successive trials [s].
 REST_BETWEEN_TRIALS_S = 15 * 60.0
 #: Length [ms] of the shift register holding pending (delayed) twitch impulses.
@@ -462,7 +461,9 @@ def _density(leg: str, u: float) -> dict:
     return levels.get(key, levels["1.0"])
 
 
-def stimulation_sequence(rng: np.random.Generator, n_samples: int, density: dict) -> np.ndarray:
+def stimulation_sequence(
+    rng: np.random.Generator, n_samples: int, density: dict, sampling_period_s: float = SAMPLING_PERIOD_S
+) -> np.ndarray:
     """Pulse sample indices of one pseudorandom-IPI sequence (pulses on sample boundaries).
 
     The sequence is a succession of cycles: with probability ``p_burst`` a
@@ -471,9 +472,9 @@ def stimulation_sequence(rng: np.random.Generator, n_samples: int, density: dict
     multiples of T_s in ``long_s``).  The IPI density is thus two-part, with
     the length of runs of short IPIs bounded.  Cycles are drawn in fixed
     blocks, so a longer sequence from the same generator state starts with the
-    shorter one.
+    shorter one.  T_s is ``sampling_period_s``, the recording's.
     """
-    ts = SAMPLING_PERIOD_S
+    ts = sampling_period_s
     s_lo, s_hi = (int(round(x / ts)) for x in density["short_s"])
     l_lo, l_hi = (int(round(x / ts)) for x in density["long_s"])
     bmax = int(density["max_burst"])
@@ -497,13 +498,14 @@ def stimulation_sequence(rng: np.random.Generator, n_samples: int, density: dict
     return np.concatenate(pulses).astype(np.int64)
 
 
-def isolated_pulses(pulses: np.ndarray, n_samples: int) -> np.ndarray:
-    """Boolean mask of isolated pulses: ≥ 250 ms quiet before and ≥ 500 ms after."""
+def isolated_pulses(pulses: np.ndarray, n_samples: int, sampling_period_s: float = SAMPLING_PERIOD_S) -> np.ndarray:
+    """Boolean mask of isolated pulses: ≥ 250 ms quiet before and ≥ 500 ms after (pulse indices in
+    samples of ``sampling_period_s``)."""
     pulses = np.asarray(pulses, dtype=np.int64)
     if pulses.size == 0:
         return np.zeros(0, bool)
-    before = int(round(ISOLATION_BEFORE_S / SAMPLING_PERIOD_S))
-    after = int(round(ISOLATION_AFTER_S / SAMPLING_PERIOD_S))
+    before = int(round(ISOLATION_BEFORE_S / sampling_period_s))
+    after = int(round(ISOLATION_AFTER_S / sampling_period_s))
     prev_gap = np.diff(np.concatenate([[-(10**9)], pulses]))
     next_gap = np.diff(np.concatenate([pulses, [10**9]]))
     ok_before = (prev_gap >= before) & (pulses >= before)
@@ -512,14 +514,24 @@ def isolated_pulses(pulses: np.ndarray, n_samples: int) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- the time loop
+def _substeps(sampling_period_s: float) -> int:
+    """Internal 1-ms steps per sample; the period must be a whole number of them that the
+    impulse buffer holds."""
+    k = int(round(sampling_period_s / INTERNAL_STEP_S))
+    if not (k >= 1 and abs(k * INTERNAL_STEP_S - sampling_period_s) < 1e-9 and k <= _BUFFER // 2):
+        raise ValueError(f"the simulator records at whole milliseconds from 1 to {_BUFFER // 2} ms, "
+                         f"not a sampling period of {sampling_period_s} s")
+    return k
+
+
 @functools.lru_cache(maxsize=None)
-def _chunk_runner():
-    """Jitted, vmapped scan over one chunk of samples (built lazily, cached).
+def _chunk_runner(substeps: int):
+    """Jitted, vmapped scan over one chunk of samples (built lazily, cached per sampling period).
 
     Per sample: record the state at the sample instant, put the pulse of
     this sample into the pending-impulse buffer (a shift register with 1-ms
-    slots) at its delay, take out the impulses arriving during the next 10 ms
-    and integrate 10 internal steps.  The twitch filter is linear and is
+    slots) at its delay, take out the impulses arriving during the next
+    sampling period and integrate ``substeps`` internal steps of 1 ms.  The twitch filter is linear and is
     advanced exactly (matrix exponential); the mechanical state and the
     accelerometer mount are advanced with RK4, with the twitch activation
     evaluated exactly at the RK4 stage times.  Each impulse is scaled by
@@ -587,9 +599,9 @@ def _chunk_runner():
             early = (p["on_adelay"] > 0) & (phi < p["adelay_angle"])
             d = jnp.where(early, p["delay_short_ms"], p["delay_ms"])
             buf = buf + amp * (iota == d)
-            arr = buf[:SUBSTEPS]
-            buf = jnp.concatenate([buf[SUBSTEPS:], jnp.zeros(SUBSTEPS, buf.dtype)])
-            st = lax.fori_loop(0, SUBSTEPS, substep, (phi, v, x1, x2, z, zd, arr), unroll=_UNROLL)
+            arr = buf[:substeps]
+            buf = jnp.concatenate([buf[substeps:], jnp.zeros(substeps, buf.dtype)])
+            st = lax.fori_loop(0, substeps, substep, (phi, v, x1, x2, z, zd, arr), unroll=_UNROLL)
             return (st[:6], buf), out
 
         carry, outs = lax.scan(body, carry, amps)
@@ -635,7 +647,8 @@ def _scan_params(leg: str, effects: tuple[str, ...]) -> dict:
     return p
 
 
-def _run_plant(params: Sequence[dict], amps: np.ndarray, progress: bool = False) -> np.ndarray:
+def _run_plant(params: Sequence[dict], amps: np.ndarray, progress: bool = False,
+               sampling_period_s: float = SAMPLING_PERIOD_S) -> np.ndarray:
     """Run the plant for a batch of trials.
 
     ``amps[i, k]``: twitch area (u·A·gain factors) of the pulse at sample k of
@@ -650,7 +663,7 @@ def _run_plant(params: Sequence[dict], amps: np.ndarray, progress: bool = False)
     n_chunks = max(1, -(-n // _CHUNK))
     padded = np.zeros((batch, n_chunks * _CHUNK))
     padded[:, :n] = amps
-    runner = _chunk_runner()
+    runner = _chunk_runner(_substeps(sampling_period_s))
     outs = []
     with jax.enable_x64(True):
         p = {k: jnp.asarray(np.array([q[k] for q in params], dtype=np.float64)) for k in _FLOAT_PARAMS}
@@ -682,7 +695,7 @@ def twitch_variability(rng: np.random.Generator, n_pulses: int, cv: float) -> np
     return np.exp(math.sqrt(s2) * rng.standard_normal(n_pulses) - 0.5 * s2)
 
 
-def _pulse_gains(pulses: np.ndarray, effects: tuple[str, ...], n_start: float) -> np.ndarray:
+def _pulse_gains(pulses: np.ndarray, effects: tuple[str, ...], n_start: float, sampling_period_s: float) -> np.ndarray:
     gain = np.ones(pulses.size)
     if "fatigue" in effects:
         fp = EFFECT_PARAMETERS["fatigue"]
@@ -690,22 +703,25 @@ def _pulse_gains(pulses: np.ndarray, effects: tuple[str, ...], n_start: float) -
         gain *= fp["f_min"] + (1.0 - fp["f_min"]) * np.exp(-n / fp["n_f_pulses"])
     if "potentiation" in effects and pulses.size > 1:
         pp = EFFECT_PARAMETERS["potentiation"]
-        ipi = np.diff(pulses) * SAMPLING_PERIOD_S
+        ipi = np.diff(pulses) * sampling_period_s
+        # potentiation is largest at the paper's shortest interval, one of its 10-ms samples
         gain[1:] *= 1.0 + pp["P"] * np.exp(-(ipi - SAMPLING_PERIOD_S) / pp["tau_p_s"])
     return gain
 
 
-def plan_leg(leg: str, n_samples: int, seed: int, effects: tuple[str, ...]) -> dict:
-    """IPIs, pulse gains and fatigue state for all protocol trials of a leg, in order."""
+def plan_leg(leg: str, n_samples: int, seed: int, effects: tuple[str, ...],
+             sampling_period_s: float = SAMPLING_PERIOD_S) -> dict:
+    """IPIs, pulse gains and fatigue state for all protocol trials of a leg, in order (pulses
+    on the sample grid of ``sampling_period_s``)."""
     plans = {}
     n_carry = 0.0
     fp = EFFECT_PARAMETERS["fatigue"]
     for trial in sorted(TRIAL_RECRUITMENT):
         u = float(TRIAL_RECRUITMENT[trial])
         rng_ipi, rng_angle, rng_acc, rng_twitch = _streams(seed, leg, trial)
-        pulses = stimulation_sequence(rng_ipi, n_samples, _density(leg, u))
+        pulses = stimulation_sequence(rng_ipi, n_samples, _density(leg, u), sampling_period_s)
         n_start = n_carry if "fatigue" in effects else 0.0
-        gains = _pulse_gains(pulses, effects, n_start)
+        gains = _pulse_gains(pulses, effects, n_start, sampling_period_s)
         if "twitch_variability" in effects:
             gains = gains * twitch_variability(rng_twitch, pulses.size, EFFECT_PARAMETERS["twitch_variability"]["cv"])
         plans[trial] = {
@@ -742,8 +758,14 @@ def simulate_cohort(
     effects: Iterable[str] = (),
     trials: Sequence[int] = (1, 2, 3),
     progress: bool = False,
+    sampling_period_s: float = SAMPLING_PERIOD_S,
 ) -> tuple[Cohort, dict]:
     """Simulate the protocol for ``legs``; returns the cohort and the truth.
+
+    ``sampling_period_s``: the recording's sampling period, a whole number of the plant's 1-ms
+    steps (the paper's 10 ms by default); pulses fall on its sample grid.  The physiology (delays,
+    twitch shape and area) is the same at every period; the truth's per-sample figures (delay in
+    samples, DARMA equivalents) stay in the paper's 10-ms samples.
 
     All trials of all legs run as one batch (vmapped scan, float64, 1-ms
     steps); ``progress`` shows a bar over the chunks of the time loop.  The
@@ -762,11 +784,14 @@ def simulate_cohort(
     trials = check_trials(trials)
     if not minutes > 0:
         raise ValueError(f"minutes must be positive, got {minutes}")
-    n = int(round(minutes * 60.0 / SAMPLING_PERIOD_S))
+    dt = float(sampling_period_s)
+    _substeps(dt)  # checked before any work
+    n = int(round(minutes * 60.0 / dt))
     truth = default_truth(legs, effects)
+    truth["sampling_period_s"] = dt
     jobs = []
     for leg in legs:
-        plans = plan_leg(leg, n, seed, effects)
+        plans = plan_leg(leg, n, seed, effects, dt)
         G2 = TABLE_III[leg]["G2"]
         for trial in trials:
             plan = plans[trial]
@@ -774,7 +799,7 @@ def simulate_cohort(
             amps[plan["pulses"]] = plan["u"] * G2 * SAMPLING_PERIOD_S * plan["gains"]
             jobs.append((leg, trial, plan, amps))
     params = {leg: _scan_params(leg, effects) for leg in legs}
-    raw = _run_plant([params[j[0]] for j in jobs], np.stack([j[3] for j in jobs]), progress=progress)
+    raw = _run_plant([params[j[0]] for j in jobs], np.stack([j[3] for j in jobs]), progress=progress, sampling_period_s=dt)
 
     out_trials = []
     for (leg, trial, plan, _), r in zip(jobs, raw):
@@ -784,17 +809,17 @@ def simulate_cohort(
         subject, side = leg.split("-")
         out_trials.append(
             Trial.from_signals(
-                subject, side, trial, SAMPLING_PERIOD_S, angle, acc, stim,
+                subject, side, trial, dt, angle, acc, stim,
                 source=f"simulated (seed {seed})",
             )
         )  # fmt: skip
-        iso = isolated_pulses(plan["pulses"], n)
+        iso = isolated_pulses(plan["pulses"], n, dt)
         truth["legs"][leg].setdefault("trials", {})[str(trial)] = {
             "recruitment": plan["u"],
             "n_samples": n,
             "n_pulses": int(plan["pulses"].size),
             "n_isolated": int(iso.sum()),
-            "n_short_ipi": int(np.sum(np.diff(plan["pulses"]) <= round(IPI_SHORT_S[1] / SAMPLING_PERIOD_S))),
+            "n_short_ipi": int(np.sum(np.diff(plan["pulses"]) <= round(IPI_SHORT_S[1] / dt))),
             "rms_angle_deg": float(np.sqrt(np.mean(angle**2))),
             "angle_min_deg": float(angle.min()),
             "angle_max_deg": float(angle.max()),
@@ -827,8 +852,9 @@ def simulate_response(
     noise: bool = False,
     seed: int = 0,
     fatigue_pulses_at_start: float = 0.0,
+    sampling_period_s: float = SAMPLING_PERIOD_S,
 ) -> dict:
-    """Simulate one leg for a given stimulation array (u per 10-ms sample).
+    """Simulate one leg for a given stimulation array (u per sample of ``sampling_period_s``).
 
     Starting at rest, returns the recorded signals (``angle_deg`` — with
     quantisation, plus noise when ``noise`` — and ``acceleration_deg_s2``)
@@ -842,10 +868,10 @@ def simulate_response(
     effects = _check_effects(effects)
     stim = np.asarray(stimulation, dtype=float)
     pulses = np.flatnonzero(stim > 0)
-    gains = _pulse_gains(pulses, effects, fatigue_pulses_at_start)
+    gains = _pulse_gains(pulses, effects, fatigue_pulses_at_start, sampling_period_s)
     amps = np.zeros(stim.size)
     amps[pulses] = stim[pulses] * TABLE_III[leg]["G2"] * SAMPLING_PERIOD_S * gains
-    raw = _run_plant([_scan_params(leg, effects)], amps[None, :])[0]
+    raw = _run_plant([_scan_params(leg, effects)], amps[None, :], sampling_period_s=sampling_period_s)[0]
     ss = np.random.SeedSequence(int(seed), spawn_key=(LEGS.index(leg), 99))
     rng_angle, rng_acc = (np.random.default_rng(c) for c in ss.spawn(2))
     angle, acc = _record(raw, rng_angle, rng_acc, noise=noise, effects=effects)

@@ -8,6 +8,7 @@ from ._classical_recovery import TOLERANCES, recovery
 from ._parameters import leg_parameters, population_spreads
 from ._posterior import (
     LoadedFit,
+    PosteriorEvaluation,
     figure_window,
     load_fits,
     loo_report,
@@ -20,6 +21,7 @@ from ._posterior import (
 )
 from ._prediction import (
     evaluate_cohort,
+    horizon_samples,
     prediction_errors,
     prediction_starts,
     predictions,
@@ -46,8 +48,8 @@ from ._residuals import (
 )
 
 __all__ = [
-    "prediction_errors", "prediction_starts", "predictions", "evaluate_cohort", "sign_tests", "table_v",
-    "LoadedFit", "load_fits", "posterior_predictions", "posterior_prediction_errors", "posterior_j", "summarise_j",
+    "prediction_errors", "prediction_starts", "predictions", "evaluate_cohort", "sign_tests", "table_v", "horizon_samples",
+    "LoadedFit", "PosteriorEvaluation", "load_fits", "posterior_predictions", "posterior_prediction_errors", "posterior_j", "summarise_j",
     "psis_loo", "loo_report", "figure_window", "window_predictions",
     "leg_parameters", "population_spreads",
     "features", "binned_trend", "acf", "ccf", "twitch_triggered_average", "spectrum", "findings",

@@ -20,12 +20,13 @@ def _components(name: str, shape) -> list[tuple[str, tuple]]:
     return [(f"{name}[{k + 1}]", (k,)) for k in range(int(np.prod(shape)))]
 
 
-def leg_parameters(idata, desc: dict, fit_summary: dict) -> dict:
+def leg_parameters(idata, desc: dict, fit_legs: dict) -> dict:
     """Credible parameters per leg at the leg, subject and population levels.
 
     Returns ``{leg: {label: {"units", "doc", "prior", "leg", "subject", "population"}}}``
     with each level ``{"median", "lo", "hi"}`` (None where the parameter has no such
-    level: the noise parameters).  A leg's level is the fit summary's numbers.
+    level: the noise parameters).  A leg's level is the fit summary's numbers (``fit_legs``:
+    ``FitResult.legs``).
     """
     post = idata.posterior
     subjects = list(desc["subjects"])
@@ -40,7 +41,7 @@ def leg_parameters(idata, desc: dict, fit_summary: dict) -> dict:
             mu = _pooled64(post, f"{name}_mu") if f"{name}_mu" in post else None
             if mu is not None and f"{name}_s_leg" not in post:
                 mu = from_unconstrained(mu, info["prior"])  # the non-centred form samples it unconstrained
-            leg_q = fit_summary["legs"][leg]["params"][name]
+            leg_q = fit_legs[leg]["params"][name]
             for label, index in _components(name, info["shape"]):
                 rows[label] = {
                     "units": info["units"],
@@ -51,7 +52,7 @@ def leg_parameters(idata, desc: dict, fit_summary: dict) -> dict:
                     "population": None if mu is None else interval(mu[(slice(None), *index)]),
                 }
         for name, info in desc["noise"].items():
-            q = fit_summary["legs"][leg]["params"][name]
+            q = fit_legs[leg]["params"][name]
             rows[name] = {"units": info["units"], "doc": info.get("doc", ""), "prior": None,
                           "leg": {k: float(q[k]) for k in ("median", "lo", "hi")}, "subject": None, "population": None}
         out[leg] = {"subject": subjects[s_idx], "params": rows}

@@ -40,11 +40,12 @@ last, ``summary.json`` into an output folder, every file atomically.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import warnings
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import arviz as az
 import jax
@@ -53,8 +54,9 @@ import numpy as np
 import xarray as xr
 
 from ..common._progress import progress_bar
+from ..common._results import Result
 from ..data._cohort import Cohort, Trial
-from ..data._paper import HORIZON_MS, HORIZONS
+from ..data._paper import HORIZONS_MS
 from ..inference._fitio import (
     load_fit,
     posterior_models,
@@ -63,10 +65,11 @@ from ..inference._fitio import (
 )
 from ..inference._summaries import interval
 from ..model._model import Model, predict_ahead
-from ._prediction import prediction_starts
+from ._prediction import horizon_samples, prediction_starts
 
 __all__ = [
     "LoadedFit",
+    "PosteriorEvaluation",
     "load_fits",
     "posterior_predictions",
     "posterior_prediction_errors",
@@ -87,6 +90,29 @@ CHUNK_ELEMENTS = 1 << 24
 PARETO_K_BAD = 0.7
 #: (start, length) [s] of the prediction figures' window; on shorter trials the start moves earlier.
 FIGURE_WINDOW_S = (30.0, 20.0)
+
+
+@dataclasses.dataclass
+class PosteriorEvaluation(Result):
+    """What ``quadshank evaluate --fit`` (and ``compare``) found: J over posterior draws, sign
+    tests and PSIS-LOO for one or more fits of the same data."""
+
+    KIND: ClassVar[str] = "posterior-evaluation"
+
+    method: str
+    J: dict  # model -> trial -> horizon [ms] -> interval of the mean over legs
+    J_legs: dict  # model -> leg -> trial -> horizon [ms] -> interval
+    sign_tests: list
+    loo: dict
+    fits: dict  # model -> folder, legs, trials fitted, draws used, banner
+    legs: list
+    horizons_samples: list
+    interval: list
+    n_draws: int
+    start_stride: int
+    seed: int
+    evaluation_seconds: float
+    residual_findings: dict | None = None
 
 
 class LoadedFit(NamedTuple):
@@ -154,13 +180,14 @@ def _prediction_chunks(models: Model, trial: Trial, starts: np.ndarray, horizons
         yield np.asarray(pred, dtype=float)[: min(size, n - i)]
 
 
-def posterior_predictions(models: Model, trial: Trial, starts, horizons=HORIZONS) -> np.ndarray:
+def posterior_predictions(models: Model, trial: Trial, starts, horizons) -> np.ndarray:
     """Angles predicted p samples after each start, per draw: array (draws, starts, horizons).
 
     ``models`` has leaves with a leading draws axis (see
     :func:`quadshank.inference._fitio.posterior_models`); ``starts + max(horizons)`` must
     stay inside the trial.
     """
+    models.check_period(trial.sampling_period_s, f"{trial.key} trial {trial.trial}")
     return np.concatenate(list(_prediction_chunks(models, trial, np.asarray(starts), horizons)), axis=0)
 
 
@@ -184,8 +211,12 @@ def window_predictions(models: Model, trial: Trial, horizons, window: tuple[floa
     return out
 
 
-def posterior_prediction_errors(models: Model, trial: Trial, horizons=HORIZONS, start_stride: int = 1) -> np.ndarray:
-    """J_φ,p [deg] (eq. 12) per draw and horizon: array (draws, len(horizons))."""
+def posterior_prediction_errors(models: Model, trial: Trial, horizons=None, start_stride: int = 1) -> np.ndarray:
+    """J_φ,p [deg] (eq. 12) per draw and horizon [samples]: array (draws, len(horizons)); by default
+    the horizons of :data:`quadshank.data.HORIZONS_MS` at the trial's period."""
+    models.check_period(trial.sampling_period_s, f"{trial.key} trial {trial.trial}")
+    if horizons is None:
+        horizons = tuple(horizon_samples(trial.sampling_period_s).values())
     starts = prediction_starts(trial, max(horizons), start_stride)
     target = trial.angle_deg[starts[:, None] + np.asarray(horizons)[None, :]]  # (S, H)
     chunks = _prediction_chunks(models, trial, starts, horizons)
@@ -196,15 +227,16 @@ def posterior_j(
     fits: list[LoadedFit],
     cohort: Cohort,
     *,
-    horizons=HORIZONS,
+    horizons_ms=HORIZONS_MS,
     n_draws: int = 200,
     start_stride: int = 1,
     seed: int = 0,
     progress: bool = False,
 ) -> dict:
-    """J per draw: ``J[label][leg][trial_str]`` = array (draws, len(horizons)).
+    """J per draw: ``J[label][leg][trial_str]`` = array (draws, len(horizons_ms)).
 
-    Every leg of every fit is evaluated on all of that leg's trials in ``cohort``.
+    Every leg of every fit is evaluated on all of that leg's trials in ``cohort``, each horizon
+    [ms] as whole samples of the trial's period (:func:`quadshank.evaluation.horizon_samples`).
     """
     jobs = [(f, leg, t) for f in fits for leg in f.desc["legs"] for t in cohort.trials_of(leg)]
     out: dict = {}
@@ -213,18 +245,19 @@ def posterior_j(
         if loaded != (f.label, leg):  # jobs come leg by leg: one leg's draws in memory at a time
             loaded = (f.label, leg)
             models, _ = posterior_models(f.idata, f.model, leg, n_draws, seed)
+        horizons = tuple(horizon_samples(t.sampling_period_s, horizons_ms).values())
         errs = posterior_prediction_errors(models, t, horizons, start_stride)
         out.setdefault(f.label, {}).setdefault(leg, {})[str(t.trial)] = errs
     return out
 
 
-def summarise_j(draws: dict, horizons=HORIZONS) -> tuple[dict, dict]:
+def summarise_j(draws: dict, horizons_ms=HORIZONS_MS) -> tuple[dict, dict]:
     """(cohort, per leg) summaries of :func:`posterior_j`'s draws, horizon keys in ms (str).
 
     ``cohort[label][trial][h]`` summarises the per-draw mean over the legs that
     have that trial; ``legs[label][leg][trial][h]`` each leg's own draws.
     """
-    keys = [str(HORIZON_MS[p]) for p in horizons]
+    keys = [str(h) for h in horizons_ms]
     legs = {
         label: {
             leg: {tr: {h: interval(v[:, j]) for j, h in enumerate(keys)} for tr, v in trials.items()}

@@ -22,12 +22,22 @@ from scipy.stats import binomtest
 
 from ..common._progress import progress_bar
 from ..data._cohort import Cohort, Trial
-from ..data._paper import HORIZON_MS, HORIZONS
+from ..data._paper import HORIZONS_MS
 from ..model._model import Model, predict_ahead
 
-__all__ = ["prediction_errors", "prediction_starts", "predictions", "evaluate_cohort", "sign_tests", "table_v", "ALPHA"]
+__all__ = [
+    "prediction_errors", "prediction_starts", "predictions", "evaluate_cohort", "sign_tests", "table_v", "ALPHA",
+    "horizon_samples",
+]  # fmt: skip
 
 ALPHA = 0.05
+
+
+def horizon_samples(sampling_period_s: float, horizons_ms=HORIZONS_MS) -> dict[int, int]:
+    """``{horizon_ms: samples}``: each horizon [ms] as whole samples of ``sampling_period_s``, the
+    nearest (at least one).  At the paper's 10 ms: 100, 250, 500, 1000 ms are 10, 25, 50, 100
+    samples; at 20 ms, 250 ms is 12 samples (240 ms) and keeps its name."""
+    return {int(h): max(1, int(round(h / 1000.0 / sampling_period_s))) for h in horizons_ms}
 
 
 def prediction_starts(trial: Trial, horizon: int, stride: int = 1) -> np.ndarray:
@@ -38,15 +48,22 @@ def prediction_starts(trial: Trial, horizon: int, stride: int = 1) -> np.ndarray
     return np.arange(0, n, stride)
 
 
-def predictions(model: Model, trial: Trial, horizon: int = max(HORIZONS)) -> tuple[np.ndarray, np.ndarray]:
-    """(starts, predicted) with predicted[i, j-1] the angle predicted j samples after starts[i]."""
+def predictions(model: Model, trial: Trial, horizon: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(starts, predicted) with predicted[i, j-1] the angle predicted j samples after starts[i];
+    ``horizon`` [samples] defaults to the longest of :data:`HORIZONS_MS` at the trial's period."""
+    model.check_period(trial.sampling_period_s, f"{trial.key} trial {trial.trial}")
+    if horizon is None:
+        horizon = max(horizon_samples(trial.sampling_period_s).values())
     starts = prediction_starts(trial, horizon)
     pred = predict_ahead(model, trial.angle_deg, trial.velocity_deg_s, trial.stimulation, starts, horizon)
     return starts, np.asarray(pred, dtype=float)
 
 
-def prediction_errors(model: Model, trial: Trial, horizons=HORIZONS) -> dict[int, float]:
-    """J_φ,p [deg] for each horizon p (samples), eq. (12)."""
+def prediction_errors(model: Model, trial: Trial, horizons=None) -> dict[int, float]:
+    """J_φ,p [deg] for each horizon p (samples), eq. (12); by default those of :data:`HORIZONS_MS`
+    at the trial's period."""
+    if horizons is None:
+        horizons = tuple(horizon_samples(trial.sampling_period_s).values())
     horizon = max(horizons)
     starts, pred = predictions(model, trial, horizon)
     out = {}
@@ -57,19 +74,21 @@ def prediction_errors(model: Model, trial: Trial, horizons=HORIZONS) -> dict[int
 
 
 def evaluate_cohort(
-    cohort: Cohort, models: dict[str, dict[str, Model]], horizons=HORIZONS, progress: bool = False
+    cohort: Cohort, models: dict[str, dict[str, Model]], horizons_ms=HORIZONS_MS, progress: bool = False
 ) -> dict:
     """J per model, leg, trial and horizon.
 
-    ``models[leg][model_name]`` is the identified model of that leg.  Returns
-    ``J[model_name][leg][trial_str][horizon_ms]`` in degrees.
+    ``models[leg][model_name]`` is the identified model of that leg, at the data's sampling
+    period.  Returns ``J[model_name][leg][trial_str][horizon_ms]`` in degrees; each horizon is
+    :func:`horizon_samples` of its trial's period.
     """
 
     J: dict = {}
     jobs = [(t, name, m) for t in cohort for name, m in models[t.key].items()]
     for t, name, m in progress_bar(jobs, desc="evaluate", enabled=progress):
-        errs = prediction_errors(m, t, horizons)
-        J.setdefault(name, {}).setdefault(t.key, {})[str(t.trial)] = {HORIZON_MS[p]: v for p, v in errs.items()}
+        hs = horizon_samples(t.sampling_period_s, horizons_ms)
+        errs = prediction_errors(m, t, tuple(hs.values()))
+        J.setdefault(name, {}).setdefault(t.key, {})[str(t.trial)] = {h: errs[p] for h, p in hs.items()}
     return J
 
 

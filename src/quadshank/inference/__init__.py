@@ -10,6 +10,7 @@ from ._draws import leg_models
 from ._fitio import (
     THRESHOLDS,
     FitFolderError,
+    FitResult,
     diagnose_sampling,
     fit_summary,
     load_fit,
@@ -28,7 +29,7 @@ from ._identify import (
     load_identification,
     models_from_summary,
 )
-from ._nuts import FitSettings, fit, fit_screen
+from ._nuts import FitRun, FitSettings, fit, fit_screen, run_nuts
 from ._priors import build_model, delay_prior_from, model_params
 from ._screen import (
     DelayModes,
@@ -44,7 +45,7 @@ from ._summaries import INTERVAL, interval, pooled_draws
 __all__ = [
     "IdentificationError", "LegIdentification", "identify_cohort", "identify_leg", "identify_passive",
     "models_from_summary", "load_identification",
-    "FitSettings", "fit", "fit_screen", "build_model", "model_params", "delay_prior_from", "numpyro_model",
+    "FitSettings", "fit", "run_nuts", "FitRun", "FitResult", "fit_screen", "build_model", "model_params", "delay_prior_from", "numpyro_model",
     "LaplaceFit", "laplace_fit", "leg_draw_models", "delay_evidence", "delay_modes", "DelayModes", "delta_elpd",
     "to_inference_data", "save_fit", "load_fit", "read_summary", "fit_summary", "diagnose_sampling", "sampled_vars",
     "posterior_models", "leg_models", "FitFolderError", "THRESHOLDS",

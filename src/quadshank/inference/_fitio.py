@@ -17,13 +17,16 @@ import dataclasses
 import json
 import os
 from pathlib import Path
+from typing import ClassVar
 
 import arviz as az
 import jax.numpy as jnp
 import numpy as np
 
-from ..common._io import atomic_path, read_json, write_json
+from ..common._io import atomic_path
 from ..common._provenance import code_provenance
+from ..common._results import Result
+from ..data._paper import SAMPLING_PERIOD_S
 from ..model._effects import AngleDelay, get_effect
 from ..model._likelihood import N_DELAYS, LikelihoodData
 from ..model._model import Model
@@ -48,6 +51,7 @@ __all__ = [
     "load_fit",
     "read_summary",
     "FitFolderError",
+    "FitResult",
     "THRESHOLDS",
 ]
 
@@ -58,6 +62,37 @@ DELAY_SPLIT_TV = 0.5
 #: A delay the per-delay Laplace evidence gives at least the first weight, and the chains' pooled
 #: P(d) less than the second, is a delay the chains never visited (a warning: see diagnose_sampling).
 DELAY_MISSED = (0.1, 0.01)
+
+@dataclasses.dataclass
+class FitResult(Result):
+    """A hierarchical fit's summary: per leg the delay posterior and each parameter's median and
+    90 % interval, the sampler's checks, and how the fit was made.  ``DIR/summary.json`` of a fit
+    folder is its JSON form; the draws themselves are in ``DIR/fit.nc`` (:func:`load_fit`)."""
+
+    KIND: ClassVar[str] = "fit"
+
+    model: str
+    effects: list
+    trials: list
+    legs: dict  # leg -> subject, delay_posterior, delay_mode_samples, params (and delay_evidence, delay_angle)
+    diagnostics: dict
+    banner: str | None  # the failed checks in one line, None when the fit passed them
+    settings: dict
+    chain_method: str
+    sampling_period_s: float
+    interval: list
+    code: dict  # the package's version and source fingerprint
+    delay_angle_population: dict | None = None
+    data: str | None = None  # where the data came from, for the commands that read the fit later
+    sampling_seconds: float | None = None
+    delay_evidence_seconds: float | None = None
+    screen_restarted: dict | None = None
+
+    @property
+    def ok(self) -> bool:
+        """Whether the fit passed its checks."""
+        return bool(self.diagnostics.get("ok"))
+
 
 class FitFolderError(FileNotFoundError):
     """A folder without a complete fit."""
@@ -383,22 +418,22 @@ def fit_summary(idata) -> dict:
         "banner": None if diag["ok"] else "FIT FAILED ITS CHECKS: " + "; ".join(diag["problems"]),
         "settings": desc["settings"],
         "chain_method": desc.get("chain_method", desc["settings"].get("chain_method")),
+        "sampling_period_s": desc.get("sampling_period_s", SAMPLING_PERIOD_S),
         "interval": list(INTERVAL),
     }
 
 
-def save_fit(idata, folder: str | os.PathLike, extra: dict | None = None) -> dict:
+def save_fit(idata, folder: str | os.PathLike, extra: dict | None = None) -> FitResult:
     """Write fit.nc then summary.json (with ``extra`` entries and ``code``, the package's version
     and source fingerprint, :func:`quadshank.common._provenance.code_provenance`) atomically; returns the
-    summary."""
-
+    :class:`FitResult`."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    summary = {**fit_summary(idata), "code": code_provenance(), **(extra or {})}
+    result = FitResult(**fit_summary(idata), code=code_provenance(), **(extra or {}))
     with atomic_path(folder / "fit.nc") as tmp:
         idata.to_netcdf(tmp)
-    write_json(folder / "summary.json", summary)
-    return summary
+    result.write(folder)
+    return result
 
 
 def begin_fit(folder: str | os.PathLike) -> None:
@@ -414,10 +449,9 @@ def _complete_fit(folder: str | os.PathLike) -> Path:
     return folder
 
 
-def read_summary(folder: str | os.PathLike) -> dict:
-    """``summary.json`` of a complete fit folder."""
-
-    return read_json(_complete_fit(folder) / "summary.json")
+def read_summary(folder: str | os.PathLike) -> FitResult:
+    """The :class:`FitResult` of a complete fit folder (its ``summary.json``)."""
+    return FitResult.read(_complete_fit(folder))
 
 
 def load_fit(folder: str | os.PathLike):
@@ -469,7 +503,7 @@ def describe_fit(model: Model, data: LikelihoodData, settings: FitSettings) -> d
 def model_from_description(desc: dict) -> Model:
     """Rebuild the (unparameterised) Model a fit was made with."""
     effects = [get_effect(n)() for n in desc["effects"]]
-    model = Model(tuple(effects), name=desc["model"], sampling_period_s=desc.get("sampling_period_s", 0.01))
+    model = Model(tuple(effects), name=desc["model"], sampling_period_s=desc.get("sampling_period_s", SAMPLING_PERIOD_S))
     # a fit that summed a step parameter out drew it under the hard step, and is evaluated so
     return hard_step(model) if desc.get("summed_out") else model
 

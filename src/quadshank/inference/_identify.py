@@ -35,7 +35,7 @@ from scipy.optimize import least_squares
 from ..common._io import read_json
 from ..common._progress import progress_bar
 from ..data._cohort import Cohort, Trial
-from ..data._paper import MAX_DELAY, TWITCH_SAMPLES
+from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S, TWITCH_SAMPLES
 from ..model._model import Model, equivalent_acceleration, paper_model, passive_effects
 
 __all__ = [
@@ -212,7 +212,8 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
     else:
         p_rms, n_quiet = float("nan"), 0
     peff = passive_effects(**passive)
-    base = paper_model(1, peff)
+    dt = trial.sampling_period_s
+    base = paper_model(1, peff, sampling_period_s=dt)
     mi = np.asarray(
         equivalent_acceleration(base, trial.angle_deg, trial.velocity_deg_s, trial.acceleration_deg_s2),
         dtype=float,
@@ -246,9 +247,9 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
     g2, ga, gv = fit3.x
 
     models = {
-        "model1": paper_model(1, peff, delay=d).with_params(gain=g1),
-        "model2": paper_model(2, peff, delay=d).with_params(a=np.asarray(a), b=np.asarray(b)),
-        "model3": paper_model(3, peff, delay=d).with_params(gain=g2, gamma_angle=ga, gamma_velocity=gv),
+        "model1": paper_model(1, peff, delay=d, sampling_period_s=dt).with_params(gain=g1),
+        "model2": paper_model(2, peff, delay=d, sampling_period_s=dt).with_params(a=np.asarray(a), b=np.asarray(b)),
+        "model3": paper_model(3, peff, delay=d, sampling_period_s=dt).with_params(gain=g2, gamma_angle=ga, gamma_velocity=gv),
     }
     rms1 = float(np.sqrt(np.mean((integrated - g1) ** 2)) / g1 * 100)
     rms3 = float(np.sqrt(np.mean(fit3.fun**2)) / g1 * 100)
@@ -280,19 +281,21 @@ def identify_cohort(cohort: Cohort, trial: int = 1, progress: bool = False) -> d
     return out
 
 
-def models_from_summary(summary: dict) -> dict[str, dict[str, Model]]:
-    """Rebuild the identified models of each leg from an identify ``summary.json``."""
+def models_from_summary(summary: dict, sampling_period_s: float = SAMPLING_PERIOD_S) -> dict[str, dict[str, Model]]:
+    """Rebuild the identified models of each leg from an identify ``summary.json``, at the
+    sampling period of the data they were identified from."""
     models = {}
+    dt = sampling_period_s
     for leg, s in summary.items():
         passive = passive_effects(**s["passive"])
         d = int(s["delay_samples"])
         m2 = s["model2"]
         models[leg] = {
-            "model1": paper_model(1, passive, delay=d).with_params(gain=s["model1"]["gain"]),
-            "model2": paper_model(2, passive, delay=d).with_params(
+            "model1": paper_model(1, passive, delay=d, sampling_period_s=dt).with_params(gain=s["model1"]["gain"]),
+            "model2": paper_model(2, passive, delay=d, sampling_period_s=dt).with_params(
                 a=np.array([m2["a1"], m2["a2"]]), b=np.array([m2["b1"], m2["b2"]])
             ),
-            "model3": paper_model(3, passive, delay=d).with_params(
+            "model3": paper_model(3, passive, delay=d, sampling_period_s=dt).with_params(
                 gain=s["model3"]["gain"],
                 gamma_angle=s["model3"]["gamma_angle"],
                 gamma_velocity=s["model3"]["gamma_velocity"],
@@ -301,9 +304,10 @@ def models_from_summary(summary: dict) -> dict[str, dict[str, Model]]:
     return models
 
 
-def load_identification(folder: str | Path) -> dict[str, dict[str, Model]]:
-    """Models from the ``summary.json`` of a ``quadshank identify`` output folder."""
+def load_identification(folder: str | Path, sampling_period_s: float = SAMPLING_PERIOD_S) -> dict[str, dict[str, Model]]:
+    """Models from the ``summary.json`` of a ``quadshank identify`` output folder, at the
+    sampling period of the data it identified."""
     path = Path(folder) / "summary.json"
     if not path.exists():
         raise FileNotFoundError(f"{path}: no identification here (run `quadshank identify DATA --out {folder}`)")
-    return models_from_summary(read_json(path))
+    return models_from_summary(read_json(path), sampling_period_s)

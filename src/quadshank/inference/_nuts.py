@@ -17,6 +17,7 @@ import dataclasses
 import functools
 import math
 import sys
+import time
 
 import jax
 import jax.numpy as jnp
@@ -38,6 +39,8 @@ from ._starts import _init_near, classical_start
 
 __all__ = [
     "FitSettings",
+    "FitRun",
+    "run_nuts",
     "model_params",
     "numpyro_model",
     "fit",
@@ -224,18 +227,32 @@ def screen_start(model: Model, data: LikelihoodData, settings: FitSettings, cond
     return init_params, {tuple(names): jnp.asarray(imm, jnp.result_type(float))}
 
 
-def fit(
+@dataclasses.dataclass(frozen=True)
+class FitRun:
+    """A finished NUTS run of :func:`run_nuts`, and how its chains were started."""
+
+    mcmc: MCMC
+    data: LikelihoodData
+    #: (legs, 11) P(d | data) of each leg alone, from one Laplace approximation per delay (None: not weighed)
+    delay_evidence: np.ndarray | None
+    #: legs whose screen was restarted at another delay: leg -> (d before, d after)
+    screen_restarted: dict
+    #: seconds spent weighing the delays (None: not weighed), and on everything else up to the draws
+    delay_evidence_seconds: float | None
+    sampling_seconds: float
+
+
+def run_nuts(
     cohort: Cohort,
     model: Model,
     settings: FitSettings = FitSettings(),
     legs=None,
     progress: bool = True,
     log_delay_prior=None,
-    screen=None,
-):
-    """Run NUTS; returns (mcmc, data).  ``log_delay_prior``: see :func:`delay_prior_from`;
-    ``screen``: the chains' start (:func:`fit_screen`, then :func:`delay_start`), made here
-    when needed and not given.
+) -> FitRun:
+    """The one path from data to posterior draws: the screen (the chains' start and metric,
+    :func:`fit_screen`), each leg's delays weighed and the screen restarted where it missed the
+    best (:func:`delay_start`), then NUTS.  ``log_delay_prior``: see :func:`delay_prior_from`.
 
     Samples in double precision, as the screen optimises: the log density of five
     5-minute legs is ~1e6, where single precision rounds it to ~0.06, and NUTS,
@@ -243,8 +260,34 @@ def fit(
     reach their depth (model 3 + angle_delay, 5 legs × 5 min: 255 leapfrog steps per
     draw in single precision, 12 in double).
     """
+    t0 = time.perf_counter()
+    screen = fit_screen(cohort, model, settings, legs=legs, progress=progress)
+    evidence, moved, evidence_seconds = None, {}, None
+    if screen is not None and settings.delay_evidence:
+        if progress:
+            print("fit: each leg's delays weighed by a Laplace approximation per delay", file=sys.stderr, flush=True)
+        t1 = time.perf_counter()
+        screen, evidence, moved = delay_start(cohort, settings, screen, log_delay_prior, progress=progress)
+        evidence_seconds = time.perf_counter() - t1
     with jax.enable_x64(True):
-        return _fit(cohort, model, settings, legs, progress, log_delay_prior, screen)
+        mcmc, data = _fit(cohort, model, settings, legs, progress, log_delay_prior, screen)
+    # JAX dispatches asynchronously: the draws may still be computing when the run returns
+    jax.block_until_ready(mcmc.get_samples(group_by_chain=True))
+    sampling = time.perf_counter() - t0 - (evidence_seconds or 0.0)
+    return FitRun(mcmc, data, evidence, moved, evidence_seconds, sampling)
+
+
+def fit(
+    cohort: Cohort,
+    model: Model,
+    settings: FitSettings = FitSettings(),
+    legs=None,
+    progress: bool = True,
+    log_delay_prior=None,
+):
+    """Run NUTS (:func:`run_nuts`); returns ``(mcmc, data)``, what :func:`quadshank.to_inference_data` takes."""
+    run = run_nuts(cohort, model, settings, legs, progress, log_delay_prior)
+    return run.mcmc, run.data
 
 
 def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen):
@@ -262,11 +305,7 @@ def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen):
 
     init = init_to_median(num_samples=15)
     init_params, imm = None, None
-    if uses_screen(model, settings):
-        if screen is None:
-            screen = fit_screen(cohort, model, settings, legs=data.legs, progress=progress)
-            if settings.delay_evidence:
-                screen = delay_start(cohort, settings, screen, log_delay_prior, progress=progress)[0]
+    if screen is not None:
         init_params, imm = screen_start(model, data, settings, conditioned, arrays, screen)
         init = init_to_uniform  # the start numpyro finds is replaced by init_params: no prior draws for it
         if not settings.dense_mass:

@@ -17,6 +17,7 @@ import numpyro
 import numpyro.distributions as dist
 from scipy.special import erf
 
+from ..data._paper import SAMPLING_PERIOD_S
 from ..model._effects import Param, from_unconstrained, get_effect, prior_arrays
 from ..model._likelihood import N_DELAYS, LikelihoodData
 from ..model._model import Model, paper_model
@@ -38,9 +39,10 @@ DELAY_PRIOR_FLOOR = 1e-3
 NU_PRIOR = (2.0, 0.1)
 
 
-def build_model(name: str, add_effects=()) -> Model:
-    """One of the paper's models, optionally extended by registered effects (by name or instance)."""
-    base = paper_model(name)
+def build_model(name: str, add_effects=(), sampling_period_s: float = SAMPLING_PERIOD_S) -> Model:
+    """One of the paper's models, optionally extended by registered effects (by name or instance),
+    running at ``sampling_period_s`` (give the data's: ``cohort.sampling_period_s``)."""
+    base = paper_model(name, sampling_period_s=sampling_period_s)
     extra = [get_effect(e)() if isinstance(e, str) else e for e in add_effects]
     if not extra:
         return base
@@ -189,8 +191,9 @@ def log_shift_prior(K: int) -> np.ndarray:
         return np.log(joint)
 
 
-def delay_prior_from(summary: dict, legs, floor: float = DELAY_PRIOR_FLOOR) -> np.ndarray:
-    """log π(d) per leg (legs, 11) from another fit's ``summary.json`` (its ``delay_posterior``).
+def delay_prior_from(fit_legs: dict, legs, floor: float = DELAY_PRIOR_FLOOR) -> np.ndarray:
+    """log π(d) per leg (legs, 11) from another fit's per-leg summaries (``FitResult.legs``: their
+    ``delay_posterior``).
 
     This is the paper's procedure made Bayesian: the delay is identified where the
     data show it, by the shaped twitch of model 2 (Table I: "the delay d was taken
@@ -201,9 +204,9 @@ def delay_prior_from(summary: dict, legs, floor: float = DELAY_PRIOR_FLOOR) -> n
     """
     rows = []
     for leg in legs:
-        if leg not in summary.get("legs", {}):
-            raise KeyError(f"leg {leg!r} is not in the fit the delay prior is taken from (it has {sorted(summary.get('legs', {}))})")
-        p = np.asarray(summary["legs"][leg]["delay_posterior"], np.float64)
+        if leg not in fit_legs:
+            raise KeyError(f"leg {leg!r} is not in the fit the delay prior is taken from (it has {sorted(fit_legs)})")
+        p = np.asarray(fit_legs[leg]["delay_posterior"], np.float64)
         if p.shape != (N_DELAYS,) or not np.all(np.isfinite(p)) or p.sum() <= 0:
             raise ValueError(f"leg {leg!r}: delay_posterior must be {N_DELAYS} probabilities")
         p = (1.0 - floor) * p / p.sum() + floor / N_DELAYS

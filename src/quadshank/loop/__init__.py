@@ -7,6 +7,8 @@ Returns result objects and writes nothing; ``quadshank diagnose`` and ``discover
 from ._diagnose import (
     ELPD_SE_BAR,
     J_HORIZONS_MS,
+    Diagnosis,
+    Discovery,
     Ranking,
     candidates,
     j_draws,
@@ -14,4 +16,7 @@ from ._diagnose import (
     verdict_sentence,
 )
 
-__all__ = ["candidates", "rank_effects", "Ranking", "verdict_sentence", "j_draws", "ELPD_SE_BAR", "J_HORIZONS_MS"]
+__all__ = [
+    "candidates", "rank_effects", "Ranking", "Diagnosis", "Discovery", "verdict_sentence", "j_draws", "ELPD_SE_BAR",
+    "J_HORIZONS_MS",
+]  # fmt: skip

@@ -33,10 +33,12 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from typing import ClassVar
 
 import numpy as np
 
 from ..common._progress import progress_bar
+from ..common._results import Result
 from ..data._cohort import Cohort
 from ..evaluation._posterior import posterior_prediction_errors
 from ..inference._fitio import posterior_models
@@ -46,7 +48,7 @@ from ..inference._summaries import interval
 from ..model._effects import registered_effects
 from ..model._model import Model
 
-__all__ = ["candidates", "rank_effects", "ELPD_SE_BAR", "J_HORIZONS_MS"]
+__all__ = ["candidates", "rank_effects", "Ranking", "Diagnosis", "Discovery", "ELPD_SE_BAR", "J_HORIZONS_MS"]
 
 #: ΔELPD must exceed this many standard errors.
 ELPD_SE_BAR = 2.0
@@ -132,6 +134,48 @@ class Ranking:
         }
 
 
+@dataclasses.dataclass
+class Diagnosis(Result):
+    """What ``quadshank diagnose`` found: the candidates ranked by the evidence and the verdict.
+
+    The JSON form (``summary.json``) holds every field but :attr:`screened`, the live
+    :class:`Ranking` with the screens of the base model and of each extension.
+    """
+
+    KIND: ClassVar[str] = "diagnosis"
+
+    model: str
+    legs: list
+    elpd: dict  # {"value", "se"} of the base model
+    J_ms: dict  # horizon [ms] -> J interval of the base model
+    ranking: list  # one row per screened candidate, best first
+    verdict: str  # the effect that clears the bar, or "none"
+    bar: dict
+    sentence: str
+    trials: list
+    failed: list = dataclasses.field(default_factory=list)
+    screen_verdict: str | None = None  # the screen's own verdict, where NUTS confirmed it
+    confirmed_from: str | None = None
+    predictive_checks: dict | None = None
+    residual_findings: dict | None = None
+    residual_findings_after: dict | None = None
+    figures: list | None = None
+    screened: Ranking | None = dataclasses.field(default=None, repr=False, metadata={"json": False})
+
+
+@dataclasses.dataclass
+class Discovery(Result):
+    """What ``quadshank discover`` found: the model of each round, its verdict, the effects added."""
+
+    KIND: ClassVar[str] = "discovery"
+
+    model: str
+    final_model: str
+    rounds: list  # per round: model, verdict, sentence, J_ms, elpd (and screen_verdict)
+    added: list
+    confirm: dict | None = None  # the NUTS fits of the loop's start and end, compared
+
+
 def rank_effects(
     cohort: Cohort,
     model: Model | str,
@@ -155,7 +199,7 @@ def rank_effects(
     model fails on the measurements it has).  ``n_starts``: prior draws tried, besides the
     prior median, for the parameters an extension adds (:func:`quadshank.inference._screen.laplace_fit`).
     """
-    model = build_model(model) if isinstance(model, str) else model
+    model = build_model(model, sampling_period_s=cohort.sampling_period_s) if isinstance(model, str) else model
     legs = tuple(legs) if legs is not None else cohort.legs
     if eval_trials is None:
         eval_trials = trials_of(cohort, legs)
@@ -251,10 +295,10 @@ def verdict_sentence(ranking: Ranking) -> str:
 # ============================================================================ NUTS confirmation
 
 
-def nuts_sentence(summary: dict) -> str:
-    """What NUTS said of the screen's leaders, in words."""
+def nuts_sentence(rows: list) -> str:
+    """What NUTS said of the screen's leaders (the ranking's rows), in words."""
     parts = []
-    for r in summary["ranking"]:
+    for r in rows:
         n = r.get("nuts")
         if n is None:
             continue

@@ -799,11 +799,12 @@ class Potentiation(Effect):
     )
     potentiation: Any = 0.3
     tau_p: Any = 0.06
-    #: Shortest interpulse interval, one sample [s].
-    SAMPLE_S = 0.01
+    #: The interval [s] at which ``potentiation`` is the extra twitch: the paper's shortest, one
+    #: of its 10-ms samples (a fixed reference, whatever the data's sampling period).
+    REFERENCE_IPI_S = 0.01
 
     def pulse_factor(self, pctx):
-        return 1.0 + self.potentiation * jnp.exp(-(pctx.ipi_s - self.SAMPLE_S) / self.tau_p)
+        return 1.0 + self.potentiation * jnp.exp(-(pctx.ipi_s - self.REFERENCE_IPI_S) / self.tau_p)
 
 
 @register_effect

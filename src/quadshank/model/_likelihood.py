@@ -300,6 +300,7 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         offset = 0
         seg0 = 0
         for t in chosen:
+            model.check_period(t.sampling_period_s, f"{leg} trial {t.trial}")
             n = t.n_samples
             cols["angle"] += [t.angle_deg, np.zeros(gap)]
             cols["velocity"] += [t.velocity_deg_s, np.zeros(gap)]

@@ -165,6 +165,19 @@ class Model:
         effects = tuple(dataclasses.replace(e, shift=shift) if e is eff else e for e in self.effects)
         return dataclasses.replace(self, effects=effects)
 
+    def at_period(self, sampling_period_s: float) -> Model:
+        """A copy that runs at ``sampling_period_s`` [s]: the data's, which the model must match."""
+        return dataclasses.replace(self, sampling_period_s=float(sampling_period_s))
+
+    def check_period(self, sampling_period_s: float, where: str) -> None:
+        """A ``ValueError`` when data sampled at ``sampling_period_s`` (``where``: which data) do
+        not match the model's period: its delays, horizons and dynamics are in samples."""
+        if abs(sampling_period_s - self.sampling_period_s) > 1e-6 * self.sampling_period_s:
+            raise ValueError(
+                f"{where} is sampled every {sampling_period_s * 1000:g} ms, but model {self.name!r} runs at "
+                f"{self.sampling_period_s * 1000:g} ms: build the model at the data's period (Model.at_period)"
+            )
+
     def add(self, *effects: Effect | str, name: str | None = None) -> Model:
         """A copy with further effects (instances, or registered names with default values).
 
@@ -233,9 +246,12 @@ def passive_effects(damping=1.0, gravity=1800.0, k1=25.0, k2=0.05) -> tuple[Effe
     return (Damping(damping), Gravity(gravity), ExponentialElasticity(k1, k2))
 
 
-def paper_model(number: int | str, passive: tuple[Effect, ...] | None = None, delay=4) -> Model:
+def paper_model(
+    number: int | str, passive: tuple[Effect, ...] | None = None, delay=4, sampling_period_s: float = SAMPLING_PERIOD_S
+) -> Model:
     """Model 1, 2 or 3 of the paper (eqs. 3–5) as a composition of effects, or ``model3s``
-    (model 3's gain factors scaling model 2's DARMA twitch at its onset)."""
+    (model 3's gain factors scaling model 2's DARMA twitch at its onset), running at
+    ``sampling_period_s`` (the paper's 10 ms by default; the data's in every command)."""
     key = str(number).removeprefix("model")
     passive = passive_effects() if passive is None else tuple(passive)
     if key == "1":
@@ -248,7 +264,7 @@ def paper_model(number: int | str, passive: tuple[Effect, ...] | None = None, de
         active = (Darma(a=jnp.array([-1.46, 0.59]), b=jnp.array([480.0, 510.0])), LinearTorqueAngle(), LinearTorqueVelocity())
     else:
         raise ValueError(f"unknown model {number!r}; the models are model1, model2, model3 (the paper's) and model3s")
-    return Model(active + passive, delay=delay, name=f"model{key}")
+    return Model(active + passive, delay=delay, name=f"model{key}", sampling_period_s=float(sampling_period_s))
 
 
 PAPER_MODELS = ("model1", "model2", "model3")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ..data._paper import HORIZON_MS, TABLE_V
+from ..data._paper import HORIZONS_MS, TABLE_V
 
 __all__ = [
     "plot_signals", "plot_twitch_dependence", "plot_predictions", "plot_j_vs_horizon", "plot_delay_scan",
@@ -119,10 +119,7 @@ def plot_j_vs_horizon(table: dict):
             if paper:
                 ax.plot(list(paper), [v[0] for v in paper.values()], ":", marker="x", color=colour,
                         label=f"{model} (paper)")
-        ax.set_xscale("log")
-        ax.set_xticks(list(HORIZON_MS.values()))
-        ax.set_xticklabels([str(h) for h in HORIZON_MS.values()])
-        ax.set_xlabel("prediction horizon [ms]")
+        horizon_axis(ax, minor=True)
         ax.set_title(f"trial {trial}")
     axes[0, 0].set_ylabel("J_φ,p [deg]")
     axes[0, -1].legend(fontsize=7)
@@ -138,7 +135,8 @@ def plot_delay_scan(ident: dict):
         line, = ax.plot(np.arange(res.size), res, marker=".", label=leg)
         ax.plot([r.delay], [res[r.delay]], "o", mfc="none", ms=10, color=line.get_color())
     ax.set_yscale("log")
-    ax.set_xlabel("delay d [samples of 10 ms]")
+    dt = next(iter(ident.values())).models["model1"].sampling_period_s if ident else 0.01
+    ax.set_xlabel(f"delay d [samples of {dt * 1000:g} ms]")
     ax.set_ylabel("model-2 residual mean square [(deg/s²)²]")
     ax.set_title("Delay scan (circle: chosen d, the smallest residual)")
     ax.legend(fontsize=8)
@@ -146,11 +144,13 @@ def plot_delay_scan(ident: dict):
     return fig
 
 
-def horizon_axis(ax):
+def horizon_axis(ax, minor: bool = False):
+    """A log axis of prediction horizons [ms], ticked at the paper's."""
     ax.set_xscale("log")
-    ax.set_xticks(list(HORIZON_MS.values()))
-    ax.set_xticklabels([str(h) for h in HORIZON_MS.values()])
-    ax.minorticks_off()
+    ax.set_xticks(list(HORIZONS_MS))
+    ax.set_xticklabels([str(h) for h in HORIZONS_MS])
+    if not minor:
+        ax.minorticks_off()
     ax.set_xlabel("prediction horizon [ms]")
 
 
@@ -220,15 +220,16 @@ def plot_posterior_predictions(trial, predicted: dict, p: int, *, j: dict | None
     return fig
 
 
-def plot_delay_angle(summary: dict, label: str = ""):
+def plot_delay_angle(legs: dict, label: str = "", population: dict | None = None):
     """The delay–angle curve d − shift·w(φ) per leg with its 90 % band, and the population's.
 
-    ``summary`` is a fit's ``summary.json`` with ``delay_angle`` per leg (an
-    ``angle_delay`` fit).  The pulses' angle range of each leg is marked: outside it
+    ``legs``: a fit's per-leg summaries (:attr:`quadshank.inference.FitResult.legs`), those of
+    an ``angle_delay`` fit holding ``delay_angle``; ``population``: the pooled curve
+    (``delay_angle_population``).  The pulses' angle range of each leg is marked: outside it
     the data say nothing about the threshold.  The paper's −20° is drawn dotted.
     """
-    legs = {leg: s["delay_angle"] for leg, s in summary["legs"].items() if "delay_angle" in s}
-    pop = summary.get("delay_angle_population")
+    legs = {leg: s["delay_angle"] for leg, s in legs.items() if "delay_angle" in s}
+    pop = population
     n = len(legs) + (pop is not None)
     cols = min(3, n)
     rows = -(-n // cols)

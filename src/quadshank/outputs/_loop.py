@@ -9,9 +9,10 @@ from ..data._cohort import Cohort
 from ..evaluation import _residuals as R
 from ..evaluation._checks import elpd_in_time, loo_pit, worst_seconds_sentence
 from ..evaluation._posterior import FIGURE_WINDOW_S, figure_window, window_predictions
+from ..evaluation._prediction import horizon_samples
 from ..evaluation._residuals import leg_residuals
 from ..inference._screen import LaplaceFit, leg_draw_models
-from ..loop._diagnose import ELPD_SE_BAR, J_DRAWS
+from ..loop._diagnose import ELPD_SE_BAR, J_DRAWS, Diagnosis
 from . import _residual_figures as F
 from ._figures import plot_posterior_predictions
 
@@ -54,8 +55,9 @@ def predictive_checks(fit: LaplaceFit, cohort: Cohort, out, label: str) -> tuple
     shown = "JM-left" if "JM-left" in fit.legs else fit.legs[0]
     trial = [t for t in cohort.trials_of(shown) if t.trial in fit.data.trials][-1]
     window = figure_window(trial, FIGURE_WINDOW_S)
-    predicted = window_predictions(leg_draw_models(fit, shown, J_DRAWS), trial, (1, 100), window)
-    for p, name in ((1, "one_step"), (100, "1s")):
+    one_second = horizon_samples(trial.sampling_period_s, (1000,))[1000]
+    predicted = window_predictions(leg_draw_models(fit, shown, J_DRAWS), trial, (1, one_second), window)
+    for p, name in ((1, "one_step"), (one_second, "1s")):
         fig = plot_posterior_predictions(trial, {fit.model.name: predicted[p]}, p, start_s=window[0], length_s=FIGURE_WINDOW_S[1])
         paths.append(save_figure(fig, out / f"predictions_{name}_{label}_{shown}.png"))
     pits, seconds = {}, {}
@@ -77,13 +79,13 @@ def predictive_checks(fit: LaplaceFit, cohort: Cohort, out, label: str) -> tuple
     return paths, result
 
 
-def ranking_markdown(summary: dict, command: str | None = None) -> str:
-    """A diagnosis summary (its ranking, verdict, NUTS confirmation, checks and findings) as Markdown."""
-    rows = summary["ranking"]
-    md = [f"# Which effect is missing from {summary['model']}", ""]
+def ranking_markdown(summary: Diagnosis, command: str | None = None) -> str:
+    """A diagnosis (its ranking, verdict, NUTS confirmation, checks and findings) as Markdown."""
+    rows = summary.ranking
+    md = [f"# Which effect is missing from {summary.model}", ""]
     if command:
         md += [f"Regenerate: `{command}`", ""]
-    md += [f"**Verdict: {summary['verdict']}.** {summary['sentence']}", ""]
+    md += [f"**Verdict: {summary.verdict}.** {summary.sentence}", ""]
     md += [
         "| rank | effect | ΔELPD ± SE | J 500 ms before → after [deg] | J 1000 ms before → after [deg] | clears the bar | Pareto k max | importance ESS |",
         "|---|---|---|---|---|---|---|---|",
@@ -107,7 +109,7 @@ def ranking_markdown(summary: dict, command: str | None = None) -> str:
     if confirmed:
         md += [
             "",
-            f"## Confirmed with hierarchical NUTS (against the fit in `{summary.get('confirmed_from', '')}`)",
+            f"## Confirmed with hierarchical NUTS (against the fit in `{summary.confirmed_from or ''}`)",
             "",
             "| effect | ΔELPD ± SE (PSIS-LOO) | J 500 ms before → after [deg] | J 1000 ms before → after [deg] | clears the bar | fit |",
             "|---|---|---|---|---|---|",
@@ -121,16 +123,16 @@ def ranking_markdown(summary: dict, command: str | None = None) -> str:
                 f"{j10['before']['median']:.3f} → {j10['after']['median']:.3f} [{j10['after']['lo']:.3f}, {j10['after']['hi']:.3f}] | "
                 f"{'yes' if n['clears_bar'] else 'no'} | `{n['folder']}`{' — ' + n['banner'] if n.get('banner') else ''} |"
             )
-        md += ["", f"The screen's verdict: {summary.get('screen_verdict')}; under NUTS: {summary['verdict']}."]
-    failed = summary.get("failed", [])
+        md += ["", f"The screen's verdict: {summary.screen_verdict}; under NUTS: {summary.verdict}."]
+    failed = summary.failed
     if failed:
         md += ["", "## Candidates that could not be screened", ""]
         md += [f"- **{f['effect']}**: {f['error']}" for f in failed]
-    checks = summary.get("predictive_checks")
+    checks = summary.predictive_checks
     if checks:
         md += ["", "## Predictive checks of the baseline (LOO-PIT, pointwise ELPD in time)", ""]
         md += [f"- {n}" for n in checks["notes"]]
-    findings = summary.get("residual_findings", {})
+    findings = summary.residual_findings
     if findings:
         md += ["", "## Where the model fails (residuals of the baseline)", ""]
         for leg, lines in findings.items():

@@ -45,17 +45,17 @@ import numpy as np
 
 from ..common._io import atomic_write_text, figure_bytes, write_json
 from ..common._progress import progress_bar
-from ..data._paper import HORIZON_MS, TABLE_V
+from ..data._paper import SAMPLING_PERIOD_S, TABLE_V
 from ..inference._summaries import INTERVAL, interval
 from ..model._effects import to_standard
 from ._figures import horizon_axis, plot_delay_angle
 
-__all__ = ["write_report", "plot_shrinkage", "plot_delay_posterior", "plot_leg_predictions", "PREDICTION_WINDOW_S", "PREDICTION_HORIZONS"]
+__all__ = ["write_report", "plot_shrinkage", "plot_delay_posterior", "plot_leg_predictions", "PREDICTION_WINDOW_S", "PREDICTION_HORIZONS_MS"]
 
 #: Prediction figures: (start, length) [s] of the window; on shorter trials the start moves earlier.
 PREDICTION_WINDOW_S = (30.0, 10.0)
 #: Horizons [samples] of the prediction figures: 100 ms and 1 s.
-PREDICTION_HORIZONS = (10, 100)
+PREDICTION_HORIZONS_MS = (100, 1000)
 #: The z of the 5 % and 95 % quantiles of a normal: the prior's 90 % interval in prior scales.
 _Z90 = 1.6448536269514722
 _TRIAL_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
@@ -106,14 +106,15 @@ def plot_shrinkage(subject: str, legs: list[str], params: dict):
     return fig
 
 
-def plot_delay_posterior(legs: list[str], fit_summary: dict):
-    """P(d | data) of each leg as bars, from a fit's summary."""
+def plot_delay_posterior(legs: list[str], fit_legs: dict, sampling_period_s: float = SAMPLING_PERIOD_S):
+    """P(d | data) of each leg as bars, from a fit's per-leg summaries (``FitResult.legs``); d in
+    samples of ``sampling_period_s``."""
     fig, axes = plt.subplots(1, len(legs), figsize=(3.6 * len(legs), 2.8), squeeze=False, sharey=True)
     for ax, leg in zip(axes[0], legs):
-        p = np.asarray(fit_summary["legs"][leg]["delay_posterior"])
+        p = np.asarray(fit_legs[leg]["delay_posterior"])
         ax.bar(np.arange(p.size), p, color="tab:blue")
         ax.set_xticks(np.arange(p.size))
-        ax.set_xlabel("delay d [samples of 10 ms]")
+        ax.set_xlabel(f"delay d [samples of {sampling_period_s * 1000:g} ms]")
         ax.set_title(f"{leg}: P(d | data)", fontsize=9)
     axes[0, 0].set_ylabel("posterior probability")
     fig.tight_layout()
@@ -161,11 +162,12 @@ def plot_leg_predictions(leg: str, trial, window, predictions: dict, J_legs: dic
         t = trial.time_s[starts + p]
         band = interval(pred, axis=0)
         ax.plot(trial.time_s[i0:i1], trial.angle_deg[i0:i1], "k-", lw=1.1, label="measured")
-        ax.plot(t, band["median"], "--", color="tab:green", lw=1.1, label=f"predicted {HORIZON_MS.get(p, p * 10)} ms ahead (median)")
+        ms = int(round(p * trial.sampling_period_s * 1000))
+        ax.plot(t, band["median"], "--", color="tab:green", lw=1.1, label=f"predicted {ms} ms ahead (median)")
         ax.fill_between(t, band["lo"], band["hi"], color="tab:green", alpha=0.3, lw=0, label="90 % band over draws")
         ax.set_xlim(trial.time_s[i0], trial.time_s[i1 - 1])
-        j = J_legs.get(leg, {}).get(str(trial.trial), {}).get(str(HORIZON_MS.get(p, p * 10)))
-        title = f"{HORIZON_MS.get(p, p * 10)} ms ahead"
+        j = J_legs.get(leg, {}).get(str(trial.trial), {}).get(str(ms))
+        title = f"{ms} ms ahead"
         if j:
             title += f": J = {j['median']:.2f}° [{j['lo']:.2f}, {j['hi']:.2f}] over the trial"
         ax.set_title(title, fontsize=9)
@@ -245,7 +247,7 @@ def _page(title: str, body: list[str]) -> str:
 
 
 def _warning_box(fit_summary: dict) -> str:
-    diag = fit_summary["diagnostics"]
+    diag = fit_summary.diagnostics
     if diag.get("ok"):
         return ""
     items = "".join(f"<li>{_e(p)}</li>" for p in diag.get("problems", []))
@@ -258,7 +260,7 @@ def _warning_box(fit_summary: dict) -> str:
 
 
 def _diagnostics_section(fit_summary: dict) -> str:
-    d = fit_summary["diagnostics"]
+    d = fit_summary.diagnostics
     th = d.get("thresholds", {})
 
     def verdict(good: bool) -> str:
@@ -305,10 +307,10 @@ def _diagnosis_section(diagnosis: dict | None) -> str:
         s = block["summary"]
         if block.get("title"):
             parts.append(f"<h3>{_e(block['title'])}</h3>")
-        parts.append(f"<p>Model screened: {_e(s.get('model', '?'))}. <strong>Verdict: {_e(s.get('verdict', '?'))}.</strong> "
-                     f"{_e(s.get('sentence', ''))}</p>")
+        parts.append(f"<p>Model screened: {_e(s.model)}. <strong>Verdict: {_e(s.verdict)}.</strong> "
+                     f"{_e(s.sentence)}</p>")
         rows = []
-        for k, r in enumerate(s.get("ranking", []), 1):
+        for k, r in enumerate(s.ranking, 1):
             j5, j10 = r.get("J_500ms", {}), r.get("J_1000ms", {})
             rows.append([
                 str(k), _e(r.get("effect")), f"{_num(r.get('delta_elpd'))} ± {_num(r.get('delta_elpd_se'))}",
@@ -318,7 +320,7 @@ def _diagnosis_section(diagnosis: dict | None) -> str:
         if rows:
             parts.append(_table(["rank", "effect", "ΔELPD ± SE", "J 500 ms before → after [deg]",
                                  "J 1000 ms before → after [deg]", "clears the bar"], rows, (2, 3, 4)))
-        for f in s.get("failed", []):
+        for f in s.failed:
             parts.append(f'<p class="warning">Not screened: <strong>{_e(f.get("effect"))}</strong> '
                          f'({_e(f.get("error"))}).</p>')
     if diagnosis.get("final_model"):
@@ -336,10 +338,10 @@ def _param_rows(rows: dict) -> list[list[str]]:
     ]
 
 
-def _delay_text(s: dict) -> str:
+def _delay_text(s: dict, sampling_period_s: float) -> str:
     p = s["delay_posterior"]
     mode = int(np.argmax(p))
-    return f"mode d = {mode} samples ({mode * 10} ms), P = {p[mode]:.2f}"
+    return f"mode d = {mode} samples ({mode * sampling_period_s * 1000:g} ms), P = {p[mode]:.2f}"
 
 
 def _j_rows(J_leg: dict, label: str) -> list[list[str]]:
@@ -403,10 +405,11 @@ def write_report(
     summary read for the report, or None.
     """
     fs, legs, diag_info = fit_summary, list(desc["legs"]), diagnosis
+    dt = desc.get("sampling_period_s", SAMPLING_PERIOD_S)
     subjects = list(dict.fromkeys(params[leg]["subject"] for leg in legs))
     subject_legs = {s: [leg for leg in legs if params[leg]["subject"] == s] for s in subjects}
     pages = {s: f"subject-{_safe(s)}.html" for s in subjects}
-    diag_ok = bool(fs["diagnostics"].get("ok"))
+    diag_ok = bool(fs.diagnostics.get("ok"))
     fitted_trials = ", ".join(map(str, desc["trials"]))
     base, paper = _paper_table_v(label)
     header = (f'<p class="note">Model <strong>{_e(label)}</strong> ({_e(", ".join(desc["effects"]))}), fit {_e(fit_dir)}, '
@@ -416,7 +419,7 @@ def write_report(
 
     # ---------------------------------------------------------------- per leg: CSV and JSON
     for leg in legs:
-        s = fs["legs"][leg]
+        s = fs.legs[leg]
         doc = {
             "leg": leg, "subject": params[leg]["subject"], "model": label, "fit": str(fit_dir),
             "interval": list(INTERVAL), "diagnostics_ok": diag_ok,
@@ -448,11 +451,11 @@ def write_report(
                     "population show how much the hierarchy pools.</p>")
         body.append(_figure(_data_uri(plot_shrinkage(subject, sl, params)), f"shrinkage of subject {subject}"))
         body.append('<h2 id="delay">Delay posterior</h2>')
-        body.append(_figure(_data_uri(plot_delay_posterior(sl, fs)), f"delay posterior of subject {subject}"))
+        body.append(_figure(_data_uri(plot_delay_posterior(sl, fs.legs, dt)), f"delay posterior of subject {subject}"))
         figs += 2
-        if any("delay_angle" in fs["legs"][leg] for leg in sl):
+        if any("delay_angle" in fs.legs[leg] for leg in sl):
             body.append('<h2 id="delay-angle">Delay against knee angle</h2>')
-            sub = {"legs": {leg: fs["legs"][leg] for leg in sl if "delay_angle" in fs["legs"][leg]}}
+            sub = {leg: fs.legs[leg] for leg in sl if "delay_angle" in fs.legs[leg]}
             body.append(_figure(_data_uri(plot_delay_angle(sub, label)), f"delay-angle curve of subject {subject}"))
             figs += 1
         body.append('<h2 id="j">Prediction error J_φ,p against horizon</h2>')
@@ -462,9 +465,9 @@ def write_report(
         body.append(_figure(_data_uri(_plot_j_legs(sl, J_legs, label)), f"J against horizon, subject {subject}"))
         figs += 1
         for leg in sl:
-            s = fs["legs"][leg]
+            s = fs.legs[leg]
             body.append(f'<h2 id="leg-{_e(_safe(leg))}">Leg {_e(leg)}</h2>')
-            body.append(f"<p>Delay: {_e(_delay_text(s))}. Files: "
+            body.append(f"<p>Delay: {_e(_delay_text(s, dt))}. Files: "
                         f'<a href="legs/{_e(_safe(leg))}.csv">CSV</a>, <a href="legs/{_e(_safe(leg))}.json">JSON</a>.</p>')
             if "delay_angle" in s:
                 body.append(f"<p>{_delay_angle_html(s['delay_angle'])}.</p>")
@@ -487,12 +490,12 @@ def write_report(
     body = [nav, f"<h1>Credible parameters of {_e(label)}: cohort</h1>", warning, header]
     rows = []
     for leg in legs:
-        s = fs["legs"][leg]
+        s = fs.legs[leg]
         subject = params[leg]["subject"]
         j = J_legs.get(leg, {})
         tr = sorted(j, key=int)[-1] if j else None
         rows.append([
-            _e(subject), f'<a href="{_e(pages[subject])}#leg-{_e(_safe(leg))}">{_e(leg)}</a>', _e(_delay_text(s)),
+            _e(subject), f'<a href="{_e(pages[subject])}#leg-{_e(_safe(leg))}">{_e(leg)}</a>', _e(_delay_text(s, dt)),
             (f"trial {_e(tr)}: {_q(j[tr].get('1000'))}" if tr else "–"),
             '<span class="ok">passed</span>' if diag_ok else '<span class="fail">FAILED</span>',
         ])
@@ -520,10 +523,10 @@ def write_report(
                 pv = paper.get(tr, {}).get(int(h))
                 trows.append([_e(tr), _e(h), _q(v), f"{pv[0]} ({pv[1]})" if pv else "–"])
         body.append(_table(["trial", "horizon [ms]", "median [90 %] [deg]", f"paper {base}: mean (s.d.)"], trows, (2, 3)))
-    if "delay_angle_population" in fs:
+    if fs.delay_angle_population is not None:
         body.append('<h2 id="delay-angle">Delay against knee angle, legs pooled</h2>')
-        body.append(_figure(_data_uri(plot_delay_angle({"legs": {}, "delay_angle_population": fs["delay_angle_population"]},
-                                                       label)), "population delay-angle curve"))
+        body.append(_figure(_data_uri(plot_delay_angle({}, label, fs.delay_angle_population)),
+                            "population delay-angle curve"))
         index_figs += 1
     body += [diag_html, diagnosis_html]
     atomic_write_text(out / "index.html", _page(f"quadshank report: {label}", body))

@@ -13,7 +13,14 @@ import math
 from pathlib import Path
 
 from ..common._io import atomic_write_text
-from ..data._paper import TABLE_I, TABLE_II, TABLE_III, TABLE_IV, TABLE_V
+from ..data._paper import (
+    SAMPLING_PERIOD_S,
+    TABLE_I,
+    TABLE_II,
+    TABLE_III,
+    TABLE_IV,
+    TABLE_V,
+)
 
 __all__ = [
     "write_table",
@@ -71,6 +78,12 @@ def _leg_truth(truth: dict | None, leg: str) -> dict | None:
     return truth.get("legs", {}).get(leg)
 
 
+def _samples_ms(samples: int, sampling_period_s: float):
+    """A number of samples in milliseconds (a whole number where it is one)."""
+    ms = round(samples * sampling_period_s * 1000, 9)
+    return int(ms) if float(ms).is_integer() else ms
+
+
 def table_passive(ident: dict, truth: dict | None = None) -> list[dict]:
     """Identified passive parameters per leg, beside the truth when given."""
     rows = []
@@ -96,7 +109,7 @@ def table_i(ident: dict, truth: dict | None = None) -> list[dict]:
             "leg": leg,
             "G'1 [deg/s²]": r.models["model1"].flat_params()["gain"],
             "(std)": r.g1_std,
-            "d [ms]": r.delay * 10,
+            "d [ms]": _samples_ms(r.delay, r.models["model1"].sampling_period_s),
             "twitches": len(r.pulses),
         }
         if t:
@@ -104,7 +117,7 @@ def table_i(ident: dict, truth: dict | None = None) -> list[dict]:
             row["true delay [ms]"] = t["active"]["delay_s"] * 1000
         if leg in TABLE_I:
             row["paper G'1"] = TABLE_I[leg]["G1"]
-            row["paper d [ms]"] = TABLE_I[leg]["delay"] * 10
+            row["paper d [ms]"] = _samples_ms(TABLE_I[leg]["delay"], SAMPLING_PERIOD_S)
         rows.append(row)
     return rows
 

@@ -1,0 +1,77 @@
+"""Typed results: each command's summary.json is the JSON form of a dataclass with a schema version."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+
+from quadshank.common import SCHEMA_VERSION, SchemaError
+from quadshank.evaluation import PosteriorEvaluation
+from quadshank.inference import FitResult
+from quadshank.loop import Diagnosis, Discovery
+
+
+def _fit(**kw) -> FitResult:
+    base = dict(model="model1", effects=["zero_order"], trials=[1], legs={"TN-left": {"delay_posterior": [1.0]}},
+                diagnostics={"ok": False}, banner="FIT FAILED ITS CHECKS: one chain", settings={"chains": 1},
+                chain_method="vectorized", sampling_period_s=0.01, interval=[0.05, 0.95], code={"version": "x"})
+    return FitResult(**{**base, **kw})
+
+
+def test_a_result_reads_back_as_it_was_written(tmp_path):
+    fit = _fit(data="somewhere", sampling_seconds=1.5)
+    fit.write(tmp_path)
+    doc = json.loads((tmp_path / "summary.json").read_text())
+    assert doc["schema"] == "quadshank/fit" and doc["schema_version"] == SCHEMA_VERSION
+    assert "screen_restarted" not in doc  # an optional part the run did not make is left out
+    assert doc["banner"] == fit.banner and "delay_angle_population" not in doc
+    assert FitResult.read(tmp_path) == fit
+    assert not FitResult.read(tmp_path).ok
+
+
+def test_a_required_field_stays_when_it_is_none(tmp_path):
+    _fit(banner=None, diagnostics={"ok": True}).write(tmp_path)
+    assert json.loads((tmp_path / "summary.json").read_text())["banner"] is None
+    assert FitResult.read(tmp_path).ok
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"schema": "quadshank/diagnosis"}, "not a fit summary"),
+        ({"schema_version": SCHEMA_VERSION + 1}, "schema version"),
+        ({"schema": None}, "without a schema"),
+    ],
+)
+def test_a_summary_of_another_kind_or_version_is_refused_naming_the_file(tmp_path, change, message):
+    doc = {**_fit().to_json(), **change}
+    if change.get("schema", "") is None:
+        del doc["schema"]
+    (tmp_path / "summary.json").write_text(json.dumps(doc))
+    with pytest.raises(SchemaError, match=message) as err:
+        FitResult.read(tmp_path)
+    assert str(tmp_path / "summary.json") in str(err.value)
+
+
+def test_a_missing_field_is_named(tmp_path):
+    doc = _fit().to_json()
+    del doc["legs"]
+    with pytest.raises(SchemaError, match="lacks legs"):
+        FitResult.from_json(doc, "x/summary.json")
+
+
+def test_live_objects_stay_out_of_the_json():
+    d = Diagnosis(model="m", legs=["a"], elpd={}, J_ms={}, ranking=[], verdict="none", bar={}, sentence="s",
+                  trials=[1], screened=object())
+    doc = d.to_json()
+    assert "screened" not in doc and doc["schema"] == "quadshank/diagnosis"
+    back = Diagnosis.from_json(json.loads(json.dumps(doc)))
+    assert back.screened is None and dataclasses.replace(back, screened=d.screened) == d
+
+
+@pytest.mark.parametrize("kind", [FitResult, PosteriorEvaluation, Diagnosis, Discovery])
+def test_every_result_names_its_kind(kind):
+    assert kind.schema().startswith("quadshank/") and kind.KIND
+    assert dataclasses.is_dataclass(kind)
