@@ -57,6 +57,7 @@ def test_a_model_at_another_period_than_its_data_is_refused():
         prediction_errors(at_10ms, cohort.trials[0])
     at_5ms = build_model("model1", sampling_period_s=cohort.sampling_period_s)
     assert prepare(cohort, at_5ms).n_legs == 1
+    assert prepare(cohort, at_10ms.at_period(0.005)).n_legs == 1
 
 
 def test_horizons_are_milliseconds_in_whole_samples():

@@ -180,14 +180,6 @@ class Param:
         if self.prior[0] not in ("normal", "lognormal"):
             raise ValueError(f"parameter {self.name!r}: prior family {self.prior[0]!r} not known")
 
-    @property
-    def typical(self):
-        """A central value of the prior, in the parameter's units (a tuple for vectors)."""
-        family, loc, scale = self.prior[:3]
-        if isinstance(loc, (tuple, list)):
-            return tuple(math.exp(x) if family == "lognormal" else float(x) for x in loc)
-        return math.exp(loc) if family == "lognormal" else float(loc)
-
     def from_standard(self, z, *, xp=np, dtype=np.float64, flat: bool = False):
         """:func:`from_standard` with this parameter's prior and shape."""
         return from_standard(z, self.prior, self.shape, xp=xp, dtype=dtype, flat=flat)
