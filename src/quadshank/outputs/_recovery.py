@@ -12,7 +12,7 @@ def coverage_markdown(result: dict) -> str:
         "",
         f"Regenerate: `{result['command']}`" if result.get("command") else "",
         "",
-        f"Data simulated from the fitted model itself (see `quadshank.evaluation._recovery`), {len(result['legs'])} legs × "
+        f"Data simulated from the fitted model itself (see `quadshank.evaluation.simulate_matching` and docs/recovery.md), {len(result['legs'])} legs × "
         f"{result['minutes']:g} min of trial 1, seeds {', '.join(map(str, result['seeds']))}; "
         f"NUTS {result['settings']['chains']} chains × {result['settings']['draws']} draws after "
         f"{result['settings']['warmup']} warm-up.  A calibrated posterior covers 90 % of the true values; "
@@ -96,7 +96,7 @@ def likelihood_markdown(result: dict) -> str:
         "",
         f"One trajectory per leg and seed ({result['minutes']:g} min of trial 1, simulated from the model itself), its "
         f"acceleration noise drawn afresh {result['replicates']} times; each replicate fitted by maximum likelihood, "
-        "each leg alone, at its true delay, with σ and ν free (`quadshank.evaluation._recovery.likelihood_calibration`).  "
+        "each leg alone, at its true delay, with σ and ν free (`quadshank.evaluation.likelihood_calibration`).  "
         "z = (estimate − truth) / standard error from the Hessian.  A calibrated likelihood gives z a mean of 0 "
         "(± its standard error) and an sd of 1, and its Wald 90 % intervals cover 90 % of the time.  No prior, no "
         "pooling of legs, no delay uncertainty and no sampler enter here, so a shortfall of a recovery run's "
