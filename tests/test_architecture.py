@@ -146,3 +146,14 @@ def test_fit_orchestration_has_no_private_numpyro_hook():
     source = "\n".join(p.read_text() for p in (SRC / "quadshank").rglob("*.py"))
     assert not re.search(r"class \w+\((NUTS|HMC|MCMCKernel)\)", source)
     assert "_init_state" not in source
+
+
+def test_randomness_comes_from_named_streams_of_one_seed():
+    """No integer offsets of a seed (seed + 1, seed + i) anywhere: streams are split by name."""
+    source = "\n".join(p.read_text() for p in (SRC / "quadshank").rglob("*.py"))
+    assert not re.search(r"\bseed\s*\+\s*\w", source)
+    from quadshank.common import jax_key, numpy_rng
+
+    a, b = numpy_rng(3, "x").random(4), numpy_rng(3, "y").random(4)
+    assert not (a == b).any() and (numpy_rng(3, "x").random(4) == a).all()
+    assert (jax_key(3, "delays", 1) != jax_key(3, "delays", 2)).any()

@@ -13,9 +13,11 @@ from ._io import (
 )
 from ._progress import progress_bar
 from ._provenance import __version__, code_fingerprint, code_provenance
+from ._random import jax_key, numpy_rng
 from ._results import SCHEMA_VERSION, Result, SchemaError
 
 __all__ = [
     "atomic_path", "atomic_write_bytes", "atomic_write_text", "read_json", "write_json", "save_figure",
     "progress_bar", "code_fingerprint", "code_provenance", "__version__", "Result", "SchemaError", "SCHEMA_VERSION",
+    "numpy_rng", "jax_key",
 ]  # fmt: skip

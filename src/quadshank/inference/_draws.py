@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.stats import truncnorm
 
+from ..common._random import jax_key, numpy_rng
 from ..model._effects import prior_arrays
 from ..model._likelihood import N_DELAYS, LikelihoodData, leg_pointwise, step_edges
 from ..model._model import Model
@@ -48,7 +49,7 @@ def hyper_draws(model: Model, samples: dict, leg_subject, n_subjects: int, seed:
     A = np.zeros((n_legs, n_subjects + 1))
     A[:, 0] = 1.0
     A[np.arange(n_legs), 1 + leg_subject] = 1.0
-    rng = np.random.default_rng(seed + 2)
+    rng = numpy_rng(seed, "hyperparameters")
     out = {}
     for p in model_params(model):
         if f"{p.name}_s_leg" not in samples:
@@ -86,7 +87,7 @@ def spread_draws(model: Model, samples: dict, leg_subject, seed: int) -> dict:
     and ``{name}_sd_leg``, for the parameters whose spreads ``samples`` does not hold.
     """
     _, r_s, r_l, *_ = spread_grid(tuple(int(i) for i in np.asarray(leg_subject)))
-    rng = np.random.default_rng(seed + 3)
+    rng = numpy_rng(seed, "spreads")
     out = {}
     for p in model_params(model):
         site = f"{p.name}_s_leg"
@@ -104,11 +105,12 @@ def spread_draws(model: Model, samples: dict, leg_subject, seed: int) -> dict:
     return out
 
 
-def sample_delays(delay_logp: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+def sample_delays(delay_logp: np.ndarray, key) -> tuple[np.ndarray, np.ndarray]:
     """One (d, shift) per draw and leg from P(d, shift | θ, data) by Gumbel-max.
 
     ``delay_logp`` is (..., legs, D) (no delay effect: shift 0) or the joint
-    (..., legs, D, K + 1).  Returns (d, shift), each (..., legs).
+    (..., legs, D, K + 1); ``key`` a JAX key (a stream of the fit's seed, :func:`quadshank.common.jax_key`).
+    Returns (d, shift), each (..., legs).
     """
     logp = np.asarray(delay_logp)
     if logp.ndim >= 3 and logp.shape[-1] != N_DELAYS:
@@ -116,7 +118,7 @@ def sample_delays(delay_logp: np.ndarray, seed: int) -> tuple[np.ndarray, np.nda
         n_shift = logp.shape[-1]
     else:
         flat, n_shift = logp, 1
-    g = jax.random.gumbel(jax.random.PRNGKey(seed + 1), flat.shape)
+    g = jax.random.gumbel(key, flat.shape)
     k = np.asarray(jnp.argmax(jnp.asarray(flat) + g, axis=-1))
     return k // n_shift, k % n_shift
 
@@ -166,7 +168,7 @@ def _sample_step_states(model, data, posterior, log_delay_prior, seed, chunk):
         return d, rest // J, lo, hi
 
     f = jax.jit(jax.vmap(one_draw))
-    keys = jax.random.split(jax.random.PRNGKey(seed + 4), n_draws)
+    keys = jax.random.split(jax_key(seed, "step states"), n_draws)
     out = []
     for i in range(0, n_draws, chunk):
         sl = slice(i, min(i + chunk, n_draws))
@@ -174,7 +176,7 @@ def _sample_step_states(model, data, posterior, log_delay_prior, seed, chunk):
         out.append([np.asarray(v) for v in f(m, jnp.asarray(posterior["sigma"][sl]), jnp.asarray(posterior["nu"][sl]), keys[sl])])
     d, shift, lo, hi = (np.concatenate([o[j] for o in out]) for j in range(4))
     lo, hi = lo.astype(np.float64), hi.astype(np.float64)  # the drawn state's edges in prior scales
-    rng = np.random.default_rng(seed + 5)
+    rng = numpy_rng(seed, "thresholds")
     threshold = loc + scale * truncnorm.rvs(lo, hi, random_state=rng)
     return d, shift, threshold.astype(np.float32)
 

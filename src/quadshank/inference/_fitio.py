@@ -25,6 +25,7 @@ import numpy as np
 
 from ..common._io import atomic_path
 from ..common._provenance import code_provenance
+from ..common._random import jax_key, numpy_rng
 from ..common._results import Result
 from ..data._paper import SAMPLING_PERIOD_S
 from ..model._effects import AngleDelay, get_effect
@@ -117,7 +118,7 @@ def to_inference_data(
     step = step_param(model, data)
     if step is None:
         joint = samples.get("delay_shift_logp", samples["delay_logp"])
-        delays, shifts = sample_delays(joint.reshape(chains * draws, *joint.shape[2:]), settings.seed)
+        delays, shifts = sample_delays(joint.reshape(chains * draws, *joint.shape[2:]), jax_key(settings.seed, "delays"))
     else:  # the threshold was summed out: drawn with (d, shift) from their joint conditional
         delays, shifts, threshold = sample_step_states(model, data, flat, log_delay_prior, settings.seed)
         flat[step.name] = threshold
@@ -470,7 +471,7 @@ def posterior_models(idata, model: Model, leg: str, n_draws: int | None = None, 
     total = post.sizes["chain"] * post.sizes["draw"]
     idx = np.arange(total)
     if n_draws is not None and n_draws < total:
-        idx = np.sort(np.random.default_rng(seed).choice(total, n_draws, replace=False))
+        idx = np.sort(numpy_rng(seed, "posterior draws").choice(total, n_draws, replace=False))
     values = {p.name: jnp.asarray(pooled_draws(post, p.name)[idx, i]) for p in model_params(model)}
     delay = pooled_draws(post, "delay")[idx, i]
     stacked = model.with_params(values, delay=jnp.asarray(delay, jnp.int32))

@@ -38,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import optimize, special
 
+from ..common._random import jax_key, numpy_rng
 from ..data._cohort import Cohort
 from ..model._effects import Param
 from ..model._likelihood import (
@@ -308,7 +309,7 @@ def _laplace_fit(
     joint, value_and_grad, joint_b, prior_b, pw, _ = _compiled(model, specs, R, K, data.n_segments)
     arrays = _leg_arrays64(data)
     dim = sum(s.size for s in specs) + 2
-    rng = np.random.default_rng(seed)
+    rng = numpy_rng(seed, "screen starts")
 
     if start is None:
         with warnings.catch_warnings():
@@ -361,7 +362,7 @@ def _laplace_fit(
         logp = np.asarray(joint_b(jnp.asarray(draws[i], jnp.float64), x), np.float64)  # (S, D, K + 1)
         log_post.append(np.asarray(jax.scipy.special.logsumexp(logp, axis=(-2, -1))) + prior_b(jnp.asarray(draws[i], jnp.float64)))
         logp = logp - jax.scipy.special.logsumexp(logp, axis=(-2, -1), keepdims=True)
-        d, k = sample_delays(logp, seed + i)
+        d, k = sample_delays(logp, jax_key(seed, "screen delays", i))
         delays.append(d)
         shifts.append(k)
         dpost.append(np.exp(np.asarray(jax.scipy.special.logsumexp(logp, axis=-1))).mean(axis=0))
