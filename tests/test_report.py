@@ -21,6 +21,8 @@ import pytest
 import quadshank.commands.report as report_command
 import quadshank.outputs._report as report
 from quadshank.cli import main
+from quadshank.evaluation import PosteriorEvaluation
+from quadshank.loop import Diagnosis, Discovery
 from quadshank.inference._summaries import INTERVAL
 from quadshank.inference._fitio import load_fit
 
@@ -69,21 +71,22 @@ def passing(made):
     band = lambda m: {"median": m, "lo": m - 0.25, "hi": m + 0.5}  # noqa: E731
     j_legs = {leg: {"1": {h: band(1.0 + k + int(h) / 1000) for h in ("100", "250", "500", "1000")}}
               for k, leg in enumerate(LEGS)}
-    (evaluation / "summary.json").write_text(json.dumps({
-        "J": {"model3": {"1": {h: band(2.0) for h in ("100", "250", "500", "1000")}}},
-        "J_legs": {"model3": j_legs}, "n_draws": 7, "start_stride": 3,
-        "fits": {"model3": {"folder": str(fit), "draws_used": 7}},
-    }))
+    PosteriorEvaluation(
+        method="posterior", J={"model3": {"1": {h: band(2.0) for h in ("100", "250", "500", "1000")}}},
+        J_legs={"model3": j_legs}, sign_tests=[], loo={"fits": {}, "compare": [], "not_compared": []},
+        fits={"model3": {"folder": str(fit), "draws_used": 7}}, legs=list(LEGS), horizons_samples=[10, 25, 50, 100],
+        interval=[0.05, 0.95], n_draws=7, start_stride=3, seed=0, evaluation_seconds=0.0,
+    ).write(evaluation)
     diagnosis = root / "diag"
     diagnosis.mkdir()
     row = lambda effect, d, clears: {  # noqa: E731
         "effect": effect, "delta_elpd": d, "delta_elpd_se": 2.0, "clears_bar": clears,
         "J_500ms": {"before": band(5.0), "after": band(4.0)}, "J_1000ms": {"before": band(7.0), "after": band(6.0)},
     }
-    (diagnosis / "summary.json").write_text(json.dumps({
-        "model": "model3", "verdict": "potentiation", "sentence": SNEAKY,
-        "ranking": [row("potentiation", 41.5, True), row("fatigue_of_sorts", 1.5, False)],
-    }))
+    Diagnosis(
+        model="model3", legs=list(LEGS), elpd={"value": 0.0, "se": 1.0}, J_ms={}, verdict="potentiation", bar={},
+        sentence=SNEAKY, trials=[1], ranking=[row("potentiation", 41.5, True), row("fatigue_of_sorts", 1.5, False)],
+    ).write(diagnosis)
     out = root / "report-ok"
     out.mkdir()
     (out / "summary.json").write_text("{}")  # a previous report's: removed first, written anew last
@@ -211,7 +214,9 @@ def test_missing_folders_and_unusable_inputs_are_plain_errors(made, capsys):
     assert "no complete fit" in capsys.readouterr().err
     bad = root / "bad-eval"
     bad.mkdir()
-    (bad / "summary.json").write_text(json.dumps({"J": {}, "J_legs": {"model1": {}}}))
+    PosteriorEvaluation(method="posterior", J={}, J_legs={"model1": {}}, sign_tests=[], loo={}, fits={}, legs=[],
+                        horizons_samples=[], interval=[0.05, 0.95], n_draws=1, start_stride=1, seed=0,
+                        evaluation_seconds=0.0).write(bad)
     assert main(["report", str(made["fit"]), "--out", str(root / "r2"), "--evaluation", str(bad)]) == 2
     err = capsys.readouterr().err
     assert err.startswith("quadshank: error:") and "no fit of 'model3'" in err
@@ -271,11 +276,10 @@ def test_a_discover_folder_shows_the_ranking_of_each_round(tmp_path):
     rank = lambda effect: {"effect": effect, "delta_elpd": 30.0, "delta_elpd_se": 3.0, "clears_bar": True}  # noqa: E731
     rounds = [{"model": "model3s", "verdict": "fatigue", "sentence": "add fatigue"},
               {"model": "model3s+fatigue", "verdict": "none", "sentence": "nothing more"}]
-    (tmp_path / "summary.json").write_text(json.dumps({"model": "model3s", "final_model": "model3s+fatigue",
-                                                       "rounds": rounds}))
+    Discovery(model="model3s", final_model="model3s+fatigue", rounds=rounds, added=["fatigue"]).write(tmp_path)
     for k, (r, effect) in enumerate(zip(rounds, ("fatigue", "hill_velocity")), 1):
         (tmp_path / f"round-{k}").mkdir()
-        (tmp_path / f"round-{k}" / "summary.json").write_text(json.dumps({**r, "ranking": [rank(effect)]}))
+        Diagnosis(**r, legs=["TN-left"], elpd={}, J_ms={}, bar={}, trials=[1], ranking=[rank(effect)]).write(tmp_path / f"round-{k}")
     section = report._diagnosis_section(report_command._read_diagnosis(tmp_path, "model3"))
     assert "<h3>round 1</h3>" in section and "<h3>round 2</h3>" in section
     assert "fatigue" in section and "hill_velocity" in section and "model3s+fatigue" in section
@@ -291,9 +295,9 @@ def test_the_diagnostics_table_shows_the_delay_checks_and_omits_them_for_older_f
     these checks existed shows no such rows."""
     base = {"rhat_max": 1.0, "ess_bulk_min": 900.0, "ess_tail_min": 900.0, "divergences": 0, "bfmi_min": 0.9,
             "ok": True, "chains": 2, "draws": 500, "thresholds": {"rhat_max": 1.01, "ess_min": 200, "bfmi_min": 0.3}}
-    failing = report._diagnostics_section({"diagnostics": {
+    failing = report._diagnostics_section({
         **base, "ok": False, "delay_splits": {"TN-left": [4, 5]}, "delay_missed": {"JM-left": {"4": [0.25, 0.0]}},
-        "warnings": ["JM-left & d = 4 never visited"]}})
+        "warnings": ["JM-left & d = 4 never visited"]})
     row_split = failing[failing.index("settled at different delays"):]
     row_split = row_split[: row_split.index("</tr>")]
     assert "TN-left" in row_split and "FAIL" in row_split
@@ -301,7 +305,7 @@ def test_the_diagnostics_table_shows_the_delay_checks_and_omits_them_for_older_f
     row_missed = row_missed[: row_missed.index("</tr>")]
     assert "JM-left: d = 4" in row_missed and "look" in row_missed and "FAIL" not in row_missed  # a warning
     assert "Warning: JM-left &amp; d = 4 never visited" in failing
-    passing = report._diagnostics_section({"diagnostics": {**base, "delay_splits": {}, "delay_missed": {}}})
+    passing = report._diagnostics_section({**base, "delay_splits": {}, "delay_missed": {}})
     assert "no chain visited" in passing and "FAIL" not in passing
-    older = report._diagnostics_section({"diagnostics": base})
+    older = report._diagnostics_section(base)
     assert "settled at different delays" not in older and "no chain visited" not in older

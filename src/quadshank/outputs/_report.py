@@ -246,8 +246,7 @@ def _page(title: str, body: list[str]) -> str:
     )
 
 
-def _warning_box(fit_summary: dict) -> str:
-    diag = fit_summary.diagnostics
+def _warning_box(diag: dict) -> str:
     if diag.get("ok"):
         return ""
     items = "".join(f"<li>{_e(p)}</li>" for p in diag.get("problems", []))
@@ -259,8 +258,7 @@ def _warning_box(fit_summary: dict) -> str:
     )
 
 
-def _diagnostics_section(fit_summary: dict) -> str:
-    d = fit_summary.diagnostics
+def _diagnostics_section(d: dict) -> str:
     th = d.get("thresholds", {})
 
     def verdict(good: bool) -> str:
@@ -433,8 +431,8 @@ def write_report(
         write_json(out / "legs" / f"{_safe(leg)}.json", doc)
         files += [f"legs/{_safe(leg)}.csv", f"legs/{_safe(leg)}.json"]
 
-    warning = _warning_box(fs)
-    diag_html = _diagnostics_section(fs)
+    warning = _warning_box(fs.diagnostics)
+    diag_html = _diagnostics_section(fs.diagnostics)
     diagnosis_html = _diagnosis_section(diag_info)
     nav = '<nav><a href="index.html">cohort index</a>' + "".join(
         f'<a href="{_e(p)}">subject {_e(s)}</a>' for s, p in pages.items()) + "</nav>"
