@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import optimize, special
 
-from ..common._random import jax_key, numpy_rng
+from ..common._random import jax_key
 from ..data._cohort import Cohort
 from ..model._effects import Param
 from ..model._likelihood import (
@@ -309,7 +309,7 @@ def _laplace_fit(
     joint, value_and_grad, joint_b, prior_b, pw, _ = _compiled(model, specs, R, K, data.n_segments)
     arrays = _leg_arrays64(data)
     dim = sum(s.size for s in specs) + 2
-    rng = numpy_rng(seed, "screen starts")
+    rng = np.random.default_rng(seed)  # the root seed's own stream: the starts and the Laplace draws
 
     if start is None:
         with warnings.catch_warnings():
