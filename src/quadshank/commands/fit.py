@@ -5,7 +5,13 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..data._cohort import Cohort
-from ..inference._fitio import begin_fit, read_summary, save_fit, to_inference_data
+from ..inference._fitio import (
+    FitResult,
+    begin_fit,
+    read_summary,
+    save_fit,
+    to_inference_data,
+)
 from ..inference._nuts import FitSettings, run_nuts
 from ..inference._priors import build_model, delay_prior_from
 
@@ -21,8 +27,9 @@ def run_fit(
     delay_from: str | Path | None = None,
     progress: bool = False,
     data_source: str | None = None,
-) -> dict:
-    """Hierarchical NUTS fit of one model; writes DIR/fit.nc and DIR/summary.json, returns the summary.
+) -> FitResult:
+    """Hierarchical NUTS fit of one model; writes DIR/fit.nc and DIR/summary.json, returns the
+    :class:`~quadshank.inference.FitResult` that summary.json holds.
 
     ``data_source``: where the data came from, recorded as the summary's ``data`` (for
     ``quadshank diagnose`` and ``compare``).

@@ -30,7 +30,7 @@ VELOCITY_POLYORDER = 2
 
 FORMAT_VERSION = "quadshank-cohort/1"
 #: Relative difference below which two sampling periods are the same period.
-PERIOD_TOLERANCE = 1e-6
+SAME_PERIOD_REL = 1e-6
 _SIGNALS = ("time_s", "angle_deg", "velocity_deg_s", "acceleration_deg_s2", "stimulation")
 
 
@@ -171,7 +171,7 @@ class Cohort:
         periods = sorted({t.sampling_period_s for t in self.trials})
         if not periods:
             raise ValueError("the cohort has no trials, so no sampling period")
-        if periods[-1] - periods[0] > PERIOD_TOLERANCE * periods[0]:
+        if periods[-1] - periods[0] > SAME_PERIOD_REL * periods[0]:
             where = ", ".join(f"{t.key} trial {t.trial}: {t.sampling_period_s * 1000:g} ms" for t in self.trials)
             raise ValueError(f"the trials are sampled at different periods ({where}); one model runs at one period")
         return periods[0]

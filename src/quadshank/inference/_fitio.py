@@ -64,6 +64,7 @@ DELAY_SPLIT_TV = 0.5
 #: P(d) less than the second, is a delay the chains never visited (a warning: see diagnose_sampling).
 DELAY_MISSED = (0.1, 0.01)
 
+
 @dataclasses.dataclass
 class FitResult(Result):
     """A hierarchical fit's summary: per leg the delay posterior and each parameter's median and

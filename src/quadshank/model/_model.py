@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..data._cohort import SAME_PERIOD_REL
 from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S
 from ._effects import (
     FIRST_IPI_S,
@@ -172,7 +173,7 @@ class Model:
     def check_period(self, sampling_period_s: float, where: str) -> None:
         """A ``ValueError`` when data sampled at ``sampling_period_s`` (``where``: which data) do
         not match the model's period: its delays, horizons and dynamics are in samples."""
-        if abs(sampling_period_s - self.sampling_period_s) > 1e-6 * self.sampling_period_s:
+        if abs(sampling_period_s - self.sampling_period_s) > SAME_PERIOD_REL * self.sampling_period_s:
             raise ValueError(
                 f"{where} is sampled every {sampling_period_s * 1000:g} ms, but model {self.name!r} runs at "
                 f"{self.sampling_period_s * 1000:g} ms: build the model at the data's period (Model.at_period)"
