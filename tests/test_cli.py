@@ -20,7 +20,9 @@ def test_simulate_identify_evaluate(data, tmp_path):
     truth = json.loads((data / "truth.json").read_text())
     assert set(truth["legs"]) == {"TN-left", "JM-right"}
     assert main(["--quiet", "identify", str(data), "--out", str(tmp_path / "id")]) == 0
-    s = json.loads((tmp_path / "id" / "summary.json").read_text())
+    doc = json.loads((tmp_path / "id" / "summary.json").read_text())
+    assert doc["schema"] == "quadshank/identification" and doc["sampling_period_s"] == pytest.approx(0.01)
+    s = doc["legs"]
     assert set(s) == {"TN-left", "JM-right"}
     for leg in s:
         assert abs(s[leg]["delay_samples"] - truth["legs"][leg]["active"]["delay_samples"]) <= 1

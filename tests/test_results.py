@@ -7,10 +7,16 @@ import json
 
 import pytest
 
-from quadshank.common import SCHEMA_VERSION, SchemaError
-from quadshank.evaluation import PosteriorEvaluation
-from quadshank.inference import FitResult
+from pathlib import Path
+
+from quadshank.commands import Demo, Report, Reproduction
+from quadshank.common import SCHEMA_VERSION, Result, SchemaError
+from quadshank.evaluation import Evaluation, PosteriorEvaluation
+from quadshank.inference import FitResult, Identification, load_identification
 from quadshank.loop import Diagnosis, Discovery
+
+RESULTS = [FitResult, PosteriorEvaluation, Diagnosis, Discovery, Identification, Evaluation, Reproduction, Report, Demo]
+SCHEMA_DOC = Path(__file__).resolve().parents[1] / "docs" / "results-schema.md"
 
 
 def _fit(**kw) -> FitResult:
@@ -71,7 +77,31 @@ def test_live_objects_stay_out_of_the_json():
     assert back.screened is None and dataclasses.replace(back, screened=d.screened) == d
 
 
-@pytest.mark.parametrize("kind", [FitResult, PosteriorEvaluation, Diagnosis, Discovery])
-def test_every_result_names_its_kind(kind):
+@pytest.mark.parametrize("kind", RESULTS)
+def test_every_result_names_its_kind_and_is_documented(kind):
     assert kind.schema().startswith("quadshank/") and kind.KIND
     assert dataclasses.is_dataclass(kind)
+    doc = SCHEMA_DOC.read_text()
+    assert f"## `{kind.schema()}`" in doc  # a section of its own
+    section = doc.split(f"## `{kind.schema()}`")[1].split("\n## ")[0]
+    for field in dataclasses.fields(kind):
+        if field.metadata.get("json", True):
+            assert f"`{field.name}`" in section, f"{kind.__name__}.{field.name} is not described"
+
+
+def test_every_result_type_is_listed():
+    def subclasses(cls):
+        return {c for s in cls.__subclasses__() for c in (s, *subclasses(s))}
+
+    assert subclasses(Result) == set(RESULTS)  # a new result type is added to the documentation and this list
+
+
+def test_an_identification_refuses_data_of_another_period(tmp_path):
+    legs = {"A": {"passive": {"damping": 1.0, "gravity": 1900.0, "k1": 10.0, "k2": 0.05}, "delay_samples": 4,
+                  "model1": {"gain": 1.0}, "model2": {"a1": 1.5, "a2": -0.6, "b1": 0.1, "b2": 0.1},
+                  "model3": {"gain": 1.0, "gamma_angle": 0.0, "gamma_velocity": 0.0}}}
+    Identification(trial=1, sampling_period_s=0.005, legs=legs).write(tmp_path)
+    models = load_identification(tmp_path, 0.005)
+    assert models["A"]["model2"].sampling_period_s == pytest.approx(0.005)
+    with pytest.raises(ValueError, match="5 ms.*10 ms"):
+        load_identification(tmp_path, 0.01)

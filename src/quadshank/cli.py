@@ -25,7 +25,7 @@ from .data._interchange import convert, load_cohort, write_interchange
 from .data._paper import LEGS
 from .data._simulate import simulate_cohort, write_truth
 from .inference._fitio import FitResult, load_fit, read_summary
-from .inference._identify import load_identification, models_from_summary
+from .inference._identify import load_identification
 from .inference._nuts import SEQUENTIAL_FROM_SAMPLES, STARTS, FitSettings
 from .loop._diagnose import Diagnosis
 from .model._model import MODELS
@@ -83,7 +83,7 @@ def cmd_identify(args) -> int:
     data = Path(args.data)
     cohort = load_cohort(data)
     summary = run_identify(cohort, args.out, truth=_truth_beside(data), trial=args.trial, progress=not args.quiet)
-    _say(args, *(f"{leg}: d = {s['delay_samples']} samples" for leg, s in summary.items()))
+    _say(args, *(f"{leg}: d = {s['delay_samples']} samples" for leg, s in summary.legs.items()))
     _say(args, f"tables, figures and summary.json in {args.out}")
     return 0
 
@@ -123,17 +123,14 @@ def cmd_evaluate(args) -> int:
         models = load_identification(args.identified, cohort.sampling_period_s)
     else:
         _say(args, f"no --identified folder given: identifying from trial 1 into {out / 'identify'}")
-        models = models_from_summary(
-            run_identify(cohort, out / "identify", truth=_truth_beside(data), progress=not args.quiet),
-            cohort.sampling_period_s,
-        )
+        models = run_identify(cohort, out / "identify", truth=_truth_beside(data), progress=not args.quiet).models()
     summary = run_evaluate_and_report(args, cohort, models, out)
     return 0 if summary else 1
 
 
 def run_evaluate_and_report(args, cohort, models, out):
     summary = run_evaluate(cohort, models, out, progress=not args.quiet)
-    for model, trials in summary["J"].items():
+    for model, trials in summary.J.items():
         _say(args, f"{model}: " + "; ".join(
             f"trial {t}: " + ", ".join(f"{h} ms {v:.1f}°" for h, v in hv.items()) for t, hv in trials.items()
         ))
@@ -316,9 +313,9 @@ def cmd_report(args) -> int:
     summary = run_report(args.fitdir, args.out, cohort=cohort, evaluation=args.evaluation or None,
                          diagnosis=args.diagnosis or None, n_draws=args.draws, start_stride=args.start_stride,
                          progress=not args.quiet)
-    if not summary["diagnostics_ok"]:
+    if not summary.diagnostics_ok:
         print(f"quadshank: warning: {args.fitdir}: {fit_summary.banner}", file=sys.stderr)
-    _say(args, f"{len(summary['pages']) - 1} subject page(s), per-leg CSV and JSON; open {Path(args.out) / 'index.html'}")
+    _say(args, f"{len(summary.pages) - 1} subject page(s), per-leg CSV and JSON; open {Path(args.out) / 'index.html'}")
     return 0
 
 
@@ -337,11 +334,11 @@ def cmd_reproduce(args, default_out: str | None = None) -> int:
     )
     _say(
         args,
-        "mean RMS angle per trial: " + ", ".join(f"{t}: {v:.1f}°" for t, v in summary["rms_angle_deg"].items()),
+        "mean RMS angle per trial: " + ", ".join(f"{t}: {v:.1f}°" for t, v in summary.rms_angle_deg.items()),
         "J [deg], mean over legs, trial 2: "
-        + "; ".join(f"{m}: " + ", ".join(f"{h} ms {v:.1f}" for h, v in summary["J"][m].get("2", {}).items())
-                    for m in sorted(summary["J"])),
-        f"parameters within tolerance of the truth: {'yes' if summary['recovery_ok'] else 'NO'}",
+        + "; ".join(f"{m}: " + ", ".join(f"{h} ms {v:.1f}" for h, v in summary.J[m].get("2", {}).items())
+                    for m in sorted(summary.J)),
+        f"parameters within tolerance of the truth: {'yes' if summary.recovery_ok else 'NO'}",
         f"done in {time.perf_counter() - t0:.0f} s; report: {out / 'report.md'}",
     )
     return 0
@@ -355,13 +352,13 @@ def cmd_demo(args) -> int:
         legs=_csv_list(args.legs) if args.legs else None, chains=args.chains, warmup=args.warmup, draws=args.draws,
         max_tree_depth=args.max_tree_depth, progress=not args.quiet, command=command,
     )
-    if not summary["fit_ok"]:
-        print(f"quadshank: warning: the demo's short fit did not pass its checks ({summary['fit_banner']}); "
+    if not summary.fit_ok:
+        print(f"quadshank: warning: the demo's short fit did not pass its checks ({summary.fit_banner}); "
               "its report says so on every page", file=sys.stderr)
     _say(
         args,
-        f"diagnosis verdict: {summary['verdict']}",
-        f"done in {time.perf_counter() - t0:.0f} s; open the report: {summary['report']}",
+        f"diagnosis verdict: {summary.verdict}",
+        f"done in {time.perf_counter() - t0:.0f} s; open the report: {summary.report}",
     )
     return 0
 

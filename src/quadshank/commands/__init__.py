@@ -1,20 +1,21 @@
 """One module per subcommand: load, call the stages, hand the results to the writers.
 
 Each ``run_*`` takes data in memory, writes its output folder (every file atomically,
-``summary.json`` last) and returns the summary.
+``summary.json`` last) and returns its typed result, whose JSON form that ``summary.json`` is.
 """
 
-from .demo import run_demo
+from .demo import Demo, run_demo
 from .diagnose import run_diagnose
 from .discover import run_discover
 from .evaluate import run_evaluate, run_posterior_evaluate
 from .fit import run_fit
 from .identify import run_identify
 from .recovery import run_likelihood_calibration, run_recovery
-from .report import run_report
-from .reproduce import run_reproduce
+from .report import Report, run_report
+from .reproduce import Reproduction, run_reproduce
 
 __all__ = [
     "run_identify", "run_evaluate", "run_posterior_evaluate", "run_fit", "run_reproduce", "run_recovery",
     "run_likelihood_calibration", "run_diagnose", "run_discover", "run_report", "run_demo",
+    "Reproduction", "Report", "Demo",
 ]  # fmt: skip

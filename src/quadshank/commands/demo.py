@@ -20,21 +20,48 @@ report says so at the top of every page, as it would for any fit.  ``summary.jso
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
+from typing import ClassVar
 
-from ..common._io import atomic_write_text, write_json
+from ..common._io import atomic_write_text
+from ..common._results import Result
 from ..data._interchange import load_cohort
 from ..data._paper import LEGS
 from ..inference._nuts import FitSettings
 from ..inference._priors import build_model
+from ..outputs._tables import markdown_table
 from .diagnose import run_diagnose
 from .evaluate import run_posterior_evaluate
 from .fit import run_fit
 from .report import run_report
 from .reproduce import run_reproduce
 
-__all__ = ["run_demo", "DEMO_LEGS", "DEMO_EFFECTS"]
+__all__ = ["Demo", "run_demo", "DEMO_LEGS", "DEMO_EFFECTS"]
+
+
+@dataclasses.dataclass
+class Demo(Result):
+    """What ``quadshank demo`` did: each step's folder and time, the fit's checks, the verdict."""
+
+    KIND: ClassVar[str] = "demo"
+
+    command: str
+    minutes: float
+    seed: int
+    effects: list  # hidden in the simulated cohort
+    legs: list
+    fit_legs: list
+    fit_settings: dict
+    fit_ok: bool  # the short fit passed its sampling checks
+    fit_banner: str | None
+    verdict: str  # the diagnosis's
+    recovery_ok: bool  # the reproduction's
+    report: str  # the report's index page
+    folders: dict  # step -> folder
+    seconds: dict  # step -> seconds
+    report_pages: dict
 
 #: Legs of the demo's fit: two subjects, so subject and population levels differ.
 DEMO_LEGS = ("TN-left", "JM-left")
@@ -58,7 +85,7 @@ def run_demo(
     max_tree_depth: int = 5,
     progress: bool = False,
     command: str = "",
-) -> dict:
+) -> Demo:
     """Reproduce, fit, evaluate, diagnose, report; returns the summary (also ``out/summary.json``)."""
 
     out = Path(out)
@@ -110,24 +137,15 @@ def run_demo(
     step("report")
 
     diagnostics = fit.diagnostics
-    summary = {
-        "command": command,
-        "minutes": minutes,
-        "seed": seed,
-        "effects": list(effects),
-        "legs": list(legs),
-        "fit_legs": list(fit_legs),
-        "fit_settings": {"model": "model3s", "chains": chains, "warmup": warmup, "draws": draws,
-                         "max_tree_depth": max_tree_depth, "trials": [1]},
-        "fit_ok": bool(diagnostics["ok"]),
-        "fit_banner": fit.banner,
-        "verdict": diag.verdict,
-        "recovery_ok": rep["recovery_ok"],
-        "report": str(out / "report" / "index.html"),
-        "folders": {k: str(out / k) for k in ("reproduce", "fit", "evaluate", "diagnose", "report")},
-        "seconds": seconds,
-        "report_pages": report["pages"],
-    }
+    summary = Demo(
+        command=command, minutes=minutes, seed=seed, effects=list(effects), legs=list(legs), fit_legs=list(fit_legs),
+        fit_settings={"model": "model3s", "chains": chains, "warmup": warmup, "draws": draws,
+                      "max_tree_depth": max_tree_depth, "trials": [1]},
+        fit_ok=bool(diagnostics["ok"]), fit_banner=fit.banner, verdict=diag.verdict, recovery_ok=rep.recovery_ok,
+        report=str(out / "report" / "index.html"),
+        folders={k: str(out / k) for k in ("reproduce", "fit", "evaluate", "diagnose", "report")},
+        seconds=seconds, report_pages=report.pages,
+    )
     lines = [
         "# quadshank demo",
         "",
@@ -136,11 +154,9 @@ def run_demo(
         f"The built-in simulated cohort ({len(legs)} legs, {minutes:g} min per trial, seed {seed}, "
         f"hidden effects: {', '.join(effects) or 'none'}).",
         "",
-        "| step | folder | seconds |",
-        "|---|---|---|",
-        *[f"| {k} | `{k}/` | {v:.0f} |" for k, v in seconds.items()],
+        *markdown_table([{"step": k, "folder": f"`{k}/`", "seconds": f"{v:.0f}"} for k, v in seconds.items()]).splitlines(),
         "",
-        f"- Reproduction: parameters within tolerance of the truth: {'yes' if rep['recovery_ok'] else 'NO'} "
+        f"- Reproduction: parameters within tolerance of the truth: {'yes' if rep.recovery_ok else 'NO'} "
         "(`reproduce/report.md`).",
         f"- Fit: model3s on trial 1 of {', '.join(fit_legs)}, {chains} chains × {draws} draws after {warmup} warm-up "
         f"(tree depth {max_tree_depth}): "
@@ -151,5 +167,5 @@ def run_demo(
         "",
     ]
     atomic_write_text(out / "README.md", "\n".join(lines))
-    write_json(out / "summary.json", summary)
+    summary.write(out)
     return summary

@@ -9,6 +9,7 @@ from ..data._cohort import Cohort
 from ..inference._priors import build_model
 from ..loop._diagnose import Discovery
 from ..model._model import Model
+from ..outputs._loop import discovery_markdown
 from .diagnose import run_diagnose
 from .evaluate import run_posterior_evaluate
 from .fit import run_fit
@@ -102,22 +103,6 @@ def run_discover(
                                                         start_stride=compare_stride, progress=progress))
         else:
             summary.confirm["sentence"] = "Nothing was added; the start model's fit is in confirm/fit-start."
-    md = ["# The modelling loop (`quadshank discover`)", ""]
-    if command:
-        md += [f"Regenerate: `{command}`", ""]
-    for k, r in enumerate(rounds, 1):
-        J = r["J_ms"]
-        md.append(
-            f"{k}. **{r['model']}**: J at 0.5 s {J['500']['median']:.3f}° [{J['500']['lo']:.3f}, {J['500']['hi']:.3f}], "
-            f"at 1 s {J['1000']['median']:.3f}°; ELPD {r['elpd']['value']:.0f} ± {r['elpd']['se']:.0f}. "
-            f"Verdict: {r['verdict']}. {r['sentence']} (details: [round-{k}/report.md](round-{k}/report.md))"
-        )
-    md += ["", f"Final model: **{current.name}**."]
-    if confirm is not None:
-        c = summary.confirm
-        md += ["", "## Confirmed with hierarchical NUTS", "", c["sentence"], "",
-               f"Fits: [{c['start']['folder']}]({c['start']['folder']}), [{c['final']['folder']}]({c['final']['folder']}); "
-               f"comparison with residuals before and after: [confirm/compare/report.md](confirm/compare/report.md)."]
-    atomic_write_text(out / "report.md", "\n".join(md) + "\n")
+    atomic_write_text(out / "report.md", discovery_markdown(summary, command))
     summary.write(out)
     return summary

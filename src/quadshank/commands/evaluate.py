@@ -8,7 +8,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from ..common._io import atomic_write_text, save_figure, write_json
+from ..common._io import atomic_write_text, save_figure
 from ..data._cohort import Cohort, Trial
 from ..data._paper import HORIZONS_MS, TABLE_V
 from ..evaluation._posterior import (
@@ -26,7 +26,9 @@ from ..evaluation._posterior import (
     window_predictions,
 )
 from ..evaluation._prediction import (
+    Evaluation,
     evaluate_cohort,
+    figure_trial,
     horizon_samples,
     predictions,
     sign_tests,
@@ -108,8 +110,7 @@ def _figure_case(fits: list[LoadedFit], cohort: Cohort) -> tuple[str, Trial]:
     common = [leg for leg in cohort.legs if all(leg in f.desc["legs"] for f in fits)]
     candidates = common or list(fits[0].desc["legs"])
     leg = "JM-left" if "JM-left" in candidates else candidates[0]
-    numbers = [t.trial for t in cohort.trials_of(leg)]
-    return leg, cohort.get(leg, 2 if 2 in numbers else numbers[0])
+    return leg, figure_trial(cohort, leg)
 
 
 def _prediction_figures(fits, cohort, J_legs, out: Path, *, n_draws: int, seed: int) -> list[Path]:
@@ -239,7 +240,7 @@ def run_posterior_evaluate(
 
 def run_evaluate(
     cohort: Cohort, models: dict[str, dict[str, Model]], out: str | Path, *, progress: bool = False
-) -> dict:
+) -> Evaluation:
     """J_φ,p for every leg, trial and model; Table V, sign tests, Figs. 5–6, summary.json."""
 
     out = Path(out)
@@ -264,26 +265,25 @@ def run_evaluate(
 
     save_figure(plot_j_vs_horizon(T), out / "figures" / "table5_j_vs_horizon.png")
     leg = _pick("JM-left", cohort.legs)
-    trial_numbers = [t.trial for t in cohort.trials_of(leg)]
-    trial = cohort.get(leg, 2 if 2 in trial_numbers else trial_numbers[0])
+    trial = figure_trial(cohort, leg)
     preds = {name: predictions(m, trial) for name, m in models[leg].items()}
     hs = horizon_samples(trial.sampling_period_s, (100, 1000))
     save_figure(plot_predictions(trial, preds, hs[100]), out / "figures" / "fig5_predictions_100ms.png")
     save_figure(plot_predictions(trial, preds, hs[1000]), out / "figures" / "fig6_predictions_1s.png")
 
-    summary = {
-        "J": {m: {tr: {str(h): v[0] for h, v in hv.items()} for tr, hv in _by_model(T, m).items()} for m in J},
-        "J_sd": {m: {tr: {str(h): v[1] for h, v in hv.items()} for tr, hv in _by_model(T, m).items()} for m in J},
-        "J_per_leg": {m: {leg: {tr: {str(h): v for h, v in hv.items()} for tr, hv in trials.items()}
-                          for leg, trials in legs.items()} for m, legs in J.items()},
-        "sign_tests": tests,
-        "legs": list(cohort.legs),
-        "horizons_samples": list(horizon_samples(cohort.sampling_period_s).values()),
-        "evaluation_seconds": elapsed,
-    }
+    result = Evaluation(
+        J={m: {tr: {str(h): v[0] for h, v in hv.items()} for tr, hv in _by_model(T, m).items()} for m in J},
+        J_sd={m: {tr: {str(h): v[1] for h, v in hv.items()} for tr, hv in _by_model(T, m).items()} for m in J},
+        J_per_leg={m: {leg: {tr: {str(h): v for h, v in hv.items()} for tr, hv in trials.items()}
+                       for leg, trials in legs.items()} for m, legs in J.items()},
+        sign_tests=tests,
+        legs=list(cohort.legs),
+        horizons_samples=list(horizon_samples(cohort.sampling_period_s).values()),
+        evaluation_seconds=elapsed,
+    )
     atomic_write_text(out / "report.md", "\n".join(md))
-    write_json(out / "summary.json", summary)
-    return summary
+    result.write(out)
+    return result
 
 
 def _by_model(T: dict, model: str) -> dict:

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..common._io import atomic_write_text, save_figure, write_json
+from ..common._io import atomic_write_text, save_figure
 from ..data._cohort import Cohort
 from ..evaluation._classical_recovery import recovery, recovery_rows
-from ..inference._identify import identify_cohort
+from ..inference._identify import Identification, identify_cohort
 from ..model._model import equivalent_acceleration
 from ..outputs._figures import plot_delay_scan, plot_signals, plot_twitch_dependence
 from ..outputs._tables import (
@@ -33,7 +33,7 @@ def _pick(preferred: str, available) -> str:
 
 def run_identify(
     cohort: Cohort, out: str | Path, *, truth: dict | None = None, trial: int = 1, progress: bool = False
-) -> dict:
+) -> Identification:
     """Classical identification of every leg; Tables I–IV, figures, summary.json."""
     out = Path(out)
     ident = identify_cohort(cohort, trial=trial, progress=progress)
@@ -43,12 +43,12 @@ def run_identify(
     md.append(write_table(table_ii(ident, truth), out / "tables", "table2", "Table II: model 2 (DARMA)"))
     md.append(write_table(table_iii(ident, truth), out / "tables", "table3", "Table III: model 3"))
     md.append(write_table(table_iv(ident), out / "tables", "table4", "Table IV: % RMS error of ΣM/I"))
-    summary = {leg: r.summary() for leg, r in ident.items()}
+    legs = {leg: r.summary() for leg, r in ident.items()}
     if truth:
         rec = recovery(ident, truth)
         md.append(markdown_table(recovery_rows(rec), "Recovery of the simulator's truth"))
-        for leg in summary:
-            summary[leg]["recovery"] = rec[leg]
+        for leg, s in legs.items():
+            s["recovery"] = rec[leg]
 
     leg2 = _pick("TN-right", ident)
     t2 = cohort.get(leg2, trial)
@@ -58,5 +58,6 @@ def run_identify(
     save_figure(plot_twitch_dependence(ident[_pick("TN-left", ident)]), out / "figures" / "fig3_4_twitch_dependence.png")
     save_figure(plot_delay_scan(ident), out / "figures" / "delay_scan.png")
     atomic_write_text(out / "report.md", "\n".join(md))
-    write_json(out / "summary.json", summary)
-    return summary
+    result = Identification(trial=trial, sampling_period_s=cohort.sampling_period_s, legs=legs)
+    result.write(out)
+    return result

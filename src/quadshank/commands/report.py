@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
+from typing import ClassVar
 
-from ..common._io import read_json, write_json
-from ..common._results import SchemaError
+from ..common._io import read_json
+from ..common._results import Result, SchemaError
 from ..data._interchange import load_cohort
 from ..evaluation._parameters import leg_parameters, population_spreads
 from ..evaluation._posterior import (
@@ -18,10 +20,34 @@ from ..evaluation._posterior import (
     summarise_j,
     window_predictions,
 )
-from ..evaluation._prediction import horizon_samples
+from ..evaluation._prediction import figure_trial, horizon_samples
 from ..inference._fitio import posterior_models
 from ..loop._diagnose import Diagnosis, Discovery
 from ..outputs._report import PREDICTION_HORIZONS_MS, PREDICTION_WINDOW_S, write_report
+
+__all__ = ["Report", "run_report"]
+
+
+@dataclasses.dataclass
+class Report(Result):
+    """What ``quadshank report`` wrote: the pages, figures and per-leg files of a fit's report,
+    and where its J came from."""
+
+    KIND: ClassVar[str] = "report"
+
+    fit: str  # the fit folder
+    model: str
+    pages: dict  # "index" and "subject S" -> HTML file, relative to the report folder
+    figures: dict  # page -> its figures
+    legs: dict  # leg -> subject, page, csv, json
+    files: list
+    diagnostics_ok: bool  # the fit passed its sampling checks
+    J_source: str  # "evaluation" or "computed"
+    J_how: str
+    n_draws: int
+    start_stride: int
+    report_seconds: float
+    diagnosis: str | None = None  # the diagnose/discover folder shown, if any
 
 
 def _j_from_evaluation(folder, label: str, legs) -> tuple[dict, dict, str]:
@@ -41,15 +67,10 @@ def _j_from_evaluation(folder, label: str, legs) -> tuple[dict, dict, str]:
     return s.J.get(label, {}), s.J_legs[label], how
 
 
-def _prediction_case(cohort, leg: str):
-    numbers = [t.trial for t in cohort.trials_of(leg)]
-    return cohort.get(leg, 2 if 2 in numbers else numbers[0])
-
-
 def _leg_predictions(fit, cohort, leg: str, n_draws: int, seed: int) -> tuple:
     """(trial, window, predictions) of one leg's prediction figure: 100 ms and 1 s ahead over
     :data:`quadshank.outputs._report.PREDICTION_WINDOW_S` of trial 2 (or the leg's first)."""
-    trial = _prediction_case(cohort, leg)
+    trial = figure_trial(cohort, leg)
     window = figure_window(trial, PREDICTION_WINDOW_S)
     models, _ = posterior_models(fit.idata, fit.model, leg, n_draws, seed)
     horizons = horizon_samples(trial.sampling_period_s, PREDICTION_HORIZONS_MS).values()
@@ -96,7 +117,7 @@ def run_report(
     start_stride: int = 10,
     seed: int = 0,
     progress: bool = False,
-) -> dict:
+) -> Report:
     """Write the report of the fit in ``fit_dir`` into ``out``; returns its summary.
 
     ``cohort``: the fit's data, for the prediction figures and, without
@@ -141,16 +162,10 @@ def run_report(
     written = write_report(out, fit_dir=fit_dir, fit_summary=fs, desc=desc, label=label, J=J, J_legs=J_legs,
                            j_how=j_how, params=params, spreads=spreads, predictions=predictions,
                            diagnosis=diag_info, progress=progress)
-    summary = {
-        "fit": str(fit_dir),
-        "model": label,
-        **written,
-        "J_source": "evaluation" if evaluation else "computed",
-        "J_how": j_how,
-        "n_draws": n_draws,
-        "start_stride": start_stride,
-        "diagnosis": str(diagnosis) if diagnosis else None,
-        "report_seconds": time.perf_counter() - t0,
-    }
-    write_json(out / "summary.json", summary)
+    summary = Report(
+        fit=str(fit_dir), model=label, **written, J_source="evaluation" if evaluation else "computed", J_how=j_how,
+        n_draws=n_draws, start_stride=start_stride, report_seconds=time.perf_counter() - t0,
+        diagnosis=str(diagnosis) if diagnosis else None,
+    )
+    summary.write(out)
     return summary

@@ -2,18 +2,43 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
-from ..common._io import atomic_write_text, write_json
+from ..common._io import atomic_write_text
+from ..common._results import Result
 from ..data._interchange import write_interchange
 from ..data._paper import LEGS
 from ..data._simulate import simulate_cohort, write_truth
-from ..inference._identify import models_from_summary
 from .evaluate import run_evaluate
 from .identify import run_identify
+
+__all__ = ["Reproduction", "run_reproduce"]
+
+
+@dataclasses.dataclass
+class Reproduction(Result):
+    """What ``quadshank reproduce`` found: the simulated cohort's angles, the classical
+    identification (with its recovery of the truth) and Table V with the sign tests."""
+
+    KIND: ClassVar[str] = "reproduction"
+
+    command: str
+    minutes: float
+    seed: int
+    effects: list
+    legs: list
+    rms_angle_deg: dict  # trial -> mean over legs of the RMS knee angle [deg]
+    identification: dict  # leg -> estimates, as in the identification's ``legs``
+    recovery_ok: bool  # every identified parameter within tolerance of the truth
+    J: dict  # as :class:`quadshank.evaluation.Evaluation`
+    J_sd: dict
+    sign_tests: list
+    seconds: dict  # per step
 
 
 def run_reproduce(
@@ -25,7 +50,7 @@ def run_reproduce(
     legs=None,
     progress: bool = False,
     command: str = "",
-) -> dict:
+) -> Reproduction:
     """Simulate the cohort, identify, evaluate; tables, figures and summary.json in ``out``."""
 
     out = Path(out)
@@ -37,29 +62,19 @@ def run_reproduce(
     t_sim = time.perf_counter() - t0
     ident = run_identify(cohort, out / "identify", truth=truth, progress=progress)
     t_id = time.perf_counter() - t0 - t_sim
-    models = models_from_summary(ident, cohort.sampling_period_s)
-    ev = run_evaluate(cohort, models, out / "evaluate", progress=progress)
+    ev = run_evaluate(cohort, ident.models(), out / "evaluate", progress=progress)
     t_ev = time.perf_counter() - t0 - t_sim - t_id
 
-    rec_ok = all(v["ok"] for leg in ident.values() for v in leg.get("recovery", {}).values())
+    rec_ok = all(v["ok"] for leg in ident.legs.values() for v in leg.get("recovery", {}).values())
     rms = {
         str(t): float(np.mean([truth["legs"][leg]["trials"][str(t)]["rms_angle_deg"] for leg in legs]))
         for t in sorted({tr.trial for tr in cohort})
     }
-    summary = {
-        "command": command,
-        "minutes": minutes,
-        "seed": seed,
-        "effects": list(effects),
-        "legs": list(legs),
-        "rms_angle_deg": rms,
-        "identification": ident,
-        "recovery_ok": rec_ok,
-        "J": ev["J"],
-        "J_sd": ev["J_sd"],
-        "sign_tests": ev["sign_tests"],
-        "seconds": {"simulate": t_sim, "identify": t_id, "evaluate": t_ev},
-    }
+    summary = Reproduction(
+        command=command, minutes=minutes, seed=seed, effects=list(effects), legs=list(legs), rms_angle_deg=rms,
+        identification=ident.legs, recovery_ok=rec_ok, J=ev.J, J_sd=ev.J_sd, sign_tests=ev.sign_tests,
+        seconds={"simulate": t_sim, "identify": t_id, "evaluate": t_ev},
+    )
     report = [
         "# Reproduction of Franken et al. (1995) on the simulated cohort",
         "",
@@ -81,5 +96,5 @@ def run_reproduce(
         "",
     ]
     atomic_write_text(out / "report.md", "\n".join(report))
-    write_json(out / "summary.json", summary)
+    summary.write(out)
     return summary

@@ -20,7 +20,9 @@ from ._posterior import (
     window_predictions,
 )
 from ._prediction import (
+    Evaluation,
     evaluate_cohort,
+    figure_trial,
     horizon_samples,
     prediction_errors,
     prediction_starts,
@@ -49,6 +51,7 @@ from ._residuals import (
 
 __all__ = [
     "prediction_errors", "prediction_starts", "predictions", "evaluate_cohort", "sign_tests", "table_v", "horizon_samples",
+    "figure_trial", "Evaluation",
     "LoadedFit", "PosteriorEvaluation", "load_fits", "posterior_predictions", "posterior_prediction_errors", "posterior_j", "summarise_j",
     "psis_loo", "loo_report", "figure_window", "window_predictions",
     "leg_parameters", "population_spreads",

@@ -15,19 +15,22 @@ fair coin (two-sided exact binomial test, α = 0.05).
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
+from typing import ClassVar
 
 import numpy as np
 from scipy.stats import binomtest
 
 from ..common._progress import progress_bar
+from ..common._results import Result
 from ..data._cohort import Cohort, Trial
 from ..data._paper import HORIZONS_MS
 from ..model._model import Model, predict_ahead
 
 __all__ = [
     "prediction_errors", "prediction_starts", "predictions", "evaluate_cohort", "sign_tests", "table_v", "ALPHA",
-    "horizon_samples",
+    "horizon_samples", "figure_trial", "Evaluation",
 ]  # fmt: skip
 
 ALPHA = 0.05
@@ -139,3 +142,26 @@ def table_v(J: dict) -> dict:
                 sd = float(np.std(vals, ddof=1)) if vals.size > 1 else float("nan")
                 T.setdefault(t, {}).setdefault(name, {})[h] = (float(vals.mean()), sd, int(vals.size))
     return T
+
+
+def figure_trial(cohort: Cohort, leg: str) -> Trial:
+    """The trial a prediction figure of ``leg`` shows: trial 2, as the paper's Figs. 5–6, where the
+    leg has one, else the leg's first trial."""
+    numbers = [t.trial for t in cohort.trials_of(leg)]
+    return cohort.get(leg, 2 if 2 in numbers else numbers[0])
+
+
+@dataclasses.dataclass
+class Evaluation(Result):
+    """What ``quadshank evaluate`` found with point estimates: J_φ,p (eq. 12) per model, trial
+    and horizon (mean and s.d. over legs, and per leg) and the sign tests between models."""
+
+    KIND: ClassVar[str] = "evaluation"
+
+    J: dict  # model -> trial -> horizon [ms] -> mean over legs [deg]
+    J_sd: dict  # model -> trial -> horizon [ms] -> s.d. over legs [deg]
+    J_per_leg: dict  # model -> leg -> trial -> horizon [ms] -> J [deg]
+    sign_tests: list
+    legs: list
+    horizons_samples: list
+    evaluation_seconds: float

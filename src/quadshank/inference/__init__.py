@@ -21,6 +21,7 @@ from ._fitio import (
     to_inference_data,
 )
 from ._identify import (
+    Identification,
     IdentificationError,
     LegIdentification,
     identify_cohort,
@@ -44,7 +45,7 @@ from ._summaries import INTERVAL, interval, pooled_draws
 
 __all__ = [
     "IdentificationError", "LegIdentification", "identify_cohort", "identify_leg", "identify_passive",
-    "models_from_summary", "load_identification",
+    "Identification", "models_from_summary", "load_identification",
     "FitSettings", "fit", "run_nuts", "FitRun", "FitResult", "fit_screen", "build_model", "model_params", "delay_prior_from", "numpyro_model",
     "LaplaceFit", "laplace_fit", "leg_draw_models", "delay_evidence", "delay_modes", "DelayModes", "delta_elpd",
     "to_inference_data", "save_fit", "load_fit", "read_summary", "fit_summary", "diagnose_sampling", "sampled_vars",

@@ -28,13 +28,14 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..common._io import read_json
 from ..common._progress import progress_bar
-from ..data._cohort import Cohort, Trial
+from ..common._results import Result
+from ..data._cohort import SAME_PERIOD_REL, Cohort, Trial
 from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S, TWITCH_SAMPLES
 from ..model._model import Model, equivalent_acceleration, paper_model, passive_effects
 
@@ -46,6 +47,9 @@ __all__ = [
     "identify_cohort",
     "fit_darma",
     "IdentificationError",
+    "Identification",
+    "models_from_summary",
+    "load_identification",
 ]
 
 #: Samples after a pulse during which its twitch may still act on the shank.
@@ -304,10 +308,30 @@ def models_from_summary(summary: dict, sampling_period_s: float = SAMPLING_PERIO
     return models
 
 
-def load_identification(folder: str | Path, sampling_period_s: float = SAMPLING_PERIOD_S) -> dict[str, dict[str, Model]]:
-    """Models from the ``summary.json`` of a ``quadshank identify`` output folder, at the
-    sampling period of the data it identified."""
+@dataclasses.dataclass
+class Identification(Result):
+    """What ``quadshank identify`` found: each leg's classical estimates (passive system, delay,
+    models 1–3, Table IV errors and, given the simulator's truth, their recovery)."""
+
+    KIND: ClassVar[str] = "identification"
+
+    trial: int  # the identification trial
+    sampling_period_s: float  # of the data identified; the models run at it
+    legs: dict  # leg -> LegIdentification.summary() (and "recovery" where a truth was given)
+
+    def models(self) -> dict[str, dict[str, Model]]:
+        """The identified models 1–3 of every leg (see :func:`models_from_summary`)."""
+        return models_from_summary(self.legs, self.sampling_period_s)
+
+
+def load_identification(folder: str | Path, sampling_period_s: float | None = None) -> dict[str, dict[str, Model]]:
+    """Models from a ``quadshank identify`` output folder; with ``sampling_period_s``, the
+    period of the data to predict, which must be the identified data's."""
     path = Path(folder) / "summary.json"
     if not path.exists():
         raise FileNotFoundError(f"{path}: no identification here (run `quadshank identify DATA --out {folder}`)")
-    return models_from_summary(read_json(path), sampling_period_s)
+    ident = Identification.read(folder)
+    if sampling_period_s is not None and abs(sampling_period_s - ident.sampling_period_s) > SAME_PERIOD_REL * sampling_period_s:
+        raise ValueError(f"{path}: identified at a sampling period of {ident.sampling_period_s * 1e3:g} ms; "
+                         f"these data are sampled every {sampling_period_s * 1e3:g} ms")
+    return ident.models()

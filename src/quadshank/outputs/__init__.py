@@ -14,7 +14,7 @@ from ._figures import (
     plot_signals,
     plot_twitch_dependence,
 )
-from ._loop import predictive_checks, ranking_markdown, residual_figures
+from ._loop import discovery_markdown, predictive_checks, ranking_markdown, residual_figures
 from ._report import (
     plot_delay_posterior,
     plot_leg_predictions,
@@ -46,7 +46,7 @@ __all__ = [
     "plot_delay_angle", "plot_posterior_j_vs_horizon", "plot_posterior_predictions",
     "plot_shrinkage", "plot_delay_posterior", "plot_leg_predictions", "write_report",
     "plot_trends", "plot_correlations", "plot_twitch_average", "plot_spectrum", "plot_loo_pit", "plot_elpd_in_time",
-    "residual_figures", "predictive_checks", "ranking_markdown",
+    "residual_figures", "predictive_checks", "ranking_markdown", "discovery_markdown",
     "markdown_table", "write_table", "table_passive", "table_i", "table_ii", "table_iii", "table_iv",
     "table_v_rows", "sign_test_rows",
 ]  # fmt: skip

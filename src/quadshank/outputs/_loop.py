@@ -12,9 +12,10 @@ from ..evaluation._posterior import FIGURE_WINDOW_S, figure_window, window_predi
 from ..evaluation._prediction import horizon_samples
 from ..evaluation._residuals import leg_residuals
 from ..inference._screen import LaplaceFit, leg_draw_models
-from ..loop._diagnose import ELPD_SE_BAR, J_DRAWS, Diagnosis
+from ..loop._diagnose import ELPD_SE_BAR, J_DRAWS, Diagnosis, Discovery
 from . import _residual_figures as F
 from ._figures import plot_posterior_predictions
+from ._tables import markdown_table
 
 
 def screen_residuals(fit: LaplaceFit) -> dict[str, dict]:
@@ -79,6 +80,16 @@ def predictive_checks(fit: LaplaceFit, cohort: Cohort, out, label: str) -> tuple
     return paths, result
 
 
+def _j_cells(row: dict) -> dict[str, str]:
+    """J before → after [90 % band after] at 500 and 1000 ms, as table cells."""
+    cells = {}
+    for h in (500, 1000):
+        j = row[f"J_{h}ms"]
+        cells[f"J {h} ms before → after [deg]"] = (
+            f"{j['before']['median']:.3f} → {j['after']['median']:.3f} [{j['after']['lo']:.3f}, {j['after']['hi']:.3f}]")
+    return cells
+
+
 def ranking_markdown(summary: Diagnosis, command: str | None = None) -> str:
     """A diagnosis (its ranking, verdict, NUTS confirmation, checks and findings) as Markdown."""
     rows = summary.ranking
@@ -86,18 +97,12 @@ def ranking_markdown(summary: Diagnosis, command: str | None = None) -> str:
     if command:
         md += [f"Regenerate: `{command}`", ""]
     md += [f"**Verdict: {summary.verdict}.** {summary.sentence}", ""]
-    md += [
-        "| rank | effect | ΔELPD ± SE | J 500 ms before → after [deg] | J 1000 ms before → after [deg] | clears the bar | Pareto k max | importance ESS |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for i, r in enumerate(rows, 1):
-        j5, j10 = r["J_500ms"], r["J_1000ms"]
-        md.append(
-            f"| {i} | {r['effect']} | {r['delta_elpd']:.1f} ± {r['delta_elpd_se']:.1f} | "
-            f"{j5['before']['median']:.3f} → {j5['after']['median']:.3f} [{j5['after']['lo']:.3f}, {j5['after']['hi']:.3f}] | "
-            f"{j10['before']['median']:.3f} → {j10['after']['median']:.3f} [{j10['after']['lo']:.3f}, {j10['after']['hi']:.3f}] | "
-            f"{'yes' if r['clears_bar'] else 'no'} | {r['pareto_k_max']:.2f} | {r['importance_ess_min']:.0f} |"
-        )
+    md += markdown_table([
+        {"rank": str(i), "effect": r["effect"], "ΔELPD ± SE": f"{r['delta_elpd']:.1f} ± {r['delta_elpd_se']:.1f}",
+         **_j_cells(r), "clears the bar": "yes" if r["clears_bar"] else "no",
+         "Pareto k max": f"{r['pareto_k_max']:.2f}", "importance ESS": f"{r['importance_ess_min']:.0f}"}
+        for i, r in enumerate(rows, 1)
+    ]).splitlines()
     md += [
         "",
         f"The bar: ΔELPD above {ELPD_SE_BAR:g} standard errors (PSIS-LOO over 1-s segments, paired) and J lowered "
@@ -111,18 +116,14 @@ def ranking_markdown(summary: Diagnosis, command: str | None = None) -> str:
             "",
             f"## Confirmed with hierarchical NUTS (against the fit in `{summary.confirmed_from or ''}`)",
             "",
-            "| effect | ΔELPD ± SE (PSIS-LOO) | J 500 ms before → after [deg] | J 1000 ms before → after [deg] | clears the bar | fit |",
-            "|---|---|---|---|---|---|",
         ]
-        for r in confirmed:
-            n = r["nuts"]
-            j5, j10 = n["J_500ms"], n["J_1000ms"]
-            md.append(
-                f"| {r['effect']} | {n['delta_elpd']:.1f} ± {n['delta_elpd_se']:.1f} | "
-                f"{j5['before']['median']:.3f} → {j5['after']['median']:.3f} [{j5['after']['lo']:.3f}, {j5['after']['hi']:.3f}] | "
-                f"{j10['before']['median']:.3f} → {j10['after']['median']:.3f} [{j10['after']['lo']:.3f}, {j10['after']['hi']:.3f}] | "
-                f"{'yes' if n['clears_bar'] else 'no'} | `{n['folder']}`{' — ' + n['banner'] if n.get('banner') else ''} |"
-            )
+        md += markdown_table([
+            {"effect": r["effect"],
+             "ΔELPD ± SE (PSIS-LOO)": f"{r['nuts']['delta_elpd']:.1f} ± {r['nuts']['delta_elpd_se']:.1f}",
+             **_j_cells(r["nuts"]), "clears the bar": "yes" if r["nuts"]["clears_bar"] else "no",
+             "fit": f"`{r['nuts']['folder']}`" + (" — " + r["nuts"]["banner"] if r["nuts"].get("banner") else "")}
+            for r in confirmed
+        ]).splitlines()
         md += ["", f"The screen's verdict: {summary.screen_verdict}; under NUTS: {summary.verdict}."]
     failed = summary.failed
     if failed:
@@ -137,4 +138,25 @@ def ranking_markdown(summary: Diagnosis, command: str | None = None) -> str:
         md += ["", "## Where the model fails (residuals of the baseline)", ""]
         for leg, lines in findings.items():
             md.append(f"- {leg}: " + (" ".join(lines) if lines else "nothing stands out."))
+    return "\n".join(md) + "\n"
+
+
+def discovery_markdown(summary: Discovery, command: str | None = None) -> str:
+    """The modelling loop's page: each round's model, J, ELPD and verdict, the final model, the NUTS check."""
+    md = ["# The modelling loop (`quadshank discover`)", ""]
+    if command:
+        md += [f"Regenerate: `{command}`", ""]
+    for k, r in enumerate(summary.rounds, 1):
+        J = r["J_ms"]
+        md.append(
+            f"{k}. **{r['model']}**: J at 0.5 s {J['500']['median']:.3f}° [{J['500']['lo']:.3f}, {J['500']['hi']:.3f}], "
+            f"at 1 s {J['1000']['median']:.3f}°; ELPD {r['elpd']['value']:.0f} ± {r['elpd']['se']:.0f}. "
+            f"Verdict: {r['verdict']}. {r['sentence']} (details: [round-{k}/report.md](round-{k}/report.md))"
+        )
+    md += ["", f"Final model: **{summary.final_model}**."]
+    if summary.confirm is not None:
+        c = summary.confirm
+        md += ["", "## Confirmed with hierarchical NUTS", "", c["sentence"], "",
+               f"Fits: [{c['start']['folder']}]({c['start']['folder']}), [{c['final']['folder']}]({c['final']['folder']}); "
+               f"comparison with residuals before and after: [confirm/compare/report.md](confirm/compare/report.md)."]
     return "\n".join(md) + "\n"

@@ -3,6 +3,20 @@
 from __future__ import annotations
 
 from ..evaluation._recovery import DELAY_SEEN
+from ._tables import markdown_table
+
+
+def _sampling_row(model: str, f: dict) -> dict[str, str]:
+    """One fit's row of the sampling table: convergence, where chains split over delays, time."""
+    secs = f.get("sampling_seconds")
+    splits, missed = f.get("delay_splits"), f.get("delay_missed")
+    where = "–" if splits is None else ", ".join(f"{leg} {'/'.join(map(str, d))}" for leg, d in splits.items()) or "none"
+    unseen = "–" if missed is None else "; ".join(
+        f"{leg} " + ", ".join(f"d = {d} ({e:.2f})" for d, (e, _c) in ds.items()) for leg, ds in missed.items()) or "none"
+    return {"model": model, "seed": str(f["seed"]), "R-hat max": f"{f['rhat_max']:.3f}",
+            "bulk ESS min": f"{f['ess_bulk_min']:.0f}", "divergences": str(f["divergences"]),
+            "chains at different delays": where, "delays weighed but not visited": unseen,
+            "sampling [s]": "" if secs is None else f"{secs:.0f}"}
 
 
 def coverage_markdown(result: dict) -> str:
@@ -19,20 +33,17 @@ def coverage_markdown(result: dict) -> str:
         "the band is where the covered fraction of a calibrated posterior falls 95 % of the time "
         "(intervals treated as independent, which legs sharing a population are not quite).",
         "",
-        "| model | effects in the truth | 90 % intervals covering the truth | expected (95 % band) "
-        "| delay mode right | shift mode right | fits ok |",
-        "|---|---|---|---|---|---|---|",
     ]
-    for model, m in result["models"].items():
-        lo, hi = m["expected_band_95"]
-        ok = sum(bool(f["ok"]) for f in m["fits"])
-        shift = f"{m['shift_mode_right']}/{m['shift_legs']} legs" if "shift_legs" in m else "–"
-        lines.append(
-            f"| {model} | {', '.join(m['truth_effects']) or 'none'} | {m['covered']}/{m['n_intervals']} = "
-            f"{m['coverage']:.2f} | {lo:.2f}–{hi:.2f} | {m['delay_mode_right']}/{m['delay_legs']} legs "
-            f"(P(mode) ≥ {DELAY_SEEN} in {m['delay_seen_legs']}) | {shift} "
-            f"| {ok}/{len(m['fits'])} |"
-        )
+    lines += markdown_table([
+        {"model": model, "effects in the truth": ", ".join(m["truth_effects"]) or "none",
+         "90 % intervals covering the truth": f"{m['covered']}/{m['n_intervals']} = {m['coverage']:.2f}",
+         "expected (95 % band)": "{:.2f}–{:.2f}".format(*m["expected_band_95"]),
+         "delay mode right": f"{m['delay_mode_right']}/{m['delay_legs']} legs "
+                             f"(P(mode) ≥ {DELAY_SEEN} in {m['delay_seen_legs']})",
+         "shift mode right": f"{m['shift_mode_right']}/{m['shift_legs']} legs" if "shift_legs" in m else "–",
+         "fits ok": f"{sum(bool(f['ok']) for f in m['fits'])}/{len(m['fits'])}"}
+        for model, m in result["models"].items()
+    ]).splitlines()
     changes = [(model, f) for model, m in result["models"].items() for f in m["fits"] if "change_probability" in f]
     if changes:
         lines += ["", "## Angle delay: P(the delay changes with angle), and where (median, 90 % interval)", ""]
@@ -53,37 +64,27 @@ def coverage_markdown(result: dict) -> str:
                   "pull = (posterior median − the leg's maximum likelihood at the true delay) / its standard error, "
                   "over the legs whose posterior mode of d is right: how far the prior and the pooling of legs "
                   "moved each parameter from what the leg's data say (`likelihood-check` calibrates the "
-                  "likelihood itself).", "",
-                  "| model | parameter | leg | fits | median abs(pull) | max abs(pull) | mean pull |", "|---|---|---|---|---|---|---|"]
-        for model, pull in pulled:
-            for v in pull:
-                lines.append(f"| {model} | {v['param']} | {v['leg']} | {v['fits']} | {v['median_abs']:.2f} | "
-                             f"{v['max_abs']:.2f} | {v['mean']:+.2f} |")
-    lines += ["", "## Sampling", "", "| model | seed | R-hat max | bulk ESS min | divergences | chains at different delays "
-              "| delays weighed but not visited | sampling [s] |", "|---|---|---|---|---|---|---|---|"]
-    for model, m in result["models"].items():
-        for f in m["fits"]:
-            secs = f.get("sampling_seconds")
-            splits, missed = f.get("delay_splits"), f.get("delay_missed")
-            where = "–" if splits is None else ", ".join(f"{leg} {'/'.join(map(str, d))}" for leg, d in splits.items()) or "none"
-            unseen = "–" if missed is None else "; ".join(
-                f"{leg} " + ", ".join(f"d = {d} ({e:.2f})" for d, (e, _c) in ds.items()) for leg, ds in missed.items()) or "none"
-            lines.append(
-                f"| {model} | {f['seed']} | {f['rhat_max']:.3f} | {f['ess_bulk_min']:.0f} | {f['divergences']} | {where} | "
-                f"{unseen} | {'' if secs is None else f'{secs:.0f}'} |"
-            )
+                  "likelihood itself).", ""]
+        lines += markdown_table([
+            {"model": model, "parameter": v["param"], "leg": v["leg"], "fits": str(v["fits"]),
+             "median abs(pull)": f"{v['median_abs']:.2f}", "max abs(pull)": f"{v['max_abs']:.2f}",
+             "mean pull": f"{v['mean']:+.2f}"}
+            for model, pull in pulled for v in pull
+        ]).splitlines()
+    lines += ["", "## Sampling", ""]
+    lines += markdown_table([_sampling_row(model, f) for model, m in result["models"].items() for f in m["fits"]]).splitlines()
     # a mode of a flat P(d) (model 1) is no claim: only legs whose data chose a delay
     wrong = [r for r in result.get("rows", []) if r["param"] == "delay" and not r["covered"] and r.get("p_mode", 0) >= DELAY_SEEN]
     if wrong:
         lines += ["", "## Legs whose posterior mode of d is wrong", "",
                   f"Among legs whose P(mode) ≥ {DELAY_SEEN}: P(true d) in the chains and by a Laplace approximation "
-                  "per delay (`delay_evidence`).", "",
-                  "| model | seed | leg | true d | mode | P(true d), chains | P(true d), Laplace per delay |",
-                  "|---|---|---|---|---|---|---|"]
-        for r in wrong:
-            ev = r.get("p_true_evidence")
-            lines.append(f"| {r['model']} | {r['seed']} | {r['leg']} | {r['true']:.0f} | {r['median']:.0f} | "
-                         f"{r.get('p_true', float('nan')):.2f} | {'–' if ev is None else f'{ev:.2f}'} |")
+                  "per delay (`delay_evidence`).", ""]
+        lines += markdown_table([
+            {"model": r["model"], "seed": str(r["seed"]), "leg": r["leg"], "true d": f"{r['true']:.0f}",
+             "mode": f"{r['median']:.0f}", "P(true d), chains": f"{r.get('p_true', float('nan')):.2f}",
+             "P(true d), Laplace per delay": "–" if r.get("p_true_evidence") is None else f"{r['p_true_evidence']:.2f}"}
+            for r in wrong
+        ]).splitlines()
     return "\n".join(lines) + "\n"
 
 
@@ -102,20 +103,21 @@ def likelihood_markdown(result: dict) -> str:
         "pooling of legs, no delay uncertainty and no sampler enter here, so a shortfall of a recovery run's "
         "posterior coverage that this check does not show lies in one of those.",
         "",
-        "| model | seed | 90 % intervals covering the truth | expected (95 % band) | replicates with a maximum, per leg |",
-        "|---|---|---|---|---|",
     ]
-    for r in result["runs"]:
-        lo, hi = r["expected_band_95"]
-        conv = ", ".join(f"{leg} {v['converged']}" for leg, v in r["legs"].items())
-        lines.append(f"| {r['model']} | {r['seed']} | {r['covered']}/{r['intervals']} = {r['coverage']:.3f} | {lo:.3f}–{hi:.3f} | {conv} |")
+    lines += markdown_table([
+        {"model": r["model"], "seed": str(r["seed"]),
+         "90 % intervals covering the truth": f"{r['covered']}/{r['intervals']} = {r['coverage']:.3f}",
+         "expected (95 % band)": "{:.3f}–{:.3f}".format(*r["expected_band_95"]),
+         "replicates with a maximum, per leg": ", ".join(f"{leg} {v['converged']}" for leg, v in r["legs"].items())}
+        for r in result["runs"]
+    ]).splitlines()
     for r in result["runs"]:
         lines += ["", f"## {r['model']}, seed {r['seed']}: z mean ± se / z sd / coverage", ""]
-        names = list(next(iter(r["legs"].values()))["params"])
-        lines += ["| leg | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
-        for leg, v in r["legs"].items():
-            cells = [f"{p['z_mean']:+.2f} ± {p['z_se']:.2f} / {p['z_sd']:.2f} / {p['coverage']:.2f}" for p in v["params"].values()]
-            lines.append(f"| {leg} | " + " | ".join(cells) + " |")
+        lines += markdown_table([
+            {"leg": leg, **{name: f"{p['z_mean']:+.2f} ± {p['z_se']:.2f} / {p['z_sd']:.2f} / {p['coverage']:.2f}"
+                            for name, p in v["params"].items()}}
+            for leg, v in r["legs"].items()
+        ]).splitlines()
     lines += [
         "",
         "σ and ν are shown, not counted in the coverage: on twitch windows (models 1 and 3) the likelihood takes a "
