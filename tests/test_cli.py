@@ -101,3 +101,34 @@ def test_demo_small(tmp_path, monkeypatch, capsys):
     assert "TN-left" in index and "OT-left" in index and "potentiation" in index
     assert 'id="fit-warning"' in index  # the failed checks at the top of the page
     assert "report/index.html" in (out / "README.md").read_text()
+
+
+def test_identify_a_cohort_with_subjects_beyond_the_paper(data, tmp_path, capsys):
+    """Legs the paper's tables and the truth do not describe get empty cells, not a crash."""
+    from quadshank.data import Cohort, write_interchange
+
+    cohort = load_cohort(data)
+    other = tuple(t.replace(subject="AB", source="") for t in cohort.trials_of("TN-left"))
+    mixed = tmp_path / "mixed"
+    write_interchange(Cohort(cohort.trials + other), mixed)
+    (mixed / "truth.json").write_text((data / "truth.json").read_text())  # the truth lacks AB-left
+    assert main(["--quiet", "identify", str(mixed), "--out", str(tmp_path / "id")]) == 0
+    s = json.loads((tmp_path / "id" / "summary.json").read_text())["legs"]
+    assert set(s) == {"TN-left", "JM-right", "AB-left"}
+    assert "recovery" in s["TN-left"] and "recovery" not in s["AB-left"]
+    table = (tmp_path / "id" / "tables" / "table1.csv").read_text().splitlines()
+    assert "paper d [ms]" in table[0] and any(row.startswith("AB-left,") for row in table[1:])
+
+
+def test_implausible_units_are_warned_about_in_one_line(data, tmp_path, capsys):
+    from quadshank.data import Cohort, write_interchange
+
+    cohort = load_cohort(data)
+    tn = cohort.trials_of("TN-left")
+    scaled = tuple(t.replace(acceleration_deg_s2=np.deg2rad(t.acceleration_deg_s2)) if t.trial == 2 else t for t in tn)
+    write_interchange(Cohort(scaled), tmp_path / "rad")
+    capsys.readouterr()
+    assert main(["--quiet", "identify", str(tmp_path / "rad"), "--out", str(tmp_path / "id")]) == 0
+    warned = [line for line in capsys.readouterr().err.splitlines() if line.startswith("quadshank: warning:")]
+    assert len(warned) == 1, warned
+    assert "trial2.csv" in warned[0] and "TN-left trial 2" in warned[0] and "pi/180" in warned[0]

@@ -281,8 +281,10 @@ def test_problem_and_error_text():
     assert str(Problem(MAN, None, None, "missing")) == "manifest.csv: missing"
     err = InterchangeError([Problem("f.csv", "time_s", i + 2, "bad") for i in range(60)], "ctx")
     lines = str(err).splitlines()
-    assert lines[0] == "ctx: 60 problems"
-    assert len(lines) == 1 + 50 + 1 and lines[-1].strip() == "... and 10 more"
+    # the first problem on the first line, naming file, column and row; the others below
+    assert lines[0] == "ctx: f.csv, column 'time_s', row 2: bad (and 59 more problems, listed below)"
+    assert len(lines) == 1 + 49 + 1 and lines[-1].strip() == "... and 10 more"
+    assert str(InterchangeError([p], "ctx")) == f"ctx: {p}"
     assert isinstance(err, ValueError)
     copy = pickle.loads(pickle.dumps(err))
     assert copy.problems == err.problems and str(copy) == str(err)
@@ -472,14 +474,30 @@ def test_stimulation_out_of_range(folder, value):
 def test_angle_in_radians(folder):
     angle = np.deg2rad(column(folder / JM1, "angle_deg"))
     set_column(folder / JM1, "angle_deg", angle)
-    row = int(np.argmax(np.abs(angle))) + 2
-    assert_problem(problems_of(folder), JM1, "angle_deg", row, "look like radians")
+    err = problems_of(folder)
+    (p,) = [p for p in err.problems if p.file == JM1 and p.column == "angle_deg"]
+    assert "look like radians" in p.message and 2 <= p.row < N + 2
 
 
-def test_small_angles_without_stimulation_are_fine(folder):
+def test_radians_without_stimulation_are_found(folder):
     set_column(folder / JM1, "angle_deg", np.deg2rad(column(folder / JM1, "angle_deg")))
     set_column(folder / JM1, "stimulation", np.zeros(N))
-    assert read_interchange(folder).trials[2].angle_deg.max() < 1
+    err = problems_of(folder)
+    assert any(p.file == JM1 and p.column == "angle_deg" and "radians" in p.message for p in err.problems)
+
+
+def test_radians_with_a_glitch_are_found(folder):
+    angle = np.deg2rad(column(folder / JM1, "angle_deg"))
+    angle[7] = 40.0  # one sample in degrees, or a spike
+    set_column(folder / JM1, "angle_deg", angle)
+    err = problems_of(folder)
+    assert any(p.file == JM1 and p.column == "angle_deg" and "radians" in p.message for p in err.problems)
+
+
+def test_a_resting_trial_without_pulses_is_not_taken_for_radians(folder):
+    set_column(folder / JM1, "angle_deg", 0.2 * np.sin(np.arange(N) / 7.0))  # tiny sway, in degrees
+    set_column(folder / JM1, "stimulation", np.zeros(N))
+    read_interchange(folder)
 
 
 # --------------------------------------------------------------------------- all problems at once
@@ -494,7 +512,8 @@ def test_two_errors_in_two_files(folder):
     assert_problem(err, TN1, "angle_deg", 17, "non-numeric")
     assert_problem(err, JM1, "stimulation", 30, "outside")
     assert len(err.problems) == 2
-    assert str(err).splitlines()[0].endswith("2 problems")
+    first = str(err).splitlines()[0]
+    assert TN1 in first and "'angle_deg'" in first and "row 17" in first and first.endswith("1 more problem, listed below)")
 
 
 # --------------------------------------------------------------------------- writing
@@ -522,12 +541,20 @@ def test_write_uses_default_names_for_unusable_sources(tmp_path):
     assert [r[3] for r in read_rows(out / MAN)[1:]] == [TN1, TN2, "JM/r1.csv"]
 
 
-def test_rewrite_replaces_previous_cohort(folder, cohort):
+def test_writing_into_a_folder_with_data_needs_overwrite_and_deletes_nothing(folder, cohort):
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    with pytest.raises(FileExistsError, match="not empty"):
+        write_interchange(cohort.select(legs=["TN-left"]), folder)
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before  # nothing written, nothing deleted
+    # with overwrite, a CSV the new manifest would not list is refused (the folder would not read back) ...
+    with pytest.raises(FileExistsError, match=JM1):
+        write_interchange(cohort.select(legs=["TN-left"]), folder, overwrite=True)
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+    # ... and the same trials are replaced in place, other files kept
     (folder / "notes.txt").write_text("keep me")
-    write_interchange(cohort.select(legs=["TN-left"]), folder)
-    assert not (folder / JM1).exists()
+    write_interchange(cohort, folder, overwrite=True)
     assert (folder / "notes.txt").read_text() == "keep me"
-    assert len(read_interchange(folder)) == 2
+    assert len(read_interchange(folder)) == 3
 
 
 def _fail_after_first(monkeypatch):
@@ -560,7 +587,7 @@ def test_failed_write_keeps_previous_folder(folder, monkeypatch):
     changed = make_cohort(measured=True)
     _fail_after_first(monkeypatch)
     with pytest.raises(OSError, match="disk full"):
-        write_interchange(changed, folder)
+        write_interchange(changed, folder, overwrite=True)
     assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
     assert_same_trials(read_interchange(folder), make_cohort())
 

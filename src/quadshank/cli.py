@@ -7,6 +7,7 @@ import os
 import shlex
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import matplotlib
@@ -21,10 +22,11 @@ from .commands.recovery import run_likelihood_calibration, run_recovery
 from .commands.report import run_report
 from .commands.reproduce import run_reproduce
 from .common._io import read_json
-from .data._interchange import convert, load_cohort, write_interchange
+from .data._interchange import DataWarning, convert, load_cohort, write_interchange
 from .data._paper import LEGS
 from .data._simulate import simulate_cohort, write_truth
-from .inference._fitio import FitResult, load_fit, read_summary
+from .evaluation._posterior import check_fit_data
+from .inference._fitio import FitResult, check_fit_files, load_fit, read_summary
 from .inference._identify import load_identification
 from .inference._nuts import SEQUENTIAL_FROM_SAMPLES, STARTS, FitSettings
 from .loop._diagnose import Diagnosis
@@ -32,7 +34,19 @@ from .model._model import MODELS
 
 __all__ = ["main"]
 
-EXPECTED_ERRORS: tuple[type[BaseException], ...] = (FileNotFoundError, KeyError, ValueError, NotADirectoryError)
+EXPECTED_ERRORS: tuple[type[BaseException], ...] = (OSError, KeyError, ValueError)
+
+#: The result kinds (``summary.json`` schema) a command may find in its output folder from an earlier run of its own.
+OUTPUT_KINDS = {
+    "identify": {"identification"}, "evaluate": {"evaluation", "posterior-evaluation"}, "fit": {"fit"},
+    "reproduce": {"reproduction"}, "diagnose": {"diagnosis"}, "discover": {"discovery"},
+    "compare": {"posterior-evaluation"}, "report": {"report"}, "demo": {"demo"}, "recovery": set(),
+    "likelihood-check": set(), "simulate": set(), "convert": set(),
+}
+#: Commands whose output folder is a folder of recordings.
+DATA_WRITERS = ("simulate", "convert")
+#: The hidden file that marks a folder as a command's output (the command's name in it).
+OUTPUT_MARK = ".quadshank-output"
 
 
 def _command_line(args) -> str:
@@ -55,6 +69,67 @@ def _truth_beside(data: Path) -> dict | None:
     return read_json(path) if path.exists() else None
 
 
+def _inputs(args) -> list[Path]:
+    """The folders and files a command reads."""
+    names = ("data", "fitdir", "identified", "evaluation", "diagnosis", "delay_from", "fit_a", "fit_b", "src")
+    # (an evaluation or diagnosis folder given to `report` is read, so it is an input too)
+    found = [getattr(args, n, None) for n in names] + list(getattr(args, "fit", None) or [])
+    return [Path(p) for p in found if p]
+
+
+def _earlier_output(out: Path, command: str) -> bool:
+    """Whether ``out`` holds an earlier output of ``command`` (its mark, or its kind of summary)."""
+    mark = out / OUTPUT_MARK
+    if mark.is_file():
+        try:
+            return mark.read_text().strip() == command
+        except (OSError, UnicodeDecodeError):
+            return False
+    summary = out / "summary.json"
+    if summary.is_file():
+        try:
+            doc = read_json(summary)
+        except (OSError, ValueError):
+            return False
+        schema = doc.get("schema", "") if isinstance(doc, dict) else ""
+        return schema.removeprefix("quadshank/") in OUTPUT_KINDS.get(command, set())
+    return False
+
+
+def prepare_output(out: Path, command: str, inputs, overwrite: bool = False) -> None:
+    """Check the output folder before any work: a folder (or a name for a new one) that is
+    writable, not inside or equal to an input, and new, empty or an earlier output of the same
+    command (``overwrite``: any folder; files of the same names are replaced, others kept).
+    Then mark it as this command's and remove its ``summary.json``: until the new one lands,
+    the folder is incomplete."""
+    resolved = out.resolve()
+    for p in inputs:
+        src = p.resolve()
+        if resolved == src:
+            raise ValueError(f"{out}: is the input {p}; write the results to a folder of their own")
+        data_folder = src if src.is_dir() else src.parent if src.name == "manifest.csv" else None
+        if data_folder is not None and (data_folder / "manifest.csv").is_file() and resolved.is_relative_to(data_folder):
+            raise ValueError(f"{out}: inside the data folder {data_folder}; write the results to a folder of their own")
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"{out}: exists and is not a folder; give a folder for the results")
+    if (out / "manifest.csv").is_file() and command not in DATA_WRITERS:
+        raise ValueError(f"{out}: holds recordings (manifest.csv); write the results to a folder of their own")
+    existing = out if out.exists() else next(p for p in out.parents if p.exists())
+    if not existing.is_dir():
+        raise NotADirectoryError(f"{out}: {existing} is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise PermissionError(f"{out}: {existing} is not writable")
+    foreign = out.is_dir() and any(out.iterdir()) and not _earlier_output(out, command)
+    if foreign and not overwrite:
+        raise FileExistsError(
+            f"{out}: the folder is not empty and holds no earlier output of `quadshank {command}`; give a new "
+            "folder (or --overwrite to write into it: files of the same names are replaced, others kept)")
+    out.mkdir(parents=True, exist_ok=True)
+    if not foreign:  # a folder written into by --overwrite stays unmarked: it holds more than this output
+        (out / OUTPUT_MARK).write_text(command + "\n")
+    (out / "summary.json").unlink(missing_ok=True)
+
+
 # ---------------------------------------------------------------------------- commands
 
 
@@ -67,14 +142,15 @@ def cmd_simulate(args) -> int:
         sampling_period_s=args.sampling_period_ms / 1000.0,
     )
     out = Path(args.out)
-    write_interchange(cohort, out)
+    write_interchange(cohort, out, overwrite=True)  # the folder was checked before the work began
     write_truth(truth, out / "truth.json")
     _say(args, f"simulated {len(cohort)} trials of {len(legs)} legs -> {out}/manifest.csv (truth: {out}/truth.json)")
     return 0
 
 
 def cmd_convert(args) -> int:
-    dst = convert(args.src, args.dst)
+    # a folder of recordings was checked (new, empty, an earlier conversion or --overwrite) before the work began
+    dst = convert(args.src, args.dst, overwrite=args.overwrite or Path(args.dst).suffix.lower() != ".nc")
     _say(args, f"converted {args.src} -> {dst}")
     return 0
 
@@ -256,8 +332,10 @@ def _say_ranking(args, summary: Diagnosis) -> None:
 
 def cmd_diagnose(args) -> int:
     fit_summary = read_summary(args.fitdir)
-    _, model, desc = load_fit(args.fitdir)
+    idata, model, desc = load_fit(args.fitdir)
+    check_fit_files(args.fitdir, idata, fit_summary)
     cohort, _ = _loop_data(args, fit_summary)
+    check_fit_data(args.fitdir, fit_summary, desc, cohort)
     command = _command_line(args)
     if args.confirm < 0:
         raise ValueError(f"--confirm must be a number of leaders, at least 0, not {args.confirm}")
@@ -536,7 +614,25 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--max-tree-depth", type=int, default=5,
                    help="NUTS tree depth: at most 2^depth - 1 leapfrog steps a draw (quadshank fit: 8)")
     d.set_defaults(func=cmd_demo)
+    for sp in sub.choices.values():
+        sp.add_argument("--overwrite", action="store_true",
+                        help="write into a folder that holds something else (files of the same names are "
+                             "replaced, nothing else is touched)")
     return p
+
+
+def _error_text(exc: BaseException) -> str:
+    """An expected error as the text after ``quadshank: error:`` (its first line names the file)."""
+    if isinstance(exc, KeyError) and exc.args:
+        return str(exc.args[0])
+    if isinstance(exc, OSError) and exc.filename and exc.strerror:
+        return f"{exc.filename}: {exc.strerror}"
+    return str(exc) or type(exc).__name__
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning as one line, ``quadshank: warning: ...``, without the source line."""
+    print(f"quadshank: warning: {message}", file=sys.stderr)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -547,15 +643,22 @@ def main(argv: list[str] | None = None) -> int:
     # the command line draws only into files: no window, whatever the display
     matplotlib.use("Agg")
     try:
-        return int(args.func(args) or 0)
+        if args.command == "convert":
+            if Path(args.dst).suffix.lower() != ".nc":  # a folder of recordings
+                prepare_output(Path(args.dst), "convert", _inputs(args), args.overwrite)
+        elif getattr(args, "out", None):
+            prepare_output(Path(args.out), args.command, _inputs(args), args.overwrite)
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", DataWarning)
+            warnings.showwarning = _show_warning
+            return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("quadshank: interrupted; files already written are complete, nothing half-written", file=sys.stderr)
         return 130
     except EXPECTED_ERRORS as exc:
         if os.environ.get("QUADSHANK_DEBUG"):
             raise
-        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        print(f"quadshank: error: {msg}", file=sys.stderr)
+        print(f"quadshank: error: {_error_text(exc)}", file=sys.stderr)
         return 2
 
 

@@ -8,6 +8,7 @@ from ..data._cohort import Cohort
 from ..inference._fitio import (
     FitResult,
     begin_fit,
+    from_json,
     read_summary,
     save_fit,
     to_inference_data,
@@ -58,4 +59,6 @@ def run_fit(
     )
     if data_source is not None:
         extra["data"] = str(data_source)
+    desc = from_json(idata.posterior.attrs["quadshank_model"])
+    extra["data_fingerprint"] = cohort.fingerprint(desc["legs"], desc["trials"])
     return save_fit(idata, out, extra=extra)

@@ -48,7 +48,8 @@ def run_identify(
         rec = recovery(ident, truth)
         md.append(markdown_table(recovery_rows(rec), "Recovery of the simulator's truth"))
         for leg, s in legs.items():
-            s["recovery"] = rec[leg]
+            if leg in rec:
+                s["recovery"] = rec[leg]
 
     leg2 = _pick("TN-right", ident)
     t2 = cohort.get(leg2, trial)

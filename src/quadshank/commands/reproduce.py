@@ -57,7 +57,7 @@ def run_reproduce(
     legs = tuple(legs or LEGS)
     t0 = time.perf_counter()
     cohort, truth = simulate_cohort(legs=legs, minutes=minutes, seed=seed, effects=tuple(effects), progress=progress)
-    write_interchange(cohort, out / "data")
+    write_interchange(cohort, out / "data", overwrite=True)  # the command's own data folder
     write_truth(truth, out / "data" / "truth.json")
     t_sim = time.perf_counter() - t0
     ident = run_identify(cohort, out / "identify", truth=truth, progress=progress)

@@ -7,12 +7,16 @@ folder or a NetCDF file, :func:`simulate_cohort` makes the built-in simulated co
 from ._cohort import VELOCITY_WINDOW, Cohort, Trial, derive_velocity, leg_key
 from ._interchange import (
     DEFAULT_SAMPLING_PERIOD_S,
+    DataWarning,
     MANIFEST_NAME,
     InterchangeError,
     Problem,
     convert,
     load_cohort,
+    plausibility,
+    parse_number,
     read_interchange,
+    read_netcdf,
     write_interchange,
 )
 from ._paper import (
@@ -41,7 +45,8 @@ from ._simulate import (
 
 __all__ = [
     "Cohort", "Trial", "derive_velocity", "leg_key", "VELOCITY_WINDOW",
-    "InterchangeError", "Problem", "read_interchange", "write_interchange", "load_cohort", "convert",
+    "InterchangeError", "Problem", "DataWarning", "plausibility", "read_interchange", "read_netcdf", "write_interchange", "load_cohort", "convert",
+    "parse_number",
     "MANIFEST_NAME", "DEFAULT_SAMPLING_PERIOD_S",
     "EFFECTS", "PASSIVE_TRUTH", "default_truth", "simulate_cohort", "simulate_response", "stimulation_sequence",
     "write_truth",

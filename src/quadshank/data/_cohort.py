@@ -10,6 +10,7 @@ padded with NaN and their length is stored, so the round trip is lossless.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import os
 from collections.abc import Iterator, Sequence
@@ -184,6 +185,18 @@ class Cohort:
             if t.key == leg and t.trial == int(trial):
                 return t
         raise KeyError(f"no trial {trial} for leg {leg}; legs present: {', '.join(self.legs)}")
+
+    def fingerprint(self, legs: Sequence[str] | None = None, trials: Sequence[int] | None = None) -> str:
+        """A hash of the recordings of the given legs and trials (all by default): their keys,
+        sampling periods and every signal, bit for bit, in leg and trial order.  A fit records
+        it, and the commands that read the fit refuse data with another."""
+        h = hashlib.sha256()
+        chosen = sorted((t for t in self.select(legs, trials).trials), key=lambda t: (t.key, t.trial))
+        for t in chosen:
+            h.update(f"{t.key}|{t.trial}|{float(t.sampling_period_s)!r}|{t.velocity_measured}".encode())
+            for name in _SIGNALS:
+                h.update(np.ascontiguousarray(getattr(t, name), dtype=np.float64).tobytes())
+        return h.hexdigest()[:16]
 
     def select(self, legs: Sequence[str] | None = None, trials: Sequence[int] | None = None) -> Cohort:
         """A sub-cohort with only the given legs and/or trial numbers."""

@@ -59,9 +59,16 @@ All files are checked and all problems are collected; if there is any, an
    step); the median step equals the manifest's `sampling_period_s` within a
    relative 1e-3.
 5. **Stimulation** within [0, 1].
-6. **Units**: an angle that never exceeds pi (3.2) in magnitude while the
-   trial is stimulated and the angle does move (peak-to-peak > 0.05) is taken
-   to be in radians and rejected.
+6. **Units**: an angle whose samples lie within ±pi (3.2), the 1 % at each end
+   left out (glitches), while the angle moves (by more than 0.05 in a trial
+   with pulses, 0.5 in one without) is taken to be in radians and rejected.
+7. **Numbers** are ASCII decimals with an optional sign, decimal point and
+   exponent (``1_000``, other digits, ``nan`` and ``inf`` are rejected).
+8. **Links**: a listed file (or the manifest) that resolves to a place outside
+   the folder is rejected.
+
+A NetCDF file goes through the same rules (:func:`read_netcdf`): its problems
+name the trial (``cohort.nc [TN-left trial 2]``), the signal and the sample.
 
 Writing uses ``repr`` of every float (shortest exact form), so a cohort read,
 written and read again is bit-identical.  Cohort attributes other than the
@@ -79,17 +86,24 @@ import re
 from collections.abc import Iterable, Sequence
 from pathlib import Path, PurePosixPath
 
+import warnings
+
 import numpy as np
+from scipy.signal import savgol_filter
 
 from ..common._io import temp_sibling
 from ._cohort import Cohort, Trial, leg_key
 
 __all__ = [
+    "DataWarning",
+    "plausibility",
     "Problem",
     "InterchangeError",
     "read_interchange",
     "write_interchange",
     "load_cohort",
+    "read_netcdf",
+    "parse_number",
     "convert",
     "MANIFEST_NAME",
     "DEFAULT_SAMPLING_PERIOD_S",
@@ -114,8 +128,12 @@ UNIFORM_TOLERANCE = 0.01
 PERIOD_TOLERANCE = 1e-3
 #: An angle whose magnitude never exceeds this (pi, rounded up) is suspected to be in radians.
 RADIAN_LIMIT = 3.2
-#: ... provided it moves by more than this (peak to peak) in a stimulated trial.
+#: ... provided it moves by more than this (between the quantiles below) in a stimulated trial,
 RADIAN_MIN_RANGE = 0.05
+#: ... or by more than this in a trial without pulses (a pendulum test in degrees swings far beyond pi).
+RADIAN_MIN_RANGE_PASSIVE = 0.5
+#: The fraction of samples left out at each end before the radian test (glitches).
+RADIAN_QUANTILE = 0.01
 
 #: Individual problems reported per file, column and kind before they are summarised.
 _MAX_PER_KIND = 5
@@ -138,20 +156,22 @@ class Problem:
     column: str | None
     row: int | None
     message: str
+    row_label: str = "row"  # "sample" in a NetCDF file
 
     def __str__(self) -> str:
         where = [self.file]
         if self.column is not None:
             where.append(f"column {self.column!r}")
         if self.row is not None:
-            where.append(f"row {self.row}")
+            where.append(f"{self.row_label} {self.row}")
         return f"{', '.join(where)}: {self.message}"
 
 
 class InterchangeError(ValueError):
     """An interchange folder (or a cohort to be written as one) is invalid.
 
-    ``problems`` lists every problem found; ``str()`` gives one per line.
+    ``problems`` lists every problem found.  ``str()`` puts the first on the first line
+    (file, column and row, then the message) and the others one per line below it.
     """
 
     def __init__(self, problems: Iterable[Problem], context: str = "invalid interchange folder") -> None:
@@ -161,8 +181,13 @@ class InterchangeError(ValueError):
 
     def __str__(self) -> str:
         n = len(self.problems)
-        lines = [f"{self.context}: {n} problem{'s' if n != 1 else ''}"]
-        lines += [f"  {p}" for p in self.problems[:_MAX_LISTED]]
+        if n == 0:
+            return self.context
+        first = f"{self.context}: {self.problems[0]}"
+        if n == 1:
+            return first
+        lines = [f"{first} (and {n - 1} more problem{'s' if n > 2 else ''}, listed below)"]
+        lines += [f"  {p}" for p in self.problems[1:_MAX_LISTED]]
         if n > _MAX_LISTED:
             lines.append(f"  ... and {n - _MAX_LISTED} more")
         return "\n".join(lines)
@@ -179,6 +204,63 @@ def _report_cells(
         problems.append(
             Problem(file, column, None, f"{len(rest)} more rows like this (rows {rest[0][0]} to {rest[-1][0]})")
         )
+
+
+# --------------------------------------------------------------------------- plausibility
+class DataWarning(UserWarning):
+    """Recordings that pass the rules but look implausible: a unit or a sign that seems off."""
+
+
+#: Length [s] of the Savitzky–Golay window that smooths the derivatives compared below.
+PLAUSIBILITY_WINDOW_S = 0.1
+#: A measured derivative whose ratio to the angle's own lies outside this range gets a warning.
+PLAUSIBLE_RATIO = (0.5, 2.0)
+#: Correlations (measured derivative against the angle's) below which a warning says they disagree.
+PLAUSIBLE_CORRELATION = 0.5
+
+
+def plausibility(trial: Trial) -> list[str]:
+    """What looks implausible in a trial that passed the rules, in words (empty when nothing does).
+
+    The measured acceleration (and a measured velocity) should follow the angle's own second
+    (first) derivative, both smoothed alike: the same sign and about the same size.  A ratio
+    near 57 or 1/57 says radians somewhere, a negative correlation a flipped sign, a ratio of
+    0.01 or 100 another unit or scale.
+    """
+    dt = trial.sampling_period_s
+    window = max(7, int(round(PLAUSIBILITY_WINDOW_S / dt)) | 1)
+    if trial.n_samples < 3 * window:
+        return []
+    found = []
+    checks = [("acceleration_deg_s2", 2, "deg/s²")]
+    if trial.velocity_measured:
+        checks.append(("velocity_deg_s", 1, "deg/s"))
+    for column, order, unit in checks:
+        derived = savgol_filter(trial.angle_deg, window, 3, deriv=order, delta=dt)
+        measured = savgol_filter(getattr(trial, column), window, 3)
+        if np.std(derived) == 0 or np.std(measured) == 0:
+            continue
+        corr = float(np.corrcoef(measured, derived)[0, 1])
+        ratio = float(np.std(measured) / np.std(derived))
+        what = "second derivative" if order == 2 else "derivative"
+        if corr < -PLAUSIBLE_CORRELATION:
+            found.append(f"{column} runs against the angle's {what} (correlation {corr:.2f}): is the sign of one "
+                         "of them flipped? (positive angle = extension)")
+        elif corr > PLAUSIBLE_CORRELATION and not PLAUSIBLE_RATIO[0] <= ratio <= PLAUSIBLE_RATIO[1]:
+            hint = (" (about 180/pi: radians somewhere?)" if 40 <= ratio <= 80 else
+                    " (about pi/180: radians somewhere?)" if 1 / 80 <= ratio <= 1 / 40 else "")
+            found.append(f"{column} is {ratio:.3g} times the size of the angle's {what}{hint}; in {unit} and deg "
+                         "they agree: check the units")
+        elif abs(corr) < PLAUSIBLE_CORRELATION:
+            found.append(f"{column} hardly follows the angle's {what} (correlation {corr:.2f}): is it the "
+                         "signal of this trial, in this column?")
+    return found
+
+
+def _warn_implausible(cohort: Cohort, labels: Sequence[str]) -> None:
+    for t, label in zip(cohort.trials, labels):
+        for text in plausibility(t):
+            warnings.warn(f"{label} ({t.key} trial {t.trial}): {text}", DataWarning, stacklevel=3)
 
 
 # --------------------------------------------------------------------------- CSV tables
@@ -270,27 +352,34 @@ def _read_table(
     return _Table(columns, header_line, rows, lines, well_formed)
 
 
+#: A number as the format writes it: ASCII digits, an optional sign, decimal point and exponent.
+#: (Python's ``float`` also takes ``1_000``, non-ASCII digits and ``infinity``; the format does not.)
+_NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_NON_FINITE = re.compile(r"[+-]?(?:nan|inf|infinity)", re.IGNORECASE)
+
+
+def parse_number(text: str) -> float | None:
+    """``text`` (surrounding spaces allowed) as a float when it is a number as the format
+    writes it, else ``None``."""
+    text = text.strip()
+    return float(text) if _NUMBER.fullmatch(text) else None
+
+
 def _parse_float_column(table: _Table, name: str, file: str, problems: list[Problem]) -> np.ndarray | None:
     """The column as floats, or ``None`` (after reporting) when a cell is not a finite number."""
     idx = table.columns[name]
     cells = [row[idx] for row in table.rows]
-    try:
-        values = [float(c) for c in cells]
-    except ValueError:
-        values = None
-    if values is not None:
+    values = [parse_number(c) for c in cells]
+    if None not in values:
         arr = np.array(values, dtype=float)
-        if np.isfinite(arr).all():
+        if np.isfinite(arr).all():  # an exponent can still overflow
             return arr
     non_numeric: list[tuple[int, str]] = []
     non_finite: list[tuple[int, str]] = []
-    for text, line in zip(cells, table.lines):
-        try:
-            v = float(text)
-        except ValueError:
+    for text, line, v in zip(cells, table.lines, values):
+        if v is None and not _NON_FINITE.fullmatch(text.strip()):
             non_numeric.append((line, text))
-            continue
-        if not math.isfinite(v):
+        elif v is None or not math.isfinite(v):
             non_finite.append((line, text))
     _report_cells(problems, file, name, non_numeric, "non-numeric value {!r}")
     _report_cells(problems, file, name, non_finite, "non-finite value {!r} (NaN and infinity are not allowed)")
@@ -323,7 +412,7 @@ def _check_signals(
                 i = int(bad[0])
                 problems.append(
                     Problem(file, "time_s", int(lines[i + 1]),
-                            f"time not strictly increasing: {time[i + 1]!r} s follows {time[i]!r} s "
+                            f"time not strictly increasing: {float(time[i + 1])!r} s follows {float(time[i])!r} s "
                             f"(row {int(lines[i])})")
                 )
             else:
@@ -342,7 +431,7 @@ def _check_signals(
                     problems.append(
                         Problem(file, "time_s", int(lines[0]),
                                 f"sampling period {median:.6g} s (median time step) disagrees with "
-                                f"sampling_period_s = {sampling_period_s!r} s {period_origin}")
+                                f"sampling_period_s = {float(sampling_period_s)!r} s {period_origin}")
                     )
 
     stim = signals.get("stimulation")
@@ -355,17 +444,16 @@ def _check_signals(
 
     angle = signals.get("angle_deg")
     if angle is not None and stim is not None and angle.size:
-        magnitude = np.abs(angle)
-        peak = int(np.argmax(magnitude))
-        if (
-            magnitude[peak] <= RADIAN_LIMIT
-            and np.any(stim > 0)
-            and float(np.ptp(angle)) > RADIAN_MIN_RANGE
-        ):
+        # the bulk of the samples, so that a glitch or two cannot hide radians
+        lo, hi = np.quantile(angle, [RADIAN_QUANTILE, 1 - RADIAN_QUANTILE])
+        magnitude = max(abs(float(lo)), abs(float(hi)))
+        moves = hi - lo > (RADIAN_MIN_RANGE if np.any(stim > 0) else RADIAN_MIN_RANGE_PASSIVE)
+        if magnitude <= RADIAN_LIMIT and moves:
+            peak = int(np.argmax(np.where((angle >= lo) & (angle <= hi), np.abs(angle), -1.0)))
             problems.append(
                 Problem(file, "angle_deg", int(lines[peak]),
-                        f"values look like radians (max |angle| = {magnitude[peak]:.4g} <= pi); "
-                        "convert to degrees")
+                        f"values look like radians ({1 - 2 * RADIAN_QUANTILE:.0%} of the samples lie within "
+                        f"[{lo:.3g}, {hi:.3g}], inside ±pi, and the angle moves); convert to degrees")
             )
 
 
@@ -386,16 +474,12 @@ class _Entry:
 
 def _parse_trial_number(text: str) -> int | str:
     """The trial number, or the reason it is not one."""
-    try:
-        value = int(text)
-    except ValueError:
-        try:
-            f = float(text)
-        except ValueError:
-            return f"non-numeric value {text!r}; expected a positive integer"
-        if not math.isfinite(f) or f != int(f):
-            return f"{text!r} is not an integer; expected a positive integer"
-        value = int(f)
+    f = parse_number(text)
+    if f is None:
+        return f"non-numeric value {text!r}; expected a positive integer"
+    if f != int(f):
+        return f"{text!r} is not an integer; expected a positive integer"
+    value = int(f)
     if value < 1:
         return f"non-positive value {text!r}; trials are numbered from 1"
     return value
@@ -412,6 +496,9 @@ def _normalise_relative(text: str) -> str | None:
 def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry], bool] | None:
     """Manifest entries and whether the manifest has a ``sampling_period_s`` column."""
     path = folder / MANIFEST_NAME
+    if path.exists() and not path.resolve().is_relative_to(folder.resolve()):
+        problems.append(Problem(MANIFEST_NAME, None, None, "a link to a file outside the folder; copy the file into it"))
+        return None
     if not path.is_file():
         problems.append(
             Problem(MANIFEST_NAME, None, None,
@@ -447,11 +534,11 @@ def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry],
         period: float | None = DEFAULT_SAMPLING_PERIOD_S
         if has_period:
             text = row[col["sampling_period_s"]].strip()
-            try:
-                period = float(text)
-            except ValueError:
+            period = parse_number(text)
+            if period is None and _NON_FINITE.fullmatch(text):
+                bad("sampling_period_s", f"{text!r} is not a positive finite number of seconds")
+            elif period is None:
                 bad("sampling_period_s", f"non-numeric value {text!r}; expected the sampling period in s")
-                period = None
             else:
                 if not (math.isfinite(period) and period > 0):
                     bad("sampling_period_s", f"{text!r} is not a positive finite number of seconds")
@@ -471,7 +558,9 @@ def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry],
                 key = None
             else:
                 candidate = folder.joinpath(*PurePosixPath(key).parts)
-                if candidate.is_file():
+                if candidate.exists() and not candidate.resolve().is_relative_to(folder.resolve()):
+                    bad("file", f"{file!r} is a link to a file outside the folder; copy the file into it")
+                elif candidate.is_file():
                     file_path = candidate
                 elif candidate.exists():
                     bad("file", f"{file!r} is not a regular file")
@@ -623,7 +712,9 @@ def read_interchange(folder: str | os.PathLike) -> Cohort:
                 source=e.file,
             )
         )
-    return Cohort(tuple(trials), {"source": str(folder), "source_format": "interchange"})
+    cohort = Cohort(tuple(trials), {"source": str(folder), "source_format": "interchange"})
+    _warn_implausible(cohort, [str(folder / e.file) for e in entries])
+    return cohort
 
 
 # --------------------------------------------------------------------------- writing
@@ -669,34 +760,40 @@ def _file_names(cohort: Cohort) -> list[str]:
     return names  # type: ignore[return-value]
 
 
-def _check_cohort(cohort: Cohort, names: Sequence[str]) -> list[Problem]:
-    """The validation rules applied to an in-memory cohort, as the written folder would be read."""
+def _check_cohort(cohort: Cohort, names: Sequence[str], *, listing: str = MANIFEST_NAME, first_row: int = 2,
+                  row_label: str = "row", listing_row_label: str = "row") -> list[Problem]:
+    """The validation rules applied to an in-memory cohort, as the written folder would be read.
+
+    ``names`` label each trial's problems and ``listing`` the problems of the trial list
+    (the manifest's name and line numbers, or a NetCDF file's trials and samples counted
+    from ``first_row``)."""
     problems: list[Problem] = []
     if not cohort.trials:
-        problems.append(Problem(MANIFEST_NAME, None, None, "the cohort has no trials"))
+        problems.append(Problem(listing, None, None, "the cohort has no trials"))
     entries = []
+
     for i, (t, name) in enumerate(zip(cohort.trials, names)):
-        line = i + 2
+        line = i + first_row
         subject = t.subject if t.subject.strip() == t.subject and t.subject else None
         if subject is None:
-            problems.append(Problem(MANIFEST_NAME, "subject", line, f"subject {t.subject!r} is empty or "
+            problems.append(Problem(listing, "subject", line, f"subject {t.subject!r} is empty or "
                                     "has leading/trailing white space"))
         leg = t.leg if t.leg in _LEGS else None
         if leg is None:
-            problems.append(Problem(MANIFEST_NAME, "leg", line, f"{t.leg!r} is not 'left' or 'right'"))
+            problems.append(Problem(listing, "leg", line, f"{t.leg!r} is not 'left' or 'right'"))
         trial = t.trial if t.trial >= 1 else None
         if trial is None:
-            problems.append(Problem(MANIFEST_NAME, "trial", line, f"non-positive trial number {t.trial}"))
+            problems.append(Problem(listing, "trial", line, f"non-positive trial number {t.trial}"))
         period = t.sampling_period_s if math.isfinite(t.sampling_period_s) and t.sampling_period_s > 0 else None
         if period is None:
-            problems.append(Problem(MANIFEST_NAME, "sampling_period_s", line,
+            problems.append(Problem(listing, "sampling_period_s", line,
                                     f"{t.sampling_period_s!r} is not a positive finite number of seconds"))
         entries.append(_Entry(line, subject, leg, trial, name, name, None, period))
     complete = all(e.subject is not None and e.leg is not None and e.trial is not None for e in entries)
-    _check_listing(entries, complete, MANIFEST_NAME, problems)
+    _check_listing(entries, complete, listing, problems)
 
     for t, e in zip(cohort.trials, entries):
-        lines = np.arange(2, t.n_samples + 2)
+        lines = np.arange(first_row, t.n_samples + first_row)
         signals: dict[str, np.ndarray | None] = {}
         for column in _TRIAL_WRITE_ORDER:
             if column == "velocity_deg_s" and not t.velocity_measured:
@@ -711,9 +808,9 @@ def _check_cohort(cohort: Cohort, names: Sequence[str]) -> list[Problem]:
         if t.n_samples == 0:
             problems.append(Problem(e.file, None, None, "no samples"))
             continue
-        _check_signals(e.file, lines, signals, e.sampling_period_s, f"of the trial (row {e.line} of "
-                       f"{MANIFEST_NAME})", problems)
-    return problems
+        _check_signals(e.file, lines, signals, e.sampling_period_s, f"of the trial ({row_label} {e.line} of "
+                       f"{listing})", problems)
+    return [dataclasses.replace(p, row_label=listing_row_label if p.file == listing else row_label) for p in problems]
 
 
 def _write_trial_csv(trial: Trial, path: Path) -> None:
@@ -733,22 +830,6 @@ def _write_manifest(cohort: Cohort, names: Sequence[str], path: Path) -> None:
             writer.writerow([t.subject, t.leg, str(int(t.trial)), name, repr(float(t.sampling_period_s))])
 
 
-def _listed_in_manifest(folder: Path) -> list[str]:
-    """Files listed by an existing manifest (best effort; empty when there is none or it is unreadable)."""
-    path = folder / MANIFEST_NAME
-    if not path.is_file():
-        return []
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            reader = csv.DictReader(fh)
-            if reader.fieldnames is None or "file" not in [f.strip() for f in reader.fieldnames]:
-                return []
-            field = next(f for f in reader.fieldnames if f.strip() == "file")
-            return [row[field].strip() for row in reader if row.get(field)]
-    except (OSError, UnicodeDecodeError, csv.Error):
-        return []
-
-
 def _make_dirs(path: Path, created: list[Path]) -> None:
     """``mkdir -p``, recording the folders that did not exist yet."""
     missing = []
@@ -761,7 +842,7 @@ def _make_dirs(path: Path, created: list[Path]) -> None:
         created.append(d)
 
 
-def write_interchange(cohort: Cohort, folder: str | os.PathLike) -> Path:
+def write_interchange(cohort: Cohort, folder: str | os.PathLike, *, overwrite: bool = False) -> Path:
     """Write ``cohort`` as an interchange folder; returns the folder.
 
     The cohort is first checked against the same rules as
@@ -771,13 +852,16 @@ def write_interchange(cohort: Cohort, folder: str | os.PathLike) -> Path:
     ``{subject}-{leg}-trial{n}.csv``; velocity is written only when it was
     measured.
 
+    ``folder`` must be new or empty unless ``overwrite``; then the manifest and
+    the trial files of this cohort replace those of the same names, and nothing
+    else in the folder is touched or deleted.  A CSV file already there that the
+    new manifest would not list is refused (the folder would not read back):
+    nothing is written.
+
     The write is atomic per file and ordered: every file is first written under
     a temporary hidden name next to its destination and only when all are
     complete are they renamed into place, the manifest last.  A failure
     leaves the folder as it was (a folder created by this call is removed).
-    When the folder held a previous interchange cohort, the trial files its
-    manifest listed and the new one does not are deleted afterwards; other
-    files are left alone.
     """
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
@@ -786,8 +870,21 @@ def write_interchange(cohort: Cohort, folder: str | os.PathLike) -> Path:
     problems = _check_cohort(cohort, names)
     if problems:
         raise InterchangeError(problems, f"cannot write {folder} as an interchange folder")
+    if folder.is_dir() and any(not p.name.startswith(".") for p in folder.iterdir()):
+        if not overwrite:
+            raise FileExistsError(
+                f"{folder}: the folder is not empty; give a new folder (or --overwrite to replace the manifest "
+                "and the trial files of the same names, leaving everything else)")
+        written = {PurePosixPath(n).as_posix().lower() for n in names}
+        stale = [p.relative_to(folder).as_posix() for p in _csv_files(folder)
+                 if p.name != MANIFEST_NAME or p.parent != folder]
+        stale = [n for n in stale if n.lower() not in written]
+        if stale:
+            shown = ", ".join(stale[:5]) + (f" and {len(stale) - 5} more" if len(stale) > 5 else "")
+            raise FileExistsError(
+                f"{folder}: holds CSV files this cohort does not write ({shown}); the new manifest would not list "
+                "them and the folder would not read back: remove them, or give a new folder")
 
-    previous = _listed_in_manifest(folder)
     created: list[Path] = []
     staged: list[tuple[Path, Path]] = []  # (temporary, final)
     try:
@@ -813,15 +910,6 @@ def write_interchange(cohort: Cohort, folder: str | os.PathLike) -> Path:
             except OSError:
                 pass
         raise
-
-    written = {PurePosixPath(n) for n in names}
-    for old in previous:
-        key = _normalise_relative(old)
-        if key is None or PurePosixPath(key) in written or not key.lower().endswith(".csv"):
-            continue
-        stale = folder.joinpath(*PurePosixPath(key).parts)
-        if stale.is_file() and stale.name != MANIFEST_NAME:
-            stale.unlink()
     return folder
 
 
@@ -830,15 +918,41 @@ def _is_netcdf_name(path: Path) -> bool:
     return path.suffix.lower() == ".nc"
 
 
+def read_netcdf(path: str | os.PathLike) -> Cohort:
+    """Load a cohort's NetCDF file and check it by the rules of an interchange folder.
+
+    A file that is not a quadshank cohort (another format, truncated, empty) raises an
+    :class:`InterchangeError` naming it; so does a cohort that breaks a rule (radians,
+    stimulation outside [0, 1], a leg other than left/right, gaps in the trial numbers,
+    time not increasing or not uniform, ...), each problem naming the trial, the signal
+    and the sample.
+    """
+    path = Path(path)
+    try:
+        cohort = Cohort.load_netcdf(path)
+    except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError) as exc:
+        reason = str(exc).removeprefix(f"{path}: ") or type(exc).__name__
+        raise InterchangeError(
+            [Problem(path.name, None, None, f"not a readable quadshank cohort file ({reason})")],
+            f"{path}: invalid cohort file") from None
+    names = [f"{path.name} [{t.key} trial {t.trial}]" for t in cohort.trials]
+    problems = _check_cohort(cohort, names, listing=f"{path.name} [trial list]", first_row=1, row_label="sample",
+                             listing_row_label="entry")
+    if problems:
+        raise InterchangeError(problems, f"{path}: invalid cohort file")
+    _warn_implausible(cohort, [str(path)] * len(cohort))
+    return cohort
+
+
 def load_cohort(path: str | os.PathLike) -> Cohort:
-    """A cohort from an interchange folder or a NetCDF file (``.nc``)."""
+    """A cohort from an interchange folder or a NetCDF file (``.nc``), validated by the same rules."""
     path = Path(path)
     if path.is_dir():
         return read_interchange(path)
     if path.is_file() and path.name == MANIFEST_NAME:
         return read_interchange(path.parent)
     if path.is_file() and _is_netcdf_name(path):
-        return Cohort.load_netcdf(path)
+        return read_netcdf(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or folder")
     raise ValueError(
@@ -846,22 +960,32 @@ def load_cohort(path: str | os.PathLike) -> Cohort:
     )
 
 
-def convert(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
+def convert(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: bool = False) -> Path:
     """Convert between the two forms, losslessly; returns ``dst``.
 
     An interchange folder becomes a NetCDF file (``dst`` must end in ``.nc``);
     a NetCDF file becomes an interchange folder (``dst`` must not end in
-    ``.nc``).  The NetCDF file records the folder as the cohort's source.
+    ``.nc``).  The NetCDF file records the folder as the cohort's source.  An
+    existing ``dst`` (a file, or a folder that is not empty) is refused unless
+    ``overwrite`` (see :func:`write_interchange` for what that replaces).
     """
     src, dst = Path(src), Path(dst)
+    if src.exists() and dst.exists() and src.resolve() == dst.resolve():
+        raise ValueError(f"{dst}: the destination is the source")
     if src.is_dir():
         if not _is_netcdf_name(dst):
             raise ValueError(f"{dst}: an interchange folder converts to a NetCDF file; the name must end in .nc")
+        if dst.is_dir():
+            raise IsADirectoryError(f"{dst}: is a folder; give the name of the NetCDF file to write")
+        if dst.is_relative_to(src) or dst.resolve().is_relative_to(src.resolve()):
+            raise ValueError(f"{dst}: inside the data folder {src}; write the NetCDF file elsewhere")
+        if dst.exists() and not overwrite:
+            raise FileExistsError(f"{dst}: exists; give a new name (or --overwrite to replace it)")
         return read_interchange(src).save_netcdf(dst)
     if src.is_file() and _is_netcdf_name(src):
         if _is_netcdf_name(dst):
             raise ValueError(f"{dst}: a NetCDF file converts to an interchange folder; give a folder name, not .nc")
-        return write_interchange(Cohort.load_netcdf(src), dst)
+        return write_interchange(read_netcdf(src), dst, overwrite=overwrite)
     if not src.exists():
         raise FileNotFoundError(f"{src}: no such file or folder")
     raise ValueError(

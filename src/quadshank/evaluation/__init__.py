@@ -9,6 +9,8 @@ from ._parameters import leg_parameters, population_spreads
 from ._posterior import (
     LoadedFit,
     PosteriorEvaluation,
+    check_fit_data,
+    check_fit_legs,
     figure_window,
     load_fits,
     loo_report,
@@ -53,7 +55,7 @@ __all__ = [
     "prediction_errors", "prediction_starts", "predictions", "evaluate_cohort", "sign_tests", "table_v", "horizon_samples",
     "figure_trial", "Evaluation",
     "LoadedFit", "PosteriorEvaluation", "load_fits", "posterior_predictions", "posterior_prediction_errors", "posterior_j", "summarise_j",
-    "psis_loo", "loo_report", "figure_window", "window_predictions",
+    "psis_loo", "loo_report", "figure_window", "window_predictions", "check_fit_data", "check_fit_legs",
     "leg_parameters", "population_spreads",
     "features", "binned_trend", "acf", "ccf", "twitch_triggered_average", "spectrum", "findings",
     "point_residuals", "fit_residuals", "leg_residuals", "loo_pit", "elpd_in_time",

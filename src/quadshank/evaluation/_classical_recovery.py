@@ -22,10 +22,13 @@ DELAY_TOLERANCE = 1.0
 
 
 def recovery(ident: dict[str, LegIdentification], truth: dict) -> dict:
-    """Identified vs true parameters per leg, with the tolerance check of :data:`TOLERANCES`."""
+    """Identified vs true parameters per leg, with the tolerance check of :data:`TOLERANCES`
+    (legs the truth does not describe are left out)."""
     out = {}
     for leg, r in ident.items():
-        t = truth["legs"][leg]
+        t = (truth.get("legs") or {}).get(leg)
+        if not isinstance(t, dict) or not {"passive", "active"} <= set(t):
+            continue
         m3 = r.models["model3"].flat_params()
         pairs = {
             "damping": (r.passive["damping"], t["passive"]["damping"]),

@@ -58,6 +58,8 @@ from ..common._results import Result
 from ..data._cohort import Cohort, Trial
 from ..data._paper import HORIZONS_MS
 from ..inference._fitio import (
+    FitResult,
+    check_fit_files,
     load_fit,
     posterior_models,
     read_summary,
@@ -71,6 +73,8 @@ __all__ = [
     "LoadedFit",
     "PosteriorEvaluation",
     "load_fits",
+    "check_fit_legs",
+    "check_fit_data",
     "posterior_predictions",
     "posterior_prediction_errors",
     "posterior_j",
@@ -131,7 +135,9 @@ def load_fits(folders) -> list[LoadedFit]:
     fits = []
     for folder in folders:
         idata, model, desc = load_fit(folder)
-        fits.append(LoadedFit(desc["model"], Path(folder), idata, model, desc, read_summary(folder)))
+        summary = read_summary(folder)
+        check_fit_files(folder, idata, summary)
+        fits.append(LoadedFit(desc["model"], Path(folder), idata, model, desc, summary))
     seen: dict[str, Path] = {}
     for f in fits:
         if f.label in seen:
@@ -143,13 +149,32 @@ def load_fits(folders) -> list[LoadedFit]:
 
 
 def check_fit_legs(fits: list[LoadedFit], cohort: Cohort) -> None:
+    """Refuse data that are not what each fit was fitted to: a leg missing, or (where the fit
+    records it) another fingerprint of the fitted legs and trials."""
     for f in fits:
-        missing = [leg for leg in f.desc["legs"] if leg not in cohort.legs]
-        if missing:
-            raise KeyError(
-                f"fit {f.folder} ({f.label}) has leg(s) {', '.join(missing)} that the data lacks "
-                f"(the data has {', '.join(cohort.legs)})"
-            )
+        check_fit_data(f.folder, f.summary, f.desc, cohort)
+
+
+def check_fit_data(folder, summary: FitResult, desc: dict, cohort: Cohort) -> None:
+    """Refuse ``cohort`` unless it holds the legs and trials the fit in ``folder`` was fitted to,
+    bit for bit (by the fingerprint the fit records)."""
+    source = cohort.attrs.get("source", "the data")
+    missing = [leg for leg in desc["legs"] if leg not in cohort.legs]
+    if missing:
+        raise KeyError(
+            f"{source}: lacks leg(s) {', '.join(missing)} of the fit in {folder} ({desc['model']}; "
+            f"the data has {', '.join(cohort.legs)})"
+        )
+    if summary.data_fingerprint is None:
+        return
+    have = {(t.key, t.trial) for t in cohort.trials}
+    lacking = [f"{leg} trial {t}" for leg in desc["legs"] for t in desc["trials"] if (leg, int(t)) not in have]
+    if lacking or cohort.fingerprint(desc["legs"], desc["trials"]) != summary.data_fingerprint:
+        why = f"it lacks {', '.join(lacking)}" if lacking else "its recordings of the fitted legs and trials differ"
+        raise ValueError(
+            f"{source}: not the data the fit in {folder} was fitted to ({why}); give the fit's data"
+            + (f" ({summary.data})" if summary.data else "")
+        )
 
 
 # ============================================================================ J per draw

@@ -11,6 +11,7 @@ from ._fitio import (
     THRESHOLDS,
     FitFolderError,
     FitResult,
+    check_fit_files,
     diagnose_sampling,
     fit_summary,
     load_fit,
@@ -49,6 +50,6 @@ __all__ = [
     "FitSettings", "fit", "run_nuts", "FitRun", "FitResult", "fit_screen", "build_model", "model_params", "delay_prior_from", "numpyro_model",
     "LaplaceFit", "laplace_fit", "leg_draw_models", "delay_evidence", "delay_modes", "DelayModes", "delta_elpd",
     "to_inference_data", "save_fit", "load_fit", "read_summary", "fit_summary", "diagnose_sampling", "sampled_vars",
-    "posterior_models", "leg_models", "FitFolderError", "THRESHOLDS",
+    "posterior_models", "leg_models", "FitFolderError", "THRESHOLDS", "check_fit_files",
     "INTERVAL", "interval", "pooled_draws",
 ]  # fmt: skip

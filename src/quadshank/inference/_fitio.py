@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import hashlib
 import os
 from pathlib import Path
 from typing import ClassVar
@@ -43,6 +44,7 @@ from ._priors import NOISE_PARAMS, model_params, step_param
 from ._summaries import INTERVAL, interval, pooled_draws
 
 __all__ = [
+    "check_fit_files",
     "to_inference_data",
     "diagnose_sampling",
     "delay_splits",
@@ -89,6 +91,8 @@ class FitResult(Result):
     sampling_seconds: float | None = None
     delay_evidence_seconds: float | None = None
     screen_restarted: dict | None = None
+    fit_id: str | None = None  # also in fit.nc: the two files of one fit carry the same
+    data_fingerprint: str | None = None  # of the legs and trials fitted (Cohort.fingerprint)
 
     @property
     def ok(self) -> bool:
@@ -425,15 +429,26 @@ def fit_summary(idata) -> dict:
     }
 
 
+def _fit_id(idata) -> str:
+    """A hash of the fit's model description and draws: the same fit, the same id."""
+    h = hashlib.sha256(str(idata.posterior.attrs.get("quadshank_model", "")).encode())
+    for name in sorted(idata.posterior.data_vars):
+        h.update(name.encode())
+        h.update(np.ascontiguousarray(idata.posterior[name].values).tobytes())
+    return h.hexdigest()[:16]
+
+
 def save_fit(idata, folder: str | os.PathLike, extra: dict | None = None) -> FitResult:
     """Write fit.nc then summary.json (with ``extra`` entries and ``code``, the package's version
     and source fingerprint, :func:`quadshank.common._provenance.code_provenance`) atomically; returns the
     :class:`FitResult`."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    result = FitResult(**fit_summary(idata), code=code_provenance(), **(extra or {}))
-    with atomic_path(folder / "fit.nc") as tmp:
+    fit_id = _fit_id(idata)
+    idata.posterior.attrs["quadshank_fit_id"] = fit_id
+    with atomic_path(folder / "fit.nc") as tmp:  # the draws first: nothing after this loses them
         idata.to_netcdf(tmp)
+    result = FitResult(**fit_summary(idata), code=code_provenance(), fit_id=fit_id, **(extra or {}))
     result.write(folder)
     return result
 
@@ -462,6 +477,15 @@ def load_fit(folder: str | os.PathLike):
     idata = az.from_netcdf(_complete_fit(folder) / "fit.nc")
     desc = from_json(idata.posterior.attrs["quadshank_model"])
     return idata, model_from_description(desc), desc
+
+
+def check_fit_files(folder: str | os.PathLike, idata, summary: FitResult) -> None:
+    """Refuse a fit folder whose ``fit.nc`` and ``summary.json`` come from different fits."""
+    nc_id = idata.posterior.attrs.get("quadshank_fit_id")
+    if (nc_id or summary.fit_id) and nc_id != summary.fit_id:
+        raise FitFolderError(
+            f"{folder}: fit.nc and summary.json come from different fits (fit ids {nc_id or 'none'} and "
+            f"{summary.fit_id or 'none'}); run `quadshank fit` again into this folder")
 
 
 def posterior_models(idata, model: Model, leg: str, n_draws: int | None = None, seed: int = 0):

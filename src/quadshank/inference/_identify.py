@@ -133,9 +133,11 @@ def identify_passive(trials: list[Trial] | tuple[Trial, ...]) -> tuple[dict, flo
         acc.append(t.acceleration_deg_s2[m])
     angle, velocity, accel = (np.concatenate(x) for x in (ang, vel, acc))
     if angle.size < 200:
+        where = ", ".join(f"{t.key} trial {t.trial}" + (f" ({t.source})" if t.source else "") for t in trials)
         raise IdentificationError(
-            f"only {angle.size} quiet samples (no pulse in the preceding {QUIET_AFTER_PULSE}); "
-            "the passive system needs stretches without stimulation"
+            f"{where}: only {angle.size} quiet samples (no pulse in the preceding {QUIET_AFTER_PULSE}, knee at "
+            f"most {PASSIVE_MAX_ANGLE_DEG:g}° extended); the passive system needs at least 200, stretches without "
+            "stimulation"
         )
 
     best = None

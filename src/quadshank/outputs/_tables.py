@@ -45,11 +45,17 @@ def _fmt(v) -> str:
     return f"{v:.3g}"
 
 
+def _columns(rows: list[dict]) -> list[str]:
+    """Every key of the rows, in the order of first appearance (rows may differ: a leg with the
+    paper's values has columns that another leg lacks)."""
+    return list(dict.fromkeys(k for r in rows for k in r))
+
+
 def markdown_table(rows: list[dict], title: str = "") -> str:
-    """Rows (dicts with the same keys) as a Markdown table under a ``###`` title; numbers to 3 significant figures."""
+    """Rows (dicts; a key a row lacks is an empty cell) as a Markdown table under a ``###`` title; numbers to 3 significant figures."""
     if not rows:
         return f"### {title}\n\n(no rows)\n" if title else "(no rows)\n"
-    cols = list(rows[0])
+    cols = _columns(rows)
     lines = [f"### {title}", ""] if title else []
     lines.append("| " + " | ".join(cols) + " |")
     lines.append("|" + "|".join("---" for _ in cols) + "|")
@@ -63,7 +69,7 @@ def write_table(rows: list[dict], folder: str | Path, stem: str, title: str) -> 
     folder = Path(folder)
     buf = io.StringIO()
     if rows:
-        w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+        w = csv.DictWriter(buf, fieldnames=_columns(rows), lineterminator="\n")
         w.writeheader()
         w.writerows(rows)
     atomic_write_text(folder / f"{stem}.csv", buf.getvalue())

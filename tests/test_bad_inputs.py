@@ -1,0 +1,462 @@
+"""Bad inputs against the command line: every case ends in exit 2 with one ``quadshank: error:``
+line naming file, column and row where they exist, no traceback, no summary.json from the run,
+and every input file as it was.
+
+The corpus covers CSV folders and NetCDF files (structure, numbers, time, units, listing, links,
+unreadable files) and output paths (a file, a path under a file, the data folder itself or a
+folder inside it, a folder that holds something else).
+"""
+
+from __future__ import annotations
+
+import gzip
+import hashlib
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from quadshank.cli import main
+from quadshank.data import Cohort, Trial, write_interchange
+
+N = 400
+DT = 0.01
+T1 = "TN-left-trial1.csv"
+T2 = "TN-left-trial2.csv"
+J1 = "JM-right-trial1.csv"
+MAN = "manifest.csv"
+
+
+def _trial(subject: str, leg: str, trial: int, phase: float) -> Trial:
+    t = np.arange(N) * DT
+    w = 2 * np.pi * 0.7
+    stim = np.zeros(N)
+    stim[[30, 120, 210, 300]] = [1.0, 0.5, 0.8, 0.6]
+    return Trial.from_signals(subject, leg, trial, DT, 25 * np.sin(w * t + phase),
+                              -25 * w**2 * np.sin(w * t + phase), stim, time_s=t)
+
+
+def _cohort() -> Cohort:
+    return Cohort((_trial("TN", "left", 1, 0.0), _trial("TN", "left", 2, 0.5), _trial("JM", "right", 1, 1.0)))
+
+
+# ----------------------------------------------------------------------------- CSV cells and rows
+def _rows(path: Path) -> list[list[str]]:
+    return [line.split(",") for line in path.read_text().splitlines()]
+
+
+def _write_rows(path: Path, rows) -> None:
+    path.write_text("\n".join(",".join(r) for r in rows) + "\n")
+
+
+def _set_cell(path: Path, row: int, column: str, text: str) -> None:
+    rows = _rows(path)
+    rows[row - 1][rows[0].index(column)] = text
+    _write_rows(path, rows)
+
+
+def _map_column(path: Path, column: str, f) -> None:
+    rows = _rows(path)
+    j = rows[0].index(column)
+    for r in rows[1:]:
+        r[j] = repr(float(f(float(r[j]))))
+    _write_rows(path, rows)
+
+
+def cell(file, column, row, text):
+    def mutate(folder: Path):
+        _set_cell(folder / file, row, column, text)
+        return [file, f"'{column}'", f"row {row}"]
+    return mutate
+
+
+def column_map(file, column, f, expect):
+    def mutate(folder: Path):
+        _map_column(folder / file, column, f)
+        return [file, f"'{column}'", *expect]
+    return mutate
+
+
+def radians_passive(folder: Path):
+    _map_column(folder / J1, "angle_deg", np.deg2rad)
+    _map_column(folder / J1, "acceleration_deg_s2", np.deg2rad)
+    _map_column(folder / J1, "stimulation", lambda v: 0.0)
+    return [J1, "'angle_deg'", "radians"]
+
+
+def radians_glitch(folder: Path):
+    _map_column(folder / J1, "angle_deg", np.deg2rad)
+    _set_cell(folder / J1, 9, "angle_deg", "57.0")
+    return [J1, "'angle_deg'", "radians"]
+
+
+def truncated_row(folder: Path):
+    rows = _rows(folder / T1)
+    rows[40] = rows[40][:2]
+    _write_rows(folder / T1, rows)
+    return [T1, "row 41", "fields"]
+
+
+def decimal_comma(folder: Path):
+    text = (folder / T1).read_text().splitlines()
+    text[10] = text[10].replace(".", ",", 1)
+    (folder / T1).write_text("\n".join(text) + "\n")
+    return [T1, "row 11"]
+
+
+def semicolons(folder: Path):
+    (folder / T1).write_text((folder / T1).read_text().replace(",", ";"))
+    return [T1, "column"]
+
+
+def drop_column(file, column):
+    def mutate(folder: Path):
+        rows = _rows(folder / file)
+        j = rows[0].index(column)
+        _write_rows(folder / file, [r[:j] + r[j + 1:] for r in rows])
+        return [file, f"'{column}'", "missing column"]
+    return mutate
+
+
+def extra_column(folder: Path):
+    rows = _rows(folder / T1)
+    _write_rows(folder / T1, [r + (["torque"] if i == 0 else ["1.0"]) for i, r in enumerate(rows)])
+    return [T1, "'torque'", "row 1"]
+
+
+def time_step(row: int, value: str, expect: str):
+    def mutate(folder: Path):
+        _set_cell(folder / T2, row, "time_s", value)
+        return [T2, "'time_s'", f"row {row}", expect]
+    return mutate
+
+
+def time_gap(folder: Path):
+    rows = _rows(folder / T2)
+    j = rows[0].index("time_s")
+    for r in rows[60:]:  # from row 61 on, 50 ms later: a gap in the recording
+        r[j] = repr(float(r[j]) + 0.05)
+    _write_rows(folder / T2, rows)
+    return [T2, "'time_s'", "row 61", "non-uniform"]
+
+
+def replace_file(file, data: bytes):
+    def mutate(folder: Path):
+        (folder / file).write_bytes(data)
+        return [file]
+    return mutate
+
+
+def gzipped(folder: Path):
+    (folder / T1).write_bytes(gzip.compress((folder / T1).read_bytes()))
+    return [T1]
+
+
+def header_only(folder: Path):
+    (folder / T1).write_text((folder / T1).read_text().splitlines()[0] + "\n")
+    return [T1, "no data rows"]
+
+
+def manifest_cell(row, column, text, expect=""):
+    def mutate(folder: Path):
+        _set_cell(folder / MAN, row, column, text)
+        return [MAN, f"'{column}'", f"row {row}", expect]
+    return mutate
+
+
+def period_disagrees(folder: Path):
+    _set_cell(folder / MAN, 2, "sampling_period_s", "0.02")
+    return [T1, "'time_s'", "row 2", "disagrees", "manifest.csv row 2"]
+
+
+def manifest_duplicate(folder: Path):
+    rows = _rows(folder / MAN)
+    rows[2][2] = "1"  # TN-left trial 2 listed as trial 1 again
+    _write_rows(folder / MAN, rows)
+    return [MAN, "row 3", "listed twice"]
+
+
+def link_outside(folder: Path):
+    outside = folder.parent / "elsewhere.csv"
+    outside.write_text("secret first line\n1,2,3\n")
+    (folder / T1).unlink()
+    os.symlink(outside, folder / T1)
+    return [MAN, "'file'", "outside the folder"]
+
+
+def unlisted(folder: Path):
+    shutil.copy(folder / T1, folder / "extra.csv")
+    return ["extra.csv", "not listed"]
+
+
+def no_manifest(folder: Path):
+    (folder / MAN).unlink()
+    return [MAN, "missing"]
+
+
+def empty_manifest(folder: Path):
+    (folder / MAN).write_text("")
+    return [MAN, "empty"]
+
+
+CSV_CASES = {
+    "text in a cell": cell(T1, "angle_deg", 17, "abc"),
+    "digit separators": cell(T1, "acceleration_deg_s2", 5, "1_000"),
+    "non-ASCII digits": cell(T1, "angle_deg", 6, "١٢"),
+    "full-width digits": cell(J1, "angle_deg", 8, "１２"),
+    "nan": cell(T1, "stimulation", 20, "nan"),
+    "infinity": cell(T2, "angle_deg", 30, "inf"),
+    "empty cell": cell(T1, "angle_deg", 12, ""),
+    "hex number": cell(T1, "acceleration_deg_s2", 14, "0x1A"),
+    "stimulation above 1": cell(T1, "stimulation", 32, "1.5"),
+    "stimulation negative": cell(J1, "stimulation", 50, "-0.2"),
+    "stimulation in percent": column_map(T2, "stimulation", lambda v: 100 * v, ["outside [0, 1]"]),
+    "radians": column_map(J1, "angle_deg", np.deg2rad, ["radians"]),
+    "radians with a glitch": radians_glitch,
+    "radians without pulses": radians_passive,
+    "truncated row": truncated_row,
+    "decimal comma": decimal_comma,
+    "semicolons": semicolons,
+    "missing column": drop_column(T1, "acceleration_deg_s2"),
+    "unknown column": extra_column,
+    "time repeated": time_step(21, "0.18", "not strictly increasing"),
+    "time decreasing": time_step(40, "0.01", "not strictly increasing"),
+    "time gap": time_gap,
+    "binary file": replace_file(T1, bytes(range(256)) * 8),
+    "gzip file": gzipped,
+    "header only": header_only,
+    "leg capitalised": manifest_cell(2, "leg", "Left", "'left' or 'right'"),
+    "trial gap": manifest_cell(3, "trial", "3", "missing"),
+    "trial number with separator": manifest_cell(2, "trial", "1_0"),
+    "trial number not ASCII": manifest_cell(2, "trial", "١"),
+    "file missing": manifest_cell(2, "file", "nothere.csv", "does not exist"),
+    "path traversal": manifest_cell(2, "file", "../x.csv", "inside it"),
+    "period disagrees": period_disagrees,
+    "period not a number": manifest_cell(2, "sampling_period_s", "ten ms"),
+    "trial listed twice": manifest_duplicate,
+    "link outside the folder": link_outside,
+    "unlisted CSV": unlisted,
+    "no manifest": no_manifest,
+    "empty manifest": empty_manifest,
+}
+
+
+# ----------------------------------------------------------------------------- NetCDF files
+def nc_bytes(data: bytes):
+    def mutate(nc: Path):
+        nc.write_bytes(data)
+        return [nc.name, "not a readable"]
+    return mutate
+
+
+def nc_truncated(nc: Path):
+    nc.write_bytes(nc.read_bytes()[: nc.stat().st_size // 2])
+    return [nc.name]
+
+
+def nc_edit(edit, expect):
+    def mutate(nc: Path):
+        with xr.open_dataset(nc, engine="h5netcdf") as ds:
+            ds = ds.load()
+        ds = edit(ds)
+        nc.unlink()
+        ds.to_netcdf(nc, engine="h5netcdf")
+        return [nc.name, *expect]
+    return mutate
+
+
+def _scaled(name, factor):
+    def edit(ds):
+        ds[name] = ds[name] * factor
+        return ds
+    return edit
+
+
+def _coord(name, index, value):
+    def edit(ds):
+        values = ds[name].values.copy()
+        values[index] = value
+        return ds.assign_coords({name: ("trial", values)})
+    return edit
+
+
+def _sample(name, trial, sample, value):
+    def edit(ds):
+        values = ds[name].values.copy()
+        values[trial, sample] = value
+        ds[name] = (("trial", "sample"), values)
+        return ds
+    return edit
+
+
+def _attrs(ds):
+    ds.attrs["format"] = "something-else"
+    return ds
+
+
+NC_CASES = {
+    "random bytes": nc_bytes(os.urandom(4096)),
+    "empty file": nc_bytes(b""),
+    "CSV text": nc_bytes(b"time_s,angle_deg\n0,1\n"),
+    "truncated": nc_truncated,
+    "radians": nc_edit(_scaled("angle_deg", np.pi / 180), ["[TN-left trial 1]", "'angle_deg'", "radians"]),
+    "stimulation in percent": nc_edit(_scaled("stimulation", 100.0), ["'stimulation'", "sample", "outside [0, 1]"]),
+    "leg capitalised": nc_edit(_coord("leg", 0, "Left"), ["'leg'", "entry 1"]),
+    "trial gap": nc_edit(_coord("trial_number", 1, 3), ["'trial'", "missing"]),
+    "time repeated": nc_edit(_sample("time_s", 1, 10, 0.09), ["[TN-left trial 2]", "'time_s'", "sample 11"]),
+    "nan angle": nc_edit(_sample("angle_deg", 2, 5, np.nan), ["[JM-right trial 1]", "'angle_deg'", "sample 6"]),
+    "another format": nc_edit(_attrs, ["not a quadshank cohort"]),
+    "period disagrees": nc_edit(_coord("sampling_period_s", 0, 0.02), ["[TN-left trial 1]", "'time_s'", "disagrees"]),
+    "variable missing": nc_edit(lambda ds: ds.drop_vars("acceleration_deg_s2"), ["not a readable"]),
+}
+
+
+# ----------------------------------------------------------------------------- running
+def _hashes(root: Path) -> dict[str, str]:
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file() and not p.is_symlink()}
+
+
+def _run(argv, capsys) -> tuple[int, list[str]]:
+    rc = main(["--quiet", *argv])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return rc, err.splitlines()
+
+
+def _assert_refused(rc, lines, expect, out: Path | None) -> None:
+    assert rc == 2, lines
+    errors = [line for line in lines if line.startswith("quadshank: error:")]
+    assert len(errors) == 1 and lines[0] == errors[0], lines  # the error first, in one line
+    for text in filter(None, expect):
+        assert text in errors[0], f"{text!r} not in {errors[0]!r}"
+    if out is not None:
+        assert not (out / "summary.json").exists()
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("base")
+    write_interchange(_cohort(), root / "data")
+    _cohort().save_netcdf(root / "cohort.nc")
+    return root
+
+
+COMMANDS = {
+    "identify": lambda data, out: ["identify", str(data), "--out", str(out)],
+    "fit": lambda data, out: ["fit", str(data), "--out", str(out), "--chains", "1", "--warmup", "5", "--draws", "5"],
+    "evaluate": lambda data, out: ["evaluate", str(data), "--out", str(out)],
+}
+
+
+@pytest.mark.parametrize("command", [*COMMANDS, "convert"])
+@pytest.mark.parametrize("case", CSV_CASES)
+def test_a_bad_folder_is_refused(base, tmp_path, capsys, case, command):
+    data = tmp_path / "data"
+    shutil.copytree(base / "data", data)
+    expect = CSV_CASES[case](data)
+    before = _hashes(tmp_path)
+    out = tmp_path / "out"
+    argv = ["convert", str(data), str(tmp_path / "c.nc")] if command == "convert" else COMMANDS[command](data, out)
+    rc, lines = _run(argv, capsys)
+    _assert_refused(rc, lines, expect, out)
+    assert not (tmp_path / "c.nc").exists()
+    assert _hashes(tmp_path / "data") == {k.removeprefix("data/"): v for k, v in before.items() if k.startswith("data/")}
+
+
+@pytest.mark.parametrize("command", [*COMMANDS, "convert"])
+@pytest.mark.parametrize("case", NC_CASES)
+def test_a_bad_netcdf_file_is_refused(base, tmp_path, capsys, case, command):
+    nc = tmp_path / "cohort.nc"
+    shutil.copy(base / "cohort.nc", nc)
+    expect = NC_CASES[case](nc)
+    before = _hashes(tmp_path)
+    out = tmp_path / "out"
+    argv = ["convert", str(nc), str(out)] if command == "convert" else COMMANDS[command](nc, out)
+    rc, lines = _run(argv, capsys)
+    _assert_refused(rc, lines, expect, out)
+    assert not (out / MAN).exists()
+    assert {k: v for k, v in _hashes(tmp_path).items() if not k.startswith("out")} == before
+
+
+# ----------------------------------------------------------------------------- output paths
+def _bad_out(kind: str, tmp: Path, data: Path) -> tuple[Path, str]:
+    if kind == "a file":
+        (tmp / "f").write_text("mine")
+        return tmp / "f", "not a folder"
+    if kind == "under a file":
+        (tmp / "f").write_text("mine")
+        return tmp / "f" / "out", "not a folder"
+    if kind == "the data folder":
+        return data, "input"
+    if kind == "inside the data folder":
+        return data / "results", "inside the data folder"
+    (tmp / "mine").mkdir()
+    (tmp / "mine" / "notes.md").write_text("mine")
+    return tmp / "mine", "not empty"
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+@pytest.mark.parametrize("kind", ["a file", "under a file", "the data folder", "inside the data folder", "another folder"])
+def test_a_bad_output_path_is_refused_before_any_work(base, tmp_path, capsys, command, kind):
+    data = tmp_path / "data"
+    shutil.copytree(base / "data", data)
+    out, expect = _bad_out(kind, tmp_path, data)
+    before = _hashes(tmp_path)
+    rc, lines = _run(COMMANDS[command](data, out), capsys)
+    _assert_refused(rc, lines, [str(out), expect], None)
+    assert _hashes(tmp_path) == before  # nothing written, nothing deleted
+
+
+def test_converting_into_a_data_folder_deletes_nothing(base, tmp_path, capsys):
+    """Converting a NetCDF file into a folder that holds recordings is refused and loses nothing."""
+    data = tmp_path / "data"
+    shutil.copytree(base / "data", data)
+    (data / "notes.txt").write_text("mine")
+    nc = tmp_path / "other.nc"
+    Cohort((_trial("AB", "left", 1, 0.2),)).save_netcdf(nc)
+    before = _hashes(tmp_path)
+    rc, lines = _run(["convert", str(nc), str(data)], capsys)
+    _assert_refused(rc, lines, [str(data), "not empty"], None)
+    assert _hashes(tmp_path) == before
+    # even when told to overwrite, the files of the earlier recordings stay (the folder would not read)
+    rc, lines = _run(["convert", str(nc), str(data), "--overwrite"], capsys)
+    _assert_refused(rc, lines, [str(data), T1], None)
+    assert _hashes(tmp_path) == before
+
+
+def test_converting_onto_an_existing_netcdf_file_needs_overwrite(base, tmp_path, capsys):
+    nc = tmp_path / "c.nc"
+    nc.write_bytes(b"mine")
+    rc, lines = _run(["convert", str(base / "data"), str(nc)], capsys)
+    _assert_refused(rc, lines, [str(nc), "exists"], None)
+    assert nc.read_bytes() == b"mine"
+    assert main(["--quiet", "convert", str(base / "data"), str(nc), "--overwrite"]) == 0
+    assert nc.read_bytes() != b"mine"
+
+
+def test_a_failed_rerun_leaves_no_summary(base, tmp_path, capsys):
+    """An earlier run's summary.json goes when a rerun starts: a rerun that fails leaves a folder
+    that says it is incomplete."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "summary.json").write_text('{"schema": "quadshank/identification", "schema_version": 1}')
+    (out / "report.md").write_text("the earlier run's report")
+    data = tmp_path / "data"
+    shutil.copytree(base / "data", data)
+    _set_cell(data / T1, 17, "angle_deg", "abc")
+    rc, lines = _run(COMMANDS["identify"](data, out), capsys)
+    _assert_refused(rc, lines, [T1], out)
+    assert not (out / "summary.json").exists()
+
+
+def test_continuous_stimulation_names_the_leg_and_trial(base, tmp_path, capsys):
+    data = tmp_path / "data"
+    shutil.copytree(base / "data", data)
+    for f in (T1, T2, J1):
+        _map_column(data / f, "stimulation", lambda v: 0.4)  # a pulse at every sample
+    rc, lines = _run(COMMANDS["identify"](data, tmp_path / "out"), capsys)
+    _assert_refused(rc, lines, ["TN-left trial 1", "quiet samples"], tmp_path / "out")

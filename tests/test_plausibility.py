@@ -1,0 +1,79 @@
+"""Plausibility of recordings that pass the format's rules: units and signs, and the fingerprint
+that ties a fit to its data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from quadshank.data import Cohort, Trial, parse_number, plausibility
+from quadshank.evaluation import check_fit_data
+from quadshank.inference import FitResult
+
+DT = 0.01
+
+
+def _trial(n: int = 1000, trial: int = 1) -> Trial:
+    rng = np.random.default_rng(3)
+    t = np.arange(n) * DT
+    w = 2 * np.pi * 0.6
+    angle = 30 * np.exp(-0.2 * t) * np.sin(w * t)
+    acc = np.gradient(np.gradient(angle, DT), DT) + rng.normal(0, 20, n)  # an accelerometer's noise
+    return Trial.from_signals("TN", "left", trial, DT, angle + rng.normal(0, 0.05, n), acc, np.zeros(n),
+                              velocity_deg_s=np.gradient(angle, DT), time_s=t)
+
+
+def test_consistent_signals_are_plausible():
+    assert plausibility(_trial()) == []
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        (lambda t: t.replace(acceleration_deg_s2=np.deg2rad(t.acceleration_deg_s2)), ["acceleration_deg_s2", "pi/180"]),
+        (lambda t: t.replace(acceleration_deg_s2=-t.acceleration_deg_s2), ["acceleration_deg_s2", "flipped"]),
+        (lambda t: t.replace(acceleration_deg_s2=0.01 * t.acceleration_deg_s2), ["acceleration_deg_s2", "units"]),
+        (lambda t: t.replace(angle_deg=np.deg2rad(t.angle_deg)), ["acceleration_deg_s2", "180/pi"]),
+        (lambda t: t.replace(velocity_deg_s=np.deg2rad(t.velocity_deg_s)), ["velocity_deg_s", "pi/180"]),
+        (lambda t: t.replace(acceleration_deg_s2=np.random.default_rng(0).normal(0, 500, t.n_samples)),
+         ["acceleration_deg_s2", "hardly follows"]),
+    ],
+)
+def test_a_unit_or_sign_that_seems_off_is_named(change, words):
+    found = plausibility(change(_trial()))
+    assert found and any(all(w in f for w in words) for f in found), found
+
+
+@pytest.mark.parametrize("text", ["1", "-2.5", "+3.", ".5", "1e-3", "2.5E+04", " 7 "])
+def test_numbers_as_the_format_writes_them(text):
+    assert parse_number(text) == float(text)
+
+
+@pytest.mark.parametrize("text", ["1_000", "١٢", "１２", "0x1A", "nan", "inf", "", "1,5", "1.2.3", "e5"])
+def test_anything_else_is_not_a_number(text):
+    assert parse_number(text) is None
+
+
+def _fit_of(cohort: Cohort, **kw) -> tuple[FitResult, dict]:
+    desc = {"model": "model1", "legs": ["TN-left"], "trials": [1]}
+    summary = FitResult(model="model1", effects=[], trials=[1], legs={}, diagnostics={}, banner=None, settings={},
+                        chain_method="vectorized", sampling_period_s=DT, interval=[0.05, 0.95], code={},
+                        data_fingerprint=cohort.fingerprint(["TN-left"], [1]), data="where/the/data/are", **kw)
+    return summary, desc
+
+
+def test_a_fit_refuses_data_it_was_not_fitted_to():
+    cohort = Cohort((_trial(), _trial(trial=2)))
+    summary, desc = _fit_of(cohort)
+    check_fit_data("fitdir", summary, desc, cohort)  # the same data
+    check_fit_data("fitdir", summary, desc, cohort.select(trials=[1]))  # trial 2 was not fitted
+    t = cohort.trials[0]
+    changed = t.angle_deg.copy()
+    changed[500] += 1e-9
+    with pytest.raises(ValueError, match="not the data the fit in fitdir was fitted to.*where/the/data/are"):
+        check_fit_data("fitdir", summary, desc, Cohort((t.replace(angle_deg=changed), cohort.trials[1])))
+    with pytest.raises(ValueError, match="lacks TN-left trial 1"):
+        check_fit_data("fitdir", summary, desc, cohort.select(trials=[2]))
+    other = Cohort(tuple(x.replace(subject="JM") for x in cohort.trials))
+    with pytest.raises(KeyError, match="TN-left"):
+        check_fit_data("fitdir", summary, desc, other)
