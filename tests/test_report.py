@@ -309,3 +309,32 @@ def test_the_diagnostics_table_shows_the_delay_checks_and_omits_them_for_older_f
     assert "no chain visited" in passing and "FAIL" not in passing
     older = report._diagnostics_section(base)
     assert "settled at different delays" not in older and "no chain visited" not in older
+
+
+def test_a_report_refuses_mixed_fit_files_other_data_and_another_fits_evaluation(made, passing, capsys):
+    root = made["root"]
+    mixed = root / "mixed"
+    shutil.copytree(made["fit"], mixed)
+    s = json.loads((mixed / "summary.json").read_text())
+    s["fit_id"] = "0" * 16  # a summary.json from another fit beside this fit.nc
+    (mixed / "summary.json").write_text(json.dumps(s))
+    capsys.readouterr()
+    assert main(["-q", "report", str(mixed), "--out", str(root / "r-mixed")]) == 2
+    assert "different fits" in capsys.readouterr().err
+    assert not (root / "r-mixed" / "summary.json").exists()
+
+    other = root / "other-data"  # the same legs, other recordings
+    assert main(["-q", "simulate", "--out", str(other), "--minutes", "0.5", "--legs", ",".join(LEGS),
+                 "--trials", "1", "--seed", "1"]) == 0
+    capsys.readouterr()
+    assert main(["-q", "report", str(made["fit"]), "--data", str(other), "--out", str(root / "r-other")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("quadshank: error:") and "not the data the fit" in err.splitlines()[0]
+
+    evaluation = root / "eval-other"
+    shutil.copytree(passing["out"].parent / "eval", evaluation)
+    e = json.loads((evaluation / "summary.json").read_text())
+    e["fits"]["model3"]["fit_id"] = "f" * 16
+    (evaluation / "summary.json").write_text(json.dumps(e))
+    assert main(["-q", "report", str(made["fit"]), "--evaluation", str(evaluation), "--out", str(root / "r-eval")]) == 2
+    assert "another fit" in capsys.readouterr().err

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import shlex
 import sys
 import time
@@ -56,6 +57,16 @@ def _command_line(args) -> str:
 
 def _csv_list(text: str) -> list[str]:
     return [x.strip() for x in text.split(",") if x.strip()]
+
+
+def _int_list(text: str, option: str) -> list[int]:
+    """A comma-separated list of whole numbers, or an error naming the option."""
+    out = []
+    for x in _csv_list(text):
+        if not re.fullmatch(r"[+-]?[0-9]+", x):
+            raise ValueError(f"{option}: {x!r} is not a whole number (give numbers separated by commas)")
+        out.append(int(x))
+    return out
 
 
 def _say(args, *lines: str) -> None:
@@ -136,7 +147,7 @@ def prepare_output(out: Path, command: str, inputs, overwrite: bool = False) -> 
 def cmd_simulate(args) -> int:
     legs = _csv_list(args.legs) if args.legs else list(LEGS)
     effects = _csv_list(args.effects) if args.effects else []
-    trials = [int(t) for t in _csv_list(args.trials)]
+    trials = _int_list(args.trials, "--trials")
     cohort, truth = simulate_cohort(
         legs=legs, minutes=args.minutes, seed=args.seed, effects=effects, trials=trials, progress=not args.quiet,
         sampling_period_s=args.sampling_period_ms / 1000.0,
@@ -221,7 +232,7 @@ def cmd_fit(args) -> int:
         warmup=args.warmup,
         draws=args.draws,
         seed=args.seed,
-        trials=tuple(int(t) for t in _csv_list(args.trials)),
+        trials=tuple(_int_list(args.trials, "--trials")),
         start=args.start,
         adapt_metric=args.adapt_metric,
         delay_evidence=args.delay_evidence,
@@ -270,7 +281,7 @@ def cmd_recovery(args) -> int:
     result = run_recovery(
         args.out,
         models=_csv_list(args.models),
-        seeds=[int(s) for s in _csv_list(args.seeds)],
+        seeds=_int_list(args.seeds, "--seeds"),
         legs=_csv_list(args.legs) if args.legs else None,
         minutes=args.minutes,
         settings=settings,
@@ -295,7 +306,7 @@ def cmd_likelihood_check(args) -> int:
     result = run_likelihood_calibration(
         args.out,
         models=_csv_list(args.models),
-        seeds=[int(s) for s in _csv_list(args.seeds)],
+        seeds=_int_list(args.seeds, "--seeds"),
         legs=_csv_list(args.legs) if args.legs else None,
         minutes=args.minutes,
         replicates=args.replicates,
@@ -352,7 +363,7 @@ def cmd_diagnose(args) -> int:
 def cmd_discover(args) -> int:
     cohort, data = _loop_data(args)
     command = _command_line(args)
-    trials = tuple(int(t) for t in _csv_list(args.trials))
+    trials = tuple(_int_list(args.trials, "--trials"))
     confirm = None
     if args.confirm:
 

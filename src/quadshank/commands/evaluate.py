@@ -221,6 +221,7 @@ def run_posterior_evaluate(
                 "trials_fitted": list(f.desc["trials"]),
                 "draws_used": min(n_draws, f.idata.posterior.sizes["chain"] * f.idata.posterior.sizes["draw"]),
                 "banner": f.summary.banner,
+                "fit_id": f.summary.fit_id,
             }
             for f in fits
         },

@@ -50,7 +50,7 @@ class Report(Result):
     diagnosis: str | None = None  # the diagnose/discover folder shown, if any
 
 
-def _j_from_evaluation(folder, label: str, legs) -> tuple[dict, dict, str]:
+def _j_from_evaluation(folder, label: str, legs, fit_id: str | None = None) -> tuple[dict, dict, str]:
     path = Path(folder) / "summary.json"
     doc = read_json(path)
     if not isinstance(doc, dict) or doc.get("schema") != PosteriorEvaluation.schema():
@@ -62,6 +62,8 @@ def _j_from_evaluation(folder, label: str, legs) -> tuple[dict, dict, str]:
     if missing:
         raise ValueError(f"{folder}: the evaluation of {label} lacks leg(s) {', '.join(missing)}")
     fit = s.fits.get(label, {})
+    if fit_id and fit.get("fit_id") and fit["fit_id"] != fit_id:
+        raise ValueError(f"{folder}: evaluates another fit of {label} ({fit.get('folder', '?')}), not this one")
     how = (f"from the evaluation in {folder} ({fit.get('draws_used', s.n_draws)} posterior draws, one start in every "
            f"{s.start_stride} samples; fit {fit.get('folder', '?')})")
     return s.J.get(label, {}), s.J_legs[label], how
@@ -143,7 +145,7 @@ def run_report(
             raise ValueError(f"{fit_dir}: the fit does not record its data; give the data (--data)")
         cohort = load_cohort(Path(fs.data))
     check_fit_legs([fit], cohort)
-    evaluated = _j_from_evaluation(evaluation, label, legs) if evaluation else None
+    evaluated = _j_from_evaluation(evaluation, label, legs, fs.fit_id) if evaluation else None
     out.mkdir(parents=True, exist_ok=True)
     (out / "summary.json").unlink(missing_ok=True)
 

@@ -930,7 +930,7 @@ def read_netcdf(path: str | os.PathLike) -> Cohort:
     path = Path(path)
     try:
         cohort = Cohort.load_netcdf(path)
-    except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError) as exc:
+    except Exception as exc:  # noqa: BLE001 - whatever a foreign or damaged file raises, it is not a cohort file
         reason = str(exc).removeprefix(f"{path}: ") or type(exc).__name__
         raise InterchangeError(
             [Problem(path.name, None, None, f"not a readable quadshank cohort file ({reason})")],

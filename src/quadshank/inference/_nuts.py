@@ -93,6 +93,13 @@ class FitSettings:
             raise ValueError(f"start must be one of {', '.join(STARTS)}, not {self.start!r}")
         if self.chain_method not in CHAIN_METHODS:
             raise ValueError(f"chain_method must be one of {', '.join(CHAIN_METHODS)}, not {self.chain_method!r}")
+        for name, least in (("chains", 1), ("warmup", 0), ("draws", 1), ("max_tree_depth", 1)):
+            if int(getattr(self, name)) < least:
+                raise ValueError(f"{name} must be at least {least}, not {getattr(self, name)}")
+        if not 0 < self.target_accept < 1:
+            raise ValueError(f"target_accept must lie between 0 and 1, not {self.target_accept}")
+        if not self.trials:
+            raise ValueError("trials: give at least one trial to fit")
 
 
 def chain_method(settings: FitSettings, data: LikelihoodData) -> str:

@@ -291,6 +291,9 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
     trials = tuple(int(t) for t in trials)
     gap = MAX_DELAY + R + 1
     per_leg = []
+    unknown = [leg for leg in legs if leg not in cohort.legs]
+    if unknown:
+        raise KeyError(f"no leg {', '.join(unknown)} in the data (it has {', '.join(cohort.legs)})")
     for leg in legs:
         chosen = [t for t in cohort.trials_of(leg) if t.trial in trials]
         if not chosen:
