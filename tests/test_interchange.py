@@ -13,6 +13,7 @@ import pytest
 from quadshank.data import _interchange as ix
 from quadshank.data._cohort import Cohort, Trial, derive_velocity
 from quadshank.data._interchange import (
+    DataWarning,
     InterchangeError,
     Problem,
     convert,
@@ -497,7 +498,8 @@ def test_radians_with_a_glitch_are_found(folder):
 def test_a_resting_trial_without_pulses_is_not_taken_for_radians(folder):
     set_column(folder / JM1, "angle_deg", 0.2 * np.sin(np.arange(N) / 7.0))  # tiny sway, in degrees
     set_column(folder / JM1, "stimulation", np.zeros(N))
-    read_interchange(folder)
+    with pytest.warns(DataWarning, match=f"{JM1} \\(JM-right trial 1\\): acceleration_deg_s2 hardly follows"):
+        read_interchange(folder)  # read, with a warning: this acceleration is not the sway's
 
 
 # --------------------------------------------------------------------------- all problems at once
@@ -604,3 +606,42 @@ def test_spreadsheet_export_bom_and_crlf(folder):
 def test_write_refuses_an_empty_cohort(tmp_path):
     with pytest.raises(InterchangeError, match="no trials"):
         write_interchange(Cohort(()), tmp_path / "empty")
+
+
+# --------------------------------------------------------------------------- start_s / end_s
+def _add_manifest_columns(folder: Path, **columns: list[str]) -> None:
+    rows = read_rows(folder / MAN)
+    for name, values in columns.items():
+        rows[0].append(name)
+        for r, v in zip(rows[1:], values):
+            r.append(v)
+    write_rows(folder / MAN, rows)
+
+
+def test_start_and_end_cut_a_trial_and_keep_its_times(folder, cohort):
+    _add_manifest_columns(folder, start_s=["0.35", "", "1.0"], end_s=["", "2.5", "2.0"])
+    got = read_interchange(folder)
+    whole = {(t.key, t.trial): t for t in cohort}
+    for t, (start, end) in zip(got, [(0.35, None), (None, 2.5), (1.0, 2.0)]):
+        w = whole[(t.key, t.trial)]
+        keep = (w.time_s >= (start if start is not None else -np.inf)) & (w.time_s <= (end if end is not None else np.inf))
+        np.testing.assert_array_equal(t.time_s, w.time_s[keep])
+        np.testing.assert_array_equal(t.angle_deg, w.angle_deg[keep])
+        np.testing.assert_array_equal(t.velocity_deg_s, w.velocity_deg_s[keep])  # derived from the whole trial
+        assert t.velocity_measured is False
+    # written back, the cut trials are the data: they read back without the columns (a derived
+    # velocity is then derived from the cut recording)
+    again = read_interchange(write_interchange(got, folder.parent / "again"))
+    for a, b in zip(again, got):
+        for name in ("time_s", "angle_deg", "acceleration_deg_s2", "stimulation"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+@pytest.mark.parametrize(
+    ("start", "end", "column", "text"),
+    [("abc", "", "start_s", "not a time"), ("2.0", "1.0", "end_s", "not after"), ("5.0", "", "start_s", "keep 0"),
+     ("", "nan", "end_s", "not a time")],
+)
+def test_a_bad_start_or_end_is_named(folder, start, end, column, text):
+    _add_manifest_columns(folder, start_s=[start, "", ""], end_s=[end, "", ""])
+    assert_problem(problems_of(folder), MAN, column, 2, text)

@@ -17,6 +17,7 @@ from ._interchange import (
     parse_number,
     read_interchange,
     read_netcdf,
+    trim,
     write_interchange,
 )
 from ._paper import (
@@ -46,7 +47,7 @@ from ._simulate import (
 __all__ = [
     "Cohort", "Trial", "derive_velocity", "leg_key", "VELOCITY_WINDOW",
     "InterchangeError", "Problem", "DataWarning", "plausibility", "read_interchange", "read_netcdf", "write_interchange", "load_cohort", "convert",
-    "parse_number",
+    "parse_number", "trim",
     "MANIFEST_NAME", "DEFAULT_SAMPLING_PERIOD_S",
     "EFFECTS", "PASSIVE_TRUTH", "default_truth", "simulate_cohort", "simulate_response", "stimulation_sequence",
     "write_truth",

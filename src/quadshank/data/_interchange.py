@@ -24,6 +24,7 @@ editor shows them, the header being line 1).
 | `trial`             | trial number, a positive integer; per leg numbered 1..n     |
 | `file`              | path of the trial's CSV, relative to the folder (`/`-separated) |
 | `sampling_period_s` | optional column; sampling period in s, > 0 (default 0.01)   |
+| `start_s`, `end_s`  | optional columns; keep only the samples with start_s <= time_s <= end_s (an empty cell: no bound), to leave out a release, a spasm or an artefact at either end |
 
 Trial CSV — one row per sample, columns in any order, names exact:
 
@@ -95,6 +96,7 @@ from ..common._io import temp_sibling
 from ._cohort import Cohort, Trial, leg_key
 
 __all__ = [
+    "trim",
     "DataWarning",
     "plausibility",
     "Problem",
@@ -115,7 +117,7 @@ MANIFEST_NAME = "manifest.csv"
 DEFAULT_SAMPLING_PERIOD_S = 0.01
 
 _MANIFEST_REQUIRED = ("subject", "leg", "trial", "file")
-_MANIFEST_OPTIONAL = ("sampling_period_s",)
+_MANIFEST_OPTIONAL = ("sampling_period_s", "start_s", "end_s")
 _TRIAL_REQUIRED = ("time_s", "angle_deg", "acceleration_deg_s2", "stimulation")
 _TRIAL_OPTIONAL = ("velocity_deg_s",)
 #: Column order used when writing a trial file.
@@ -470,6 +472,9 @@ class _Entry:
     key: str | None  # normalised relative path, for comparisons
     path: Path | None  # the file, when it exists
     sampling_period_s: float | None
+    start_s: float | None = None  # keep samples from this time on (None: from the first)
+    end_s: float | None = None  # ... up to this time (None: to the last)
+    span_ok: bool = True  # start_s and end_s are valid (or absent)
 
 
 def _parse_trial_number(text: str) -> int | str:
@@ -503,7 +508,7 @@ def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry],
         problems.append(
             Problem(MANIFEST_NAME, None, None,
                     f"missing: {folder} has no {MANIFEST_NAME} (columns {','.join(_MANIFEST_REQUIRED)}"
-                    f"[,{_MANIFEST_OPTIONAL[0]}])")
+                    f"[,{','.join(_MANIFEST_OPTIONAL)}])")
         )
         return None
     table = _read_table(path, MANIFEST_NAME, _MANIFEST_REQUIRED, _MANIFEST_OPTIONAL, problems)
@@ -544,6 +549,22 @@ def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry],
                     bad("sampling_period_s", f"{text!r} is not a positive finite number of seconds")
                     period = None
 
+        span: dict[str, float | None] = {"start_s": None, "end_s": None}
+        span_ok = True
+        for name in span:
+            text = row[col[name]].strip() if name in col else ""
+            if not text:
+                continue
+            value = parse_number(text)
+            if value is None or not math.isfinite(value):
+                bad(name, f"{text!r} is not a time in s (leave the cell empty for no bound)")
+                span_ok = False
+            else:
+                span[name] = value
+        if span_ok and None not in span.values() and span["start_s"] >= span["end_s"]:
+            bad("end_s", f"end_s {span['end_s']!r} s is not after start_s {span['start_s']!r} s")
+            span_ok = False
+
         file: str | None = row[col["file"]].strip()
         key = file_path = None
         if not file:
@@ -566,7 +587,8 @@ def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry],
                     bad("file", f"{file!r} is not a regular file")
                 else:
                     bad("file", f"{file!r} does not exist")
-        entries.append(_Entry(line, subject, leg, trial, file, key, file_path, period))
+        entries.append(_Entry(line, subject, leg, trial, file, key, file_path, period, span["start_s"], span["end_s"],
+                              span_ok))
     return entries, has_period
 
 
@@ -682,6 +704,13 @@ def read_interchange(folder: str | os.PathLike) -> Cohort:
                 else f"(the default; {MANIFEST_NAME} has no sampling_period_s column)"
             )
             _check_signals(e.file, table.lines, signals, e.sampling_period_s, origin, problems)
+            time = signals.get("time_s")
+            if e.span_ok and time is not None and time.size and (e.start_s is not None or e.end_s is not None):
+                kept = int(np.count_nonzero(_span(time, e.start_s, e.end_s)))
+                if kept < 2:
+                    problems.append(Problem(MANIFEST_NAME, "start_s" if e.start_s is not None else "end_s", e.line,
+                                            f"start_s/end_s keep {kept} sample(s) of {e.file} (its time runs from "
+                                            f"{float(time[0])!r} to {float(time[-1])!r} s); at least 2 are needed"))
         signals_of[i] = signals
 
     listed = {_file_id(e.path) for e in entries if e.path is not None}
@@ -698,23 +727,40 @@ def read_interchange(folder: str | os.PathLike) -> Cohort:
     trials = []
     for i, e in enumerate(entries):
         s = signals_of[i]
-        trials.append(
-            Trial.from_signals(
-                e.subject,
-                e.leg,
-                e.trial,
-                e.sampling_period_s,
-                angle_deg=s["angle_deg"],
-                acceleration_deg_s2=s["acceleration_deg_s2"],
-                stimulation=s["stimulation"],
-                velocity_deg_s=s["velocity_deg_s"],
-                time_s=s["time_s"],
-                source=e.file,
-            )
+        whole = Trial.from_signals(  # a derived velocity is derived from the whole recording, then cut
+            e.subject,
+            e.leg,
+            e.trial,
+            e.sampling_period_s,
+            angle_deg=s["angle_deg"],
+            acceleration_deg_s2=s["acceleration_deg_s2"],
+            stimulation=s["stimulation"],
+            velocity_deg_s=s["velocity_deg_s"],
+            time_s=s["time_s"],
+            source=e.file,
         )
+        trials.append(trim(whole, e.start_s, e.end_s))
     cohort = Cohort(tuple(trials), {"source": str(folder), "source_format": "interchange"})
     _warn_implausible(cohort, [str(folder / e.file) for e in entries])
     return cohort
+
+
+def _span(time: np.ndarray, start_s: float | None, end_s: float | None) -> np.ndarray:
+    keep = np.ones(time.size, bool)
+    if start_s is not None:
+        keep &= time >= start_s
+    if end_s is not None:
+        keep &= time <= end_s
+    return keep
+
+
+def trim(trial: Trial, start_s: float | None = None, end_s: float | None = None) -> Trial:
+    """The samples of ``trial`` with ``start_s <= time_s <= end_s`` (a bound that is None does not
+    cut); times keep their values.  What the manifest's ``start_s``/``end_s`` do on reading."""
+    if start_s is None and end_s is None:
+        return trial
+    keep = _span(trial.time_s, start_s, end_s)
+    return trial.replace(**{name: getattr(trial, name)[keep] for name in _TRIAL_WRITE_ORDER})
 
 
 # --------------------------------------------------------------------------- writing
@@ -825,7 +871,7 @@ def _write_trial_csv(trial: Trial, path: Path) -> None:
 def _write_manifest(cohort: Cohort, names: Sequence[str], path: Path) -> None:
     with open(path, "w", encoding="utf-8", newline="") as fh:
         writer = csv.writer(fh, lineterminator="\n")
-        writer.writerow(_MANIFEST_REQUIRED + _MANIFEST_OPTIONAL)
+        writer.writerow(_MANIFEST_REQUIRED + ("sampling_period_s",))  # trials are written as cut
         for t, name in zip(cohort.trials, names):
             writer.writerow([t.subject, t.leg, str(int(t.trial)), name, repr(float(t.sampling_period_s))])
 
