@@ -220,7 +220,7 @@ CSV_CASES = {
     "truncated row": truncated_row,
     "decimal comma": decimal_comma,
     "semicolons": semicolons,
-    "missing column": drop_column(T1, "acceleration_deg_s2"),
+    "missing column": drop_column(T1, "stimulation"),
     "unknown column": extra_column,
     "time repeated": time_step(21, "0.18", "not strictly increasing"),
     "time decreasing": time_step(40, "0.01", "not strictly increasing"),

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from quadshank.data import _interchange as ix
-from quadshank.data._cohort import Cohort, Trial, derive_velocity
+from quadshank.data._cohort import Cohort, Trial, derive_acceleration, derive_velocity
 from quadshank.data._interchange import (
     DataWarning,
     InterchangeError,
@@ -369,8 +369,25 @@ def test_unlisted_csv(folder):
 
 # --------------------------------------------------------------------------- rule 3: trial CSV structure
 def test_trial_missing_column(folder):
+    drop_column(folder / TN2, "stimulation")
+    assert_problem(problems_of(folder), TN2, "stimulation", 1, "missing column")
+
+
+def test_without_an_accelerometer_the_acceleration_is_derived_and_not_written_back(folder, tmp_path):
     drop_column(folder / TN2, "acceleration_deg_s2")
-    assert_problem(problems_of(folder), TN2, "acceleration_deg_s2", 1, "missing column")
+    cohort = read_interchange(folder)
+    t = cohort.get("TN-left", 2)
+    assert not t.acceleration_measured and cohort.get("TN-left", 1).acceleration_measured
+    np.testing.assert_array_equal(t.acceleration_deg_s2, derive_acceleration(t.angle_deg, DT))
+    # the derivative of a sinusoid: the derived acceleration is the true one away from the ends
+    w = 2 * np.pi * 0.8
+    true = -30.0 * w**2 * np.sin(w * t.time_s + 0.7)
+    assert np.max(np.abs(t.acceleration_deg_s2 - true)[10:-10]) < 0.01 * np.max(np.abs(true))
+    out = write_interchange(cohort, tmp_path / "out")
+    assert "acceleration_deg_s2" not in (out / TN2).read_text().splitlines()[0]
+    assert "acceleration_deg_s2" in (out / TN1).read_text().splitlines()[0]
+    nc = cohort.save_netcdf(tmp_path / "c.nc")
+    assert not load_cohort(nc).get("TN-left", 2).acceleration_measured
 
 
 def test_trial_unknown_column(folder):

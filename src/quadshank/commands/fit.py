@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..data._cohort import Cohort
+from ..data._cohort import Cohort, derivation_settings
 from ..inference._fitio import (
     FitResult,
     begin_fit,
@@ -61,4 +61,12 @@ def run_fit(
         extra["data"] = str(data_source)
     desc = from_json(idata.posterior.attrs["quadshank_model"])
     extra["data_fingerprint"] = cohort.fingerprint(desc["legs"], desc["trials"])
+    fitted = cohort.select(desc["legs"], desc["trials"]).trials
+    derived = {
+        signal: {**how, "trials": [f"{t.key} trial {t.trial}" for t in fitted if not getattr(t, f"{signal}_measured")]}
+        for signal, how in derivation_settings(cohort.sampling_period_s).items()
+    }
+    derived = {signal: d for signal, d in derived.items() if d["trials"]}
+    if derived:
+        extra["derived_signals"] = derived
     return save_fit(idata, out, extra=extra)

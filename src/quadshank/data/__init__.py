@@ -4,7 +4,15 @@ A :class:`Cohort` is what every later stage reads; :func:`load_cohort` takes an 
 folder or a NetCDF file, :func:`simulate_cohort` makes the built-in simulated cohort.
 """
 
-from ._cohort import VELOCITY_WINDOW, Cohort, Trial, derive_velocity, leg_key
+from ._cohort import (
+    ACCELERATION_WINDOW_S,
+    VELOCITY_WINDOW,
+    Cohort,
+    Trial,
+    derive_acceleration,
+    derive_velocity,
+    leg_key,
+)
 from ._interchange import (
     DEFAULT_SAMPLING_PERIOD_S,
     DataWarning,
@@ -45,7 +53,7 @@ from ._simulate import (
 )
 
 __all__ = [
-    "Cohort", "Trial", "derive_velocity", "leg_key", "VELOCITY_WINDOW",
+    "Cohort", "Trial", "derive_velocity", "derive_acceleration", "leg_key", "VELOCITY_WINDOW", "ACCELERATION_WINDOW_S",
     "InterchangeError", "Problem", "DataWarning", "plausibility", "read_interchange", "read_netcdf", "write_interchange", "load_cohort", "convert",
     "parse_number", "trim",
     "MANIFEST_NAME", "DEFAULT_SAMPLING_PERIOD_S",

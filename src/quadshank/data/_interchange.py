@@ -32,13 +32,16 @@ Trial CSV — one row per sample, columns in any order, names exact:
 |-----------------------|------------------------------------------------------------|
 | `time_s`              | time [s], uniformly sampled, strictly increasing           |
 | `angle_deg`           | knee angle [deg]; 0 = shank at rest, positive = extension  |
-| `acceleration_deg_s2` | angular acceleration [deg/s²]                              |
+| `acceleration_deg_s2` | optional: angular acceleration [deg/s²] (from an accelerometer) |
 | `stimulation`         | recruitment level u in [0, 1] of the pulse delivered at that sample, 0 when none |
 | `velocity_deg_s`      | optional: measured angular velocity [deg/s]                |
 
 When `velocity_deg_s` is absent the velocity is derived from the angle
 (:func:`~quadshank.data._cohort.derive_velocity`) and the trial is marked
-``velocity_measured = False``.
+``velocity_measured = False``; when `acceleration_deg_s2` is absent (no
+accelerometer) the acceleration is derived from the angle
+(:func:`~quadshank.data._cohort.derive_acceleration`) and the trial is marked
+``acceleration_measured = False``.  A derived signal is not written back.
 
 Validation rules
 ----------------
@@ -118,8 +121,8 @@ DEFAULT_SAMPLING_PERIOD_S = 0.01
 
 _MANIFEST_REQUIRED = ("subject", "leg", "trial", "file")
 _MANIFEST_OPTIONAL = ("sampling_period_s", "start_s", "end_s")
-_TRIAL_REQUIRED = ("time_s", "angle_deg", "acceleration_deg_s2", "stimulation")
-_TRIAL_OPTIONAL = ("velocity_deg_s",)
+_TRIAL_REQUIRED = ("time_s", "angle_deg", "stimulation")
+_TRIAL_OPTIONAL = ("acceleration_deg_s2", "velocity_deg_s")
 #: Column order used when writing a trial file.
 _TRIAL_WRITE_ORDER = ("time_s", "angle_deg", "velocity_deg_s", "acceleration_deg_s2", "stimulation")
 _LEGS = ("left", "right")
@@ -234,7 +237,7 @@ def plausibility(trial: Trial) -> list[str]:
     if trial.n_samples < 3 * window:
         return []
     found = []
-    checks = [("acceleration_deg_s2", 2, "deg/s²")]
+    checks = [("acceleration_deg_s2", 2, "deg/s²")] if trial.acceleration_measured else []
     if trial.velocity_measured:
         checks.append(("velocity_deg_s", 1, "deg/s"))
     for column, order, unit in checks:
@@ -841,7 +844,7 @@ def _check_cohort(cohort: Cohort, names: Sequence[str], *, listing: str = MANIFE
     for t, e in zip(cohort.trials, entries):
         lines = np.arange(first_row, t.n_samples + first_row)
         signals: dict[str, np.ndarray | None] = {}
-        for column in _TRIAL_WRITE_ORDER:
+        for column in _written_columns(t):
             if column == "velocity_deg_s" and not t.velocity_measured:
                 continue
             values = getattr(t, column)
@@ -859,9 +862,15 @@ def _check_cohort(cohort: Cohort, names: Sequence[str], *, listing: str = MANIFE
     return [dataclasses.replace(p, row_label=listing_row_label if p.file == listing else row_label) for p in problems]
 
 
+def _written_columns(trial: Trial) -> list[str]:
+    """A trial's columns in a CSV: a derived velocity or acceleration is not written (it is derived again)."""
+    derived = {"velocity_deg_s": not trial.velocity_measured, "acceleration_deg_s2": not trial.acceleration_measured}
+    return [n for n in _TRIAL_WRITE_ORDER if not derived.get(n, False)]
+
+
 def _write_trial_csv(trial: Trial, path: Path) -> None:
     """Write one trial's CSV (velocity only when it was measured); floats as ``repr``."""
-    names = [n for n in _TRIAL_WRITE_ORDER if n != "velocity_deg_s" or trial.velocity_measured]
+    names = _written_columns(trial)
     columns = [list(map(repr, getattr(trial, n).tolist())) for n in names]
     with open(path, "w", encoding="utf-8", newline="") as fh:
         fh.write(",".join(names) + "\n")

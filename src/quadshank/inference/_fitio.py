@@ -93,6 +93,7 @@ class FitResult(Result):
     screen_restarted: dict | None = None
     fit_id: str | None = None  # also in fit.nc: the two files of one fit carry the same
     data_fingerprint: str | None = None  # of the legs and trials fitted (Cohort.fingerprint)
+    derived_signals: dict | None = None  # signals derived from the angle (no sensor): how, and for which trials
 
     @property
     def ok(self) -> bool:
