@@ -170,7 +170,12 @@ def cmd_identify(args) -> int:
     data = Path(args.data)
     cohort = load_cohort(data)
     summary = run_identify(cohort, args.out, truth=_truth_beside(data), trial=args.trial, progress=not args.quiet)
-    _say(args, *(f"{leg}: d = {s['delay_samples']} samples" for leg, s in summary.legs.items()))
+    _say(args, *(f"{leg}: passive system only, from trial(s) {', '.join(map(str, s['passive_trials']))} "
+                 "(no pulses in the identification trial)" if s.get("passive_only") else
+                 f"{leg}: d = {s['delay_samples']} samples" + (
+                     f"; passive system from trial(s) {', '.join(map(str, s['passive_trials']))} (no pulses)"
+                     if s.get("passive_trials") else "")
+                 for leg, s in summary.legs.items()))
     _say(args, f"tables, figures and summary.json in {args.out}")
     return 0
 

@@ -16,6 +16,7 @@ from ..inference._identify import Identification, identify_cohort
 from ..model._model import equivalent_acceleration
 from ..outputs._figures import plot_delay_scan, plot_signals, plot_twitch_dependence
 from ..outputs._tables import (
+    active_legs,
     markdown_table,
     table_i,
     table_ii,
@@ -51,13 +52,18 @@ def run_identify(
             if leg in rec:
                 s["recovery"] = rec[leg]
 
-    leg2 = _pick("TN-right", ident)
-    t2 = cohort.get(leg2, trial)
-    mi = equivalent_acceleration(ident[leg2].models["model1"], t2.angle_deg, t2.velocity_deg_s, t2.acceleration_deg_s2)
-    save_figure(plot_signals(t2, np.asarray(mi)), out / "figures" / "fig2_signals.png")
-
-    save_figure(plot_twitch_dependence(ident[_pick("TN-left", ident)]), out / "figures" / "fig3_4_twitch_dependence.png")
-    save_figure(plot_delay_scan(ident), out / "figures" / "delay_scan.png")
+    active = active_legs(ident)
+    passive_only = [leg for leg in ident if leg not in active]
+    if passive_only:
+        md.append(f"Passive system only (no pulses in trial {trial}): {', '.join(passive_only)}.\n")
+    if active:
+        leg2 = _pick("TN-right", active)
+        t2 = cohort.get(leg2, trial)
+        mi = equivalent_acceleration(active[leg2].models["model1"], t2.angle_deg, t2.velocity_deg_s,
+                                     t2.acceleration_deg_s2)
+        save_figure(plot_signals(t2, np.asarray(mi)), out / "figures" / "fig2_signals.png")
+        save_figure(plot_twitch_dependence(active[_pick("TN-left", active)]), out / "figures" / "fig3_4_twitch_dependence.png")
+        save_figure(plot_delay_scan(active), out / "figures" / "delay_scan.png")
     atomic_write_text(out / "report.md", "\n".join(md))
     result = Identification(trial=trial, sampling_period_s=cohort.sampling_period_s, legs=legs)
     result.write(out)

@@ -27,8 +27,8 @@ def recovery(ident: dict[str, LegIdentification], truth: dict) -> dict:
     out = {}
     for leg, r in ident.items():
         t = (truth.get("legs") or {}).get(leg)
-        if not isinstance(t, dict) or not {"passive", "active"} <= set(t):
-            continue
+        if not isinstance(t, dict) or not {"passive", "active"} <= set(t) or "model3" not in r.models:
+            continue  # a leg the truth does not describe, or one identified without its muscle
         m3 = r.models["model3"].flat_params()
         pairs = {
             "damping": (r.passive["damping"], t["passive"]["damping"]),

@@ -25,6 +25,7 @@ from ._identify import (
     Identification,
     IdentificationError,
     LegIdentification,
+    PassiveIdentification,
     identify_cohort,
     identify_leg,
     identify_passive,
@@ -45,7 +46,7 @@ from ._screen import (
 from ._summaries import INTERVAL, interval, pooled_draws
 
 __all__ = [
-    "IdentificationError", "LegIdentification", "identify_cohort", "identify_leg", "identify_passive",
+    "IdentificationError", "LegIdentification", "PassiveIdentification", "identify_cohort", "identify_leg", "identify_passive",
     "Identification", "models_from_summary", "load_identification",
     "FitSettings", "fit", "run_nuts", "FitRun", "FitResult", "fit_screen", "build_model", "model_params", "delay_prior_from", "numpyro_model",
     "LaplaceFit", "laplace_fit", "leg_draw_models", "delay_evidence", "delay_modes", "DelayModes", "delta_elpd",

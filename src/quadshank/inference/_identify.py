@@ -41,6 +41,8 @@ from ..model._model import Model, equivalent_acceleration, paper_model, passive_
 
 __all__ = [
     "LegIdentification",
+    "PassiveIdentification",
+    "passive_model",
     "identify_passive",
     "isolated_twitches",
     "identify_leg",
@@ -83,11 +85,13 @@ class LegIdentification:
     velocity_at_d: np.ndarray
     g1_std: float  # std of the per-twitch integrated response (Table I)
     rms_error_pct: dict  # Table IV: model1 / model3 RMS error of T as % of G'_1
+    passive_trials: tuple = ()  # trials without pulses the passive system came from (empty: the quiet samples of `trial`)
 
     def summary(self) -> dict:
         return {
             "delay_samples": int(self.delay),
             "identification_trial": int(self.trial),
+            "passive_trials": [int(t) for t in self.passive_trials],
             "n_isolated_twitches": int(len(self.pulses)),
             "passive": {k: float(v) for k, v in self.passive.items()},
             **{name: m.flat_params() for name, m in self.models.items() if name != "passive"},
@@ -95,6 +99,40 @@ class LegIdentification:
             "G1_std": float(self.g1_std),
             "rms_error_pct": {k: float(v) for k, v in self.rms_error_pct.items()},
         }
+
+
+@dataclasses.dataclass(frozen=True)
+class PassiveIdentification:
+    """A leg whose identification trial holds no pulse (a pendulum test): the passive system
+    alone, identified from the leg's trials without pulses.  Its one model, ``"passive"``, is
+    the pendulum of eq. (8) without a muscle."""
+
+    leg: str
+    trial: int
+    passive: dict
+    passive_rms_residual: float
+    n_quiet: int
+    passive_trials: tuple
+    sampling_period_s: float
+
+    @property
+    def models(self) -> dict:
+        return {"passive": passive_model(self.passive, self.sampling_period_s)}
+
+    def summary(self) -> dict:
+        return {
+            "identification_trial": int(self.trial),
+            "passive_only": True,
+            "passive_trials": [int(t) for t in self.passive_trials],
+            "passive": {k: float(v) for k, v in self.passive.items()},
+            "n_quiet_samples": int(self.n_quiet),
+        }
+
+
+def passive_model(passive: dict, sampling_period_s: float) -> Model:
+    """The passive pendulum of eq. (8) as a model: model 1 with no muscle (gain 0), named ``passive``."""
+    model = paper_model(1, passive_effects(**passive), sampling_period_s=sampling_period_s).with_params(gain=0.0)
+    return dataclasses.replace(model, name="passive")
 
 
 # ============================================================================ passive
@@ -278,12 +316,32 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
     )
 
 
-def identify_cohort(cohort: Cohort, trial: int = 1, progress: bool = False) -> dict[str, LegIdentification]:
-    """Identify every leg of the cohort from its trial number ``trial``."""
+def identify_cohort(
+    cohort: Cohort, trial: int = 1, progress: bool = False
+) -> dict[str, LegIdentification | PassiveIdentification]:
+    """Identify every leg of the cohort from its trial number ``trial``.
 
-    out = {}
+    A leg with trials without pulses (pendulum tests) takes its passive system from those
+    trials, as the paper took it from pendulum tests; otherwise from the quiet samples of
+    ``trial``.  A leg whose trial ``trial`` holds no pulse gets its passive system alone
+    (:class:`PassiveIdentification`).
+    """
+
+    out: dict = {}
     for leg in progress_bar(cohort.legs, desc="identify", enabled=progress):
-        out[leg] = identify_leg(cohort.get(leg, trial))
+        chosen = cohort.get(leg, trial)
+        passive_trials = [t for t in cohort.trials_of(leg) if not np.any(t.stimulation > 0)]
+        if not passive_trials:
+            out[leg] = identify_leg(chosen)
+            continue
+        passive, p_rms, n_quiet = identify_passive(passive_trials)
+        numbers = tuple(t.trial for t in passive_trials)
+        if not np.any(chosen.stimulation > 0):
+            out[leg] = PassiveIdentification(leg, trial, {k: float(v) for k, v in passive.items()}, p_rms, n_quiet,
+                                             numbers, chosen.sampling_period_s)
+        else:
+            out[leg] = dataclasses.replace(identify_leg(chosen, passive=passive), passive_rms_residual=p_rms,
+                                           n_quiet=n_quiet, passive_trials=numbers)
     return out
 
 
@@ -293,6 +351,9 @@ def models_from_summary(summary: dict, sampling_period_s: float = SAMPLING_PERIO
     models = {}
     dt = sampling_period_s
     for leg, s in summary.items():
+        if s.get("passive_only"):
+            models[leg] = {"passive": passive_model(s["passive"], dt)}
+            continue
         passive = passive_effects(**s["passive"])
         d = int(s["delay_samples"])
         m2 = s["model2"]

@@ -30,6 +30,7 @@ from ._residual_figures import (
     plot_twitch_average,
 )
 from ._tables import (
+    active_legs,
     markdown_table,
     sign_test_rows,
     table_i,
@@ -47,6 +48,6 @@ __all__ = [
     "plot_shrinkage", "plot_delay_posterior", "plot_leg_predictions", "write_report",
     "plot_trends", "plot_correlations", "plot_twitch_average", "plot_spectrum", "plot_loo_pit", "plot_elpd_in_time",
     "residual_figures", "predictive_checks", "ranking_markdown", "discovery_markdown",
-    "markdown_table", "write_table", "table_passive", "table_i", "table_ii", "table_iii", "table_iv",
+    "markdown_table", "write_table", "active_legs", "table_passive", "table_i", "table_ii", "table_iii", "table_iv",
     "table_v_rows", "sign_test_rows",
 ]  # fmt: skip

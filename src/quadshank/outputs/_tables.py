@@ -25,6 +25,7 @@ from ..data._paper import (
 __all__ = [
     "write_table",
     "markdown_table",
+    "active_legs",
     "table_passive",
     "table_i",
     "table_ii",
@@ -78,6 +79,11 @@ def write_table(rows: list[dict], folder: str | Path, stem: str, title: str) -> 
     return md
 
 
+def active_legs(ident: dict) -> dict:
+    """The legs identified with their muscle (not those with the passive system alone)."""
+    return {leg: r for leg, r in ident.items() if "model1" in r.models}
+
+
 def _leg_truth(truth: dict | None, leg: str) -> dict | None:
     if not truth:
         return None
@@ -102,6 +108,9 @@ def table_passive(ident: dict, truth: dict | None = None) -> list[dict]:
                 row[f"{k} true"] = t["passive"][k]
         row["quiet samples"] = r.n_quiet
         row["rms residual [deg/s²]"] = r.passive_rms_residual
+        trials = getattr(r, "passive_trials", ())
+        row["from"] = (f"trial{'s' if len(trials) > 1 else ''} {', '.join(map(str, trials))} (no pulses)" if trials
+                       else f"quiet samples of trial {r.trial}")
         rows.append(row)
     return rows
 
@@ -109,7 +118,7 @@ def table_passive(ident: dict, truth: dict | None = None) -> list[dict]:
 def table_i(ident: dict, truth: dict | None = None) -> list[dict]:
     """Table I analogue: model 1's gain and the delay per leg, beside the paper's and the truth."""
     rows = []
-    for leg, r in ident.items():
+    for leg, r in active_legs(ident).items():
         t = _leg_truth(truth, leg)
         row = {
             "leg": leg,
@@ -131,7 +140,7 @@ def table_i(ident: dict, truth: dict | None = None) -> list[dict]:
 def table_ii(ident: dict, truth: dict | None = None) -> list[dict]:
     """Table II analogue: model 2's DARMA coefficients per leg, beside the paper's and the truth."""
     rows = []
-    for leg, r in ident.items():
+    for leg, r in active_legs(ident).items():
         p = r.models["model2"].flat_params()
         t = _leg_truth(truth, leg)
         row = {"leg": leg, "a1": p["a1"], "a2": p["a2"], "b'1 [deg/s²]": p["b1"], "b'2 [deg/s²]": p["b2"]}
@@ -148,7 +157,7 @@ def table_ii(ident: dict, truth: dict | None = None) -> list[dict]:
 def table_iii(ident: dict, truth: dict | None = None) -> list[dict]:
     """Table III analogue: model 3's gain and torque–angle and torque–velocity factors per leg."""
     rows = []
-    for leg, r in ident.items():
+    for leg, r in active_legs(ident).items():
         p = r.models["model3"].flat_params()
         t = _leg_truth(truth, leg)
         row = {
@@ -175,7 +184,7 @@ def table_iii(ident: dict, truth: dict | None = None) -> list[dict]:
 def table_iv(ident: dict) -> list[dict]:
     """Table IV analogue: the RMS error of models 1 and 3 on the integrated twitches [% of G'1] per leg, beside the paper's."""
     rows = []
-    for leg, r in ident.items():
+    for leg, r in active_legs(ident).items():
         row = {"leg": leg, "model 1 [%]": r.rms_error_pct["model1"], "model 3 [%]": r.rms_error_pct["model3"]}
         if leg in TABLE_IV:
             row["paper model 1 [%]"], row["paper model 3 [%]"] = TABLE_IV[leg]
