@@ -267,7 +267,8 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
     if pulses.size < MIN_TWITCHES:
         raise IdentificationError(
             f"{where}: only {pulses.size} isolated twitches (a pulse with {TWITCH_SAMPLES} quiet samples "
-            f"before and {2 * TWITCH_SAMPLES} after); at least {MIN_TWITCHES} are needed"
+            f"before and {2 * TWITCH_SAMPLES} after); the classical identification needs at least {MIN_TWITCHES} "
+            "(`quadshank fit` does not: it fits every sample, trains of pulses too)"
         )
     pulses = pulses[pulses > MAX_DELAY + 2]
 
