@@ -338,3 +338,45 @@ def test_a_report_refuses_mixed_fit_files_other_data_and_another_fits_evaluation
     (evaluation / "summary.json").write_text(json.dumps(e))
     assert main(["-q", "report", str(made["fit"]), "--evaluation", str(evaluation), "--out", str(root / "r-eval")]) == 2
     assert "another fit" in capsys.readouterr().err
+
+
+def test_predict_rolls_the_posterior_through_a_plan_as_evaluate_does(made, capsys):
+    from quadshank.data import load_cohort
+    from quadshank.evaluation import plan_predictions, posterior_predictions
+    from quadshank.inference import posterior_models
+
+    idata, model, _ = load_fit(made["fit"])
+    trial = load_cohort(made["data"]).get("TN-left", 1)
+    pulses = np.flatnonzero(trial.stimulation > 0)
+    # a start with the muscle at rest: no pulse in the 80 samples before it
+    s0 = next(p - 1 for p, q in zip(pulses[1:], pulses[:-1]) if p - q > 81)
+    H = 150
+    models, _ = posterior_models(idata, model, "TN-left", 8, 0)
+    free = plan_predictions(models, trial.stimulation[s0:s0 + H], trial.angle_deg[s0], trial.velocity_deg_s[s0])
+    ahead = posterior_predictions(models, trial, np.array([s0]), (1, 50, H - 1))[:, 0, :]
+    np.testing.assert_allclose(free[:, [1, 50, H - 1]], ahead, rtol=1e-4, atol=1e-3)
+
+    plan = made["root"] / "plan.csv"
+    t = np.arange(300) * trial.sampling_period_s
+    u = np.where(np.arange(300) % 50 == 10, 0.8, 0.0)
+    plan.write_text("time_s,stimulation\n" + "".join(f"{float(a)!r},{float(b)!r}\n" for a, b in zip(t, u)))
+    out = made["root"] / "predict"
+    capsys.readouterr()
+    assert main(["predict", str(made["fit"]), "--stimulation", str(plan), "--angle0", "-5", "--draws", "8",
+                 "--out", str(out)]) == 0
+    assert "TN-left: from -5° the angle ranges over" in capsys.readouterr().err
+    rows = list(csv.reader((out / "predictions.csv").open()))
+    assert rows[0][:2] == ["time_s", "stimulation"] and "JM-left median [deg]" in rows[0]
+    assert len(rows) == 301 and float(rows[1][rows[0].index("TN-left median [deg]")]) == pytest.approx(-5.0, abs=1e-3)
+    s = json.loads((out / "summary.json").read_text())
+    assert s["schema"] == "quadshank/prediction" and s["legs"] == list(LEGS) and s["samples"] == 300
+    assert (out / "predictions.png").stat().st_size > 10_000
+    lo = np.array([float(r[rows[0].index("TN-left lo [deg]")]) for r in rows[1:]])
+    hi = np.array([float(r[rows[0].index("TN-left hi [deg]")]) for r in rows[1:]])
+    assert np.all(lo <= hi) and np.ptp(hi) > 1.0  # the pulses move the shank
+
+    bad = made["root"] / "bad-plan.csv"
+    bad.write_text("time_s,stimulation\n0.0,0\n0.01,1.5\n0.02,0\n")
+    assert main(["-q", "predict", str(made["fit"]), "--stimulation", str(bad), "--out", str(made["root"] / "p2")]) == 2
+    err = capsys.readouterr().err
+    assert "bad-plan.csv, column 'stimulation', row 3" in err.splitlines()[0]

@@ -18,6 +18,7 @@ from .commands.diagnose import run_diagnose
 from .commands.discover import run_discover
 from .commands.evaluate import run_evaluate, run_posterior_evaluate
 from .commands.fit import run_fit
+from .commands.predict import run_predict
 from .commands.identify import run_identify
 from .commands.recovery import run_likelihood_calibration, run_recovery
 from .commands.report import run_report
@@ -42,7 +43,7 @@ OUTPUT_KINDS = {
     "identify": {"identification"}, "evaluate": {"evaluation", "posterior-evaluation"}, "fit": {"fit"},
     "reproduce": {"reproduction"}, "diagnose": {"diagnosis"}, "discover": {"discovery"},
     "compare": {"posterior-evaluation"}, "report": {"report"}, "demo": {"demo"}, "recovery": set(),
-    "likelihood-check": set(), "simulate": set(), "convert": set(),
+    "likelihood-check": set(), "simulate": set(), "convert": set(), "predict": {"prediction"},
 }
 #: Commands whose output folder is a folder of recordings.
 DATA_WRITERS = ("simulate", "convert")
@@ -82,7 +83,7 @@ def _truth_beside(data: Path) -> dict | None:
 
 def _inputs(args) -> list[Path]:
     """The folders and files a command reads."""
-    names = ("data", "fitdir", "identified", "evaluation", "diagnosis", "delay_from", "fit_a", "fit_b", "src")
+    names = ("data", "fitdir", "identified", "evaluation", "diagnosis", "delay_from", "fit_a", "fit_b", "src", "plan")
     # (an evaluation or diagnosis folder given to `report` is read, so it is an input too)
     found = [getattr(args, n, None) for n in names] + list(getattr(args, "fit", None) or [])
     return [Path(p) for p in found if p]
@@ -413,6 +414,16 @@ def cmd_report(args) -> int:
     return 0
 
 
+def cmd_predict(args) -> int:
+    summary = run_predict(args.fitdir, args.plan, args.out, legs=_csv_list(args.legs) if args.legs else None,
+                          angle0=args.angle0, velocity0=args.velocity0, n_draws=args.draws, seed=args.seed)
+    for leg, e in summary.extremes.items():
+        _say(args, f"{leg}: from {args.angle0:g}° the angle ranges over [{e['min_deg']:.1f}, {e['max_deg']:.1f}]° "
+                   f"(90 % band) and ends at {e['end']['median']:.1f}° [{e['end']['lo']:.1f}, {e['end']['hi']:.1f}]")
+    _say(args, f"predictions.csv and predictions.png in {args.out}")
+    return 0
+
+
 def cmd_reproduce(args, default_out: str | None = None) -> int:
     out = Path(args.out or default_out)
     command = _command_line(args)
@@ -619,6 +630,19 @@ def build_parser() -> argparse.ArgumentParser:
                     help="J from every K-th start sample when computed here (default 10)")
     rp.add_argument("--out", required=True)
     rp.set_defaults(func=cmd_report)
+
+    pr = sub.add_parser("predict", help="the angle a planned stimulation sequence would produce, per fitted leg, "
+                                        "with posterior bands")
+    pr.add_argument("fitdir", help="fit folder of `quadshank fit`")
+    pr.add_argument("--stimulation", dest="plan", required=True, metavar="PLAN.csv",
+                    help="the plan: a CSV with time_s,stimulation at the fit's sampling period")
+    pr.add_argument("--angle0", type=float, default=0.0, help="start angle [deg] as the goniometer reads it (default 0: rest)")
+    pr.add_argument("--velocity0", type=float, default=0.0, help="start velocity [deg/s] (default 0)")
+    pr.add_argument("--legs", default="", help="legs, comma-separated (default: every fitted leg)")
+    pr.add_argument("--draws", type=int, default=200, help="posterior draws (default 200)")
+    pr.add_argument("--seed", type=int, default=0)
+    pr.add_argument("--out", required=True)
+    pr.set_defaults(func=cmd_predict)
 
     d = sub.add_parser("demo", help="the main job on the built-in simulated cohort: reproduce, fit, evaluate, "
                                     "diagnose, report (writes results/demo)")

@@ -9,6 +9,7 @@ from .diagnose import run_diagnose
 from .discover import run_discover
 from .evaluate import run_evaluate, run_posterior_evaluate
 from .fit import run_fit
+from .predict import PlanPrediction, run_predict
 from .identify import run_identify
 from .recovery import run_likelihood_calibration, run_recovery
 from .report import Report, run_report
@@ -17,5 +18,5 @@ from .reproduce import Reproduction, run_reproduce
 __all__ = [
     "run_identify", "run_evaluate", "run_posterior_evaluate", "run_fit", "run_reproduce", "run_recovery",
     "run_likelihood_calibration", "run_diagnose", "run_discover", "run_report", "run_demo",
-    "Reproduction", "Report", "Demo",
+    "Reproduction", "Report", "Demo", "run_predict", "PlanPrediction",
 ]  # fmt: skip

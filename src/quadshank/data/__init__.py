@@ -25,6 +25,7 @@ from ._interchange import (
     parse_number,
     read_interchange,
     read_netcdf,
+    read_stimulation_plan,
     trim,
     write_interchange,
 )
@@ -55,7 +56,7 @@ from ._simulate import (
 __all__ = [
     "Cohort", "Trial", "derive_velocity", "derive_acceleration", "leg_key", "VELOCITY_WINDOW", "ACCELERATION_WINDOW_S",
     "InterchangeError", "Problem", "DataWarning", "plausibility", "read_interchange", "read_netcdf", "write_interchange", "load_cohort", "convert",
-    "parse_number", "trim",
+    "parse_number", "trim", "read_stimulation_plan",
     "MANIFEST_NAME", "DEFAULT_SAMPLING_PERIOD_S",
     "EFFECTS", "PASSIVE_TRUTH", "default_truth", "simulate_cohort", "simulate_response", "stimulation_sequence",
     "write_truth",

@@ -100,6 +100,7 @@ from ._cohort import Cohort, Trial, leg_key
 
 __all__ = [
     "trim",
+    "read_stimulation_plan",
     "DataWarning",
     "plausibility",
     "Problem",
@@ -764,6 +765,30 @@ def trim(trial: Trial, start_s: float | None = None, end_s: float | None = None)
         return trial
     keep = _span(trial.time_s, start_s, end_s)
     return trial.replace(**{name: getattr(trial, name)[keep] for name in _TRIAL_WRITE_ORDER})
+
+
+# --------------------------------------------------------------------------- stimulation plans
+def read_stimulation_plan(path: str | os.PathLike, sampling_period_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(time_s, stimulation)`` of a planned stimulation sequence, checked like a trial's columns.
+
+    A CSV file with the columns ``time_s`` (uniform, at ``sampling_period_s``, the fitted
+    model's period) and ``stimulation`` (the recruitment level u in [0, 1] of the pulse
+    delivered at each sample, 0 when none).  Every problem names file, column and row.
+    """
+    path = Path(path)
+    problems: list[Problem] = []
+    context = f"{path}: invalid stimulation plan"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file (a stimulation plan is a CSV with time_s,stimulation)")
+    table = _read_table(path, path.name, ("time_s", "stimulation"), (), problems)
+    if table is None or any(c not in table.columns for c in ("time_s", "stimulation")):
+        raise InterchangeError(problems, context)
+    signals = {c: _parse_float_column(table, c, path.name, problems) for c in ("time_s", "stimulation")}
+    if table.well_formed:
+        _check_signals(path.name, table.lines, signals, sampling_period_s, "(the fitted model's period)", problems)
+    if problems:
+        raise InterchangeError(problems, context)
+    return signals["time_s"], signals["stimulation"]
 
 
 # --------------------------------------------------------------------------- writing

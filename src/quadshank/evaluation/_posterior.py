@@ -66,7 +66,7 @@ from ..inference._fitio import (
     sampled_vars,
 )
 from ..inference._summaries import interval
-from ..model._model import Model, predict_ahead
+from ..model._model import Model, measured_angle, predict_ahead, simulate_angles, true_angle
 from ._prediction import horizon_samples, prediction_starts
 
 __all__ = [
@@ -84,6 +84,7 @@ __all__ = [
     "loo_report",
     "figure_window",
     "window_predictions",
+    "plan_predictions",
     "CHUNK_ELEMENTS",
     "PARETO_K_BAD",
 ]
@@ -185,6 +186,25 @@ def _rollouts(models, angle, velocity, stimulation, starts, horizon, columns):
     """Predicted angles (draws, starts, len(columns)) at the given rollout columns."""
     cols = jnp.asarray(columns)
     return jax.vmap(lambda m: predict_ahead(m, angle, velocity, stimulation, starts, horizon)[:, cols])(models)
+
+
+@jax.jit
+def _plan_rollouts(models, stimulation, angle0, velocity0):
+    def one(m):
+        angle, _, _ = simulate_angles(m, stimulation, true_angle(m, angle0), velocity0)
+        return measured_angle(m, angle)
+
+    return jax.vmap(one)(models)
+
+
+def plan_predictions(models: Model, stimulation, angle0: float = 0.0, velocity0: float = 0.0) -> np.ndarray:
+    """The angle [deg] a planned stimulation sequence would produce, per draw: array (draws,
+    samples), sample 0 being the start state (``angle0`` as the goniometer reads it,
+    ``velocity0``); free-run from there, the muscle at rest before the first sample.  These are
+    the rollouts of :func:`posterior_predictions` from a start with no pulse before it."""
+    stim = jnp.asarray(stimulation, jnp.float32)
+    out = _plan_rollouts(models, stim, jnp.float32(angle0), jnp.float32(velocity0))
+    return np.asarray(out, dtype=float)
 
 
 def _n_draws(models: Model) -> int:

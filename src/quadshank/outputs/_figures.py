@@ -9,7 +9,7 @@ from ..data._paper import HORIZONS_MS, TABLE_V
 
 __all__ = [
     "plot_signals", "plot_twitch_dependence", "plot_predictions", "plot_j_vs_horizon", "plot_delay_scan",
-    "plot_delay_angle",
+    "plot_delay_angle", "plot_plan_predictions",
 ]  # fmt: skip
 
 _MODEL_COLOURS = {"model1": "tab:blue", "model2": "tab:orange", "model3": "tab:green"}
@@ -254,5 +254,25 @@ def plot_delay_angle(legs: dict, label: str = "", population: dict | None = None
         ax.set_visible(False)
     axes.flat[0].legend(fontsize=7)
     fig.suptitle(f"Delay against knee angle{': ' + label if label else ''}", fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def plot_plan_predictions(time_s, stimulation, bands: dict, label: str = ""):
+    """A planned stimulation sequence and, per leg, the angle it would produce: the posterior
+    median with its 90 % band (``bands``: leg -> {"median", "lo", "hi"} arrays over samples)."""
+    fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
+    for leg, b in bands.items():
+        line, = axes[0].plot(time_s, b["median"], lw=1.2, label=f"{leg} (median)")
+        axes[0].fill_between(time_s, b["lo"], b["hi"], color=line.get_color(), alpha=0.25, lw=0)
+    axes[0].set_ylabel("knee angle [deg]")
+    axes[0].set_title(f"Predicted response to the plan{' (' + label + ')' if label else ''}: median and 90 % band")
+    axes[0].legend(fontsize=8, loc="best")
+    u = np.asarray(stimulation)
+    k = u > 0
+    axes[1].vlines(np.asarray(time_s)[k], 0, u[k], color="k", lw=0.8)
+    axes[1].set_ylim(0, 1.05)
+    axes[1].set_ylabel("u")
+    axes[1].set_xlabel("time [s]")
     fig.tight_layout()
     return fig
