@@ -89,7 +89,8 @@ def passing(made):
     ).write(diagnosis)
     out = root / "report-ok"
     out.mkdir()
-    (out / "summary.json").write_text("{}")  # a previous report's: removed first, written anew last
+    # an earlier report's summary: removed first, written anew last
+    (out / "summary.json").write_text('{"schema": "quadshank/report", "schema_version": 1}')
     assert main(["-q", "report", str(fit), "--out", str(out), "--evaluation", str(evaluation),
                  "--diagnosis", str(diagnosis), "--draws", "5"]) == 0
     return {"fit": fit, "out": out, "j_legs": j_legs}

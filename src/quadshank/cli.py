@@ -670,9 +670,17 @@ def _error_text(exc: BaseException) -> str:
     return str(exc) or type(exc).__name__
 
 
-def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """A warning as one line, ``quadshank: warning: ...``, without the source line."""
-    print(f"quadshank: warning: {message}", file=sys.stderr)
+def _one_line_warnings(previous):
+    """A ``warnings.showwarning`` that prints a quadshank warning about the data as one line,
+    ``quadshank: warning: ...``, and hands any other warning to ``previous``."""
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        if issubclass(category, DataWarning):
+            print(f"quadshank: warning: {message}", file=sys.stderr)
+        else:
+            previous(message, category, filename, lineno, file, line)
+
+    return show
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -690,7 +698,7 @@ def main(argv: list[str] | None = None) -> int:
             prepare_output(Path(args.out), args.command, _inputs(args), args.overwrite)
         with warnings.catch_warnings():
             warnings.simplefilter("always", DataWarning)
-            warnings.showwarning = _show_warning
+            warnings.showwarning = _one_line_warnings(warnings.showwarning)
             return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("quadshank: interrupted; files already written are complete, nothing half-written", file=sys.stderr)
