@@ -460,3 +460,29 @@ def test_continuous_stimulation_names_the_leg_and_trial(base, tmp_path, capsys):
         _map_column(data / f, "stimulation", lambda v: 0.4)  # a pulse at every sample
     rc, lines = _run(COMMANDS["identify"](data, tmp_path / "out"), capsys)
     _assert_refused(rc, lines, ["TN-left trial 1", "quiet samples"], tmp_path / "out")
+
+
+def test_a_refused_command_leaves_no_folder_behind(base, tmp_path, capsys):
+    rc, lines = _run(["simulate", "--out", str(tmp_path / "new"), "--minutes", "0.1", "--sampling-period-ms", "7.5"],
+                     capsys)
+    assert rc == 2 and not (tmp_path / "new").exists()
+    data = tmp_path / "data"
+    shutil.copytree(base / "data", data)
+    _set_cell(data / T1, 17, "angle_deg", "abc")
+    rc, lines = _run(COMMANDS["fit"](data, tmp_path / "fit"), capsys)
+    assert rc == 2 and not (tmp_path / "fit").exists()
+
+
+def test_an_earlier_output_of_the_same_command_is_written_over(base, tmp_path, capsys):
+    out = tmp_path / "c"
+    for _ in range(2):  # the second run finds the first's mark
+        rc, lines = _run(["convert", str(base / "cohort.nc"), str(out)], capsys)
+        assert rc == 0, lines
+    assert (out / ".quadshank-output").read_text().strip() == "convert"
+    rc, lines = _run(COMMANDS["identify"](base / "data", out), capsys)  # a folder of recordings
+    _assert_refused(rc, lines, [str(out), "holds recordings"], None)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / ".quadshank-output").write_text("fit\n")  # another command's output
+    rc, lines = _run(COMMANDS["identify"](base / "data", other), capsys)
+    _assert_refused(rc, lines, [str(other), "no earlier output of `quadshank identify`"], None)

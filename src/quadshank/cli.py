@@ -108,12 +108,15 @@ def _earlier_output(out: Path, command: str) -> bool:
     return False
 
 
-def prepare_output(out: Path, command: str, inputs, overwrite: bool = False) -> None:
+def prepare_output(out: Path, command: str, inputs, overwrite: bool = False):
     """Check the output folder before any work: a folder (or a name for a new one) that is
     writable, not inside or equal to an input, and new, empty or an earlier output of the same
     command (``overwrite``: any folder; files of the same names are replaced, others kept).
-    Then mark it as this command's and remove its ``summary.json``: until the new one lands,
-    the folder is incomplete."""
+    Then remove its ``summary.json``: until the new one lands, the folder is incomplete.
+
+    Returns the function that marks the folder as this command's once the command has run
+    (whether or not it succeeded), where the folder exists by then: a command refused before
+    it wrote anything leaves no folder behind."""
     resolved = out.resolve()
     for p in inputs:
         src = p.resolve()
@@ -136,10 +139,17 @@ def prepare_output(out: Path, command: str, inputs, overwrite: bool = False) -> 
         raise FileExistsError(
             f"{out}: the folder is not empty and holds no earlier output of `quadshank {command}`; give a new "
             "folder (or --overwrite to write into it: files of the same names are replaced, others kept)")
-    out.mkdir(parents=True, exist_ok=True)
-    if not foreign:  # a folder written into by --overwrite stays unmarked: it holds more than this output
-        (out / OUTPUT_MARK).write_text(command + "\n")
     (out / "summary.json").unlink(missing_ok=True)
+
+    def mark() -> None:
+        # a folder written into by --overwrite stays unmarked: it holds more than this output
+        if not foreign and out.is_dir():
+            try:
+                (out / OUTPUT_MARK).write_text(command + "\n")
+            except OSError:  # the command's own outcome is what the user needs to hear of
+                pass
+
+    return mark
 
 
 # ---------------------------------------------------------------------------- commands
@@ -690,16 +700,21 @@ def main(argv: list[str] | None = None) -> int:
     args.argv = argv
     # the command line draws only into files: no window, whatever the display
     matplotlib.use("Agg")
+    mark = None
     try:
         if args.command == "convert":
             if Path(args.dst).suffix.lower() != ".nc":  # a folder of recordings
-                prepare_output(Path(args.dst), "convert", _inputs(args), args.overwrite)
+                mark = prepare_output(Path(args.dst), "convert", _inputs(args), args.overwrite)
         elif getattr(args, "out", None):
-            prepare_output(Path(args.out), args.command, _inputs(args), args.overwrite)
+            mark = prepare_output(Path(args.out), args.command, _inputs(args), args.overwrite)
         with warnings.catch_warnings():
             warnings.simplefilter("always", DataWarning)
             warnings.showwarning = _one_line_warnings(warnings.showwarning)
-            return int(args.func(args) or 0)
+            try:
+                return int(args.func(args) or 0)
+            finally:
+                if mark is not None:
+                    mark()
     except KeyboardInterrupt:
         print("quadshank: interrupted; files already written are complete, nothing half-written", file=sys.stderr)
         return 130
