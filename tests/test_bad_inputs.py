@@ -232,6 +232,8 @@ CSV_CASES = {
     "trial gap": manifest_cell(3, "trial", "3", "missing"),
     "trial number with separator": manifest_cell(2, "trial", "1_0"),
     "trial number not ASCII": manifest_cell(2, "trial", "١"),
+    "trial number overflowing": manifest_cell(2, "trial", "1e400"),
+    "value overflowing": cell(T1, "angle_deg", 9, "1e400"),
     "file missing": manifest_cell(2, "file", "nothere.csv", "does not exist"),
     "path traversal": manifest_cell(2, "file", "../x.csv", "inside it"),
     "period disagrees": period_disagrees,

@@ -87,10 +87,9 @@ import difflib
 import math
 import os
 import re
+import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path, PurePosixPath
-
-import warnings
 
 import numpy as np
 from scipy.signal import savgol_filter
@@ -486,7 +485,7 @@ def _parse_trial_number(text: str) -> int | str:
     f = parse_number(text)
     if f is None:
         return f"non-numeric value {text!r}; expected a positive integer"
-    if f != int(f):
+    if not math.isfinite(f) or f != int(f):
         return f"{text!r} is not an integer; expected a positive integer"
     value = int(f)
     if value < 1:
@@ -845,7 +844,6 @@ def _check_cohort(cohort: Cohort, names: Sequence[str], *, listing: str = MANIFE
     if not cohort.trials:
         problems.append(Problem(listing, None, None, "the cohort has no trials"))
     entries = []
-
     for i, (t, name) in enumerate(zip(cohort.trials, names)):
         line = i + first_row
         subject = t.subject if t.subject.strip() == t.subject and t.subject else None
