@@ -102,3 +102,27 @@ def test_identify_and_evaluate_a_cohort_of_pendulum_tests(tmp_path, capsys):
     assert set(ev["J"]) == {"passive"} and ev["sign_tests"] == []
     j = ev["J_per_leg"]["passive"]["PT-left"]["2"]
     assert j["100"] < j["1000"] < 5.0  # the identified pendulum predicts its own swing to within degrees
+
+
+def test_a_fit_marks_what_a_pendulum_leg_cannot_inform(tmp_path, capsys):
+    """A leg without pulses: the fit says per leg that its delay and muscle are not estimates from
+    its data, and the report marks them "prior only"; a leg with pulses is not marked."""
+    stimulated, _ = simulate_cohort(legs=["TN-left"], minutes=0.5, seed=0, trials=[1])
+    pendulum = _pendulum_trial("PT", 1, PASSIVE)
+    data = write_interchange(Cohort(stimulated.trials + (pendulum,)), tmp_path / "data")
+    capsys.readouterr()
+    rc = main(["fit", str(data), "--model", "model1", "--chains", "1", "--warmup", "30", "--draws", "30",
+               "--out", str(tmp_path / "fit")])
+    assert rc in (0, 3)  # so short a fit may fail its checks; what matters here is what it says
+    err = capsys.readouterr().err
+    assert "PT-left: no pulses in the fitted trials: its delay and gain are the prior's" in err
+    assert "TN-left: " not in " ".join(line for line in err.splitlines() if "prior's" in line)
+    s = json.loads((tmp_path / "fit" / "summary.json").read_text())
+    assert s["uninformed"] == {"PT-left": {"pulses": 0, "params": ["gain"], "delay": True, "why": "no pulses"}}
+    assert main(["-q", "report", str(tmp_path / "fit"), "--out", str(tmp_path / "report"), "--draws", "5",
+                 "--start-stride", "50"]) == 0
+    pages = {p.name: p.read_text() for p in (tmp_path / "report").glob("*.html")}
+    pt = next(text for name, text in pages.items() if "PT" in name)
+    tn = next(text for name, text in pages.items() if "TN" in name)
+    assert 'class="prior-only"' in pt and "(prior only)" in pt
+    assert 'class="prior-only"' not in tn

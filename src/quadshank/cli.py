@@ -278,6 +278,9 @@ def cmd_fit(args) -> int:
     )
     for w in diag.get("warnings", []):
         print(f"quadshank: warning: {w}", file=sys.stderr)
+    for leg, u in (summary.uninformed or {}).items():
+        print(f"quadshank: warning: {leg}: {u['why']} in the fitted trials: its delay and {', '.join(u['params'])} "
+              "are the prior's and the other legs', not estimates from its data", file=sys.stderr)
     if not diag["ok"]:
         print(f"quadshank: {summary.banner}", file=sys.stderr)
         for a in diag["advice"]:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from ..data._cohort import Cohort, derivation_settings
 from ..inference._fitio import (
     FitResult,
@@ -15,6 +17,25 @@ from ..inference._fitio import (
 )
 from ..inference._nuts import FitSettings, run_nuts
 from ..inference._priors import build_model, delay_prior_from
+
+
+#: A leg with fewer pulses than this in its fitted trials has active parameters its own data hardly
+#: inform (the classical identification asks for 8 isolated twitches; one twitch pins nothing down).
+FEW_PULSES = 8
+
+
+def uninformed_legs(model, cohort: Cohort) -> dict:
+    """Legs with fewer than :data:`FEW_PULSES` pulses: per leg the pulses and the parameters of
+    the muscle and the delay, whose values there come from the prior and the other legs."""
+    active = [p.name for e in model.effects if e.kind in ("activation", "gain", "pulse", "delay")
+              for p in e.declared_params()]
+    out = {}
+    for leg in cohort.legs:
+        pulses = int(sum(np.count_nonzero(t.stimulation > 0) for t in cohort.trials_of(leg)))
+        if pulses < FEW_PULSES:
+            out[leg] = {"pulses": pulses, "params": active, "delay": True,
+                        "why": "no pulses" if pulses == 0 else f"only {pulses} pulse{'s' if pulses > 1 else ''}"}
+    return out
 
 
 def run_fit(
@@ -69,4 +90,7 @@ def run_fit(
     derived = {signal: d for signal, d in derived.items() if d["trials"]}
     if derived:
         extra["derived_signals"] = derived
+    uninformed = uninformed_legs(m, cohort.select(desc["legs"], desc["trials"]))
+    if uninformed:
+        extra["uninformed"] = uninformed
     return save_fit(idata, out, extra=extra)

@@ -94,6 +94,7 @@ class FitResult(Result):
     fit_id: str | None = None  # also in fit.nc: the two files of one fit carry the same
     data_fingerprint: str | None = None  # of the legs and trials fitted (Cohort.fingerprint)
     derived_signals: dict | None = None  # signals derived from the angle (no sensor): how, and for which trials
+    uninformed: dict | None = None  # leg -> pulses, and the active parameters its own data hardly inform
 
     @property
     def ok(self) -> bool:

@@ -192,7 +192,7 @@ th{background:#f2f2f2}td.num{text-align:right;font-variant-numeric:tabular-nums}
 img{max-width:100%;display:block;margin:.6em 0}
 .warning{border:3px solid #c00;background:#fee;color:#600;padding:.6em 1em;margin:1em 0}
 .warning strong{color:#c00}.ok{color:#060}.fail{color:#c00;font-weight:bold}
-.note{color:#555;font-size:.9em}nav a{margin-right:1em}
+.note{color:#555;font-size:.9em}.prior-only{background:#fde68a;color:#78350f;padding:0 .3em;border-radius:3px;font-size:.85em}nav a{margin-right:1em}
 """
 
 _SCRIPT = """
@@ -328,10 +328,16 @@ def _diagnosis_section(diagnosis: dict | None) -> str:
     return "\n".join(parts)
 
 
-def _param_rows(rows: dict) -> list[list[str]]:
+def _param_rows(rows: dict, prior_only=()) -> list[list[str]]:
+    """Table rows of a leg's parameters; those in ``prior_only`` (the leg's data do not inform
+    them) say so beside their interval."""
+    def base(label: str) -> str:
+        return label.split("[")[0]
+
     return [
-        [f"<code>{_e(name)}</code>", _e(r["units"]), _q(r["leg"]), _q(r["subject"]), _q(r["population"]),
-         f'<span class="doc">{_e(r.get("doc") or "")}</span>']
+        [f"<code>{_e(name)}</code>", _e(r["units"]),
+         _q(r["leg"]) + (' <span class="prior-only">prior only</span>' if base(name) in prior_only else ""),
+         _q(r["subject"]), _q(r["population"]), f'<span class="doc">{_e(r.get("doc") or "")}</span>']
         for name, r in rows.items()
     ]
 
@@ -464,14 +470,19 @@ def write_report(
         figs += 1
         for leg in sl:
             s = fs.legs[leg]
+            u = (fs.uninformed or {}).get(leg)
             body.append(f'<h2 id="leg-{_e(_safe(leg))}">Leg {_e(leg)}</h2>')
-            body.append(f"<p>Delay: {_e(_delay_text(s, dt))}. Files: "
+            body.append(f"<p>Delay: {_e(_delay_text(s, dt))}{' (prior only)' if u else ''}. Files: "
                         f'<a href="legs/{_e(_safe(leg))}.csv">CSV</a>, <a href="legs/{_e(_safe(leg))}.json">JSON</a>.</p>')
+            if u:
+                body.append(f'<p class="note prior-only-note">{_e(leg)}: {_e(u["why"])} in the fitted trials. Its delay '
+                            f"and {_e(', '.join(u['params']))} are not estimates from its data: their values are the "
+                            "prior's and what the other legs tell the population (marked <em>prior only</em>).</p>")
             if "delay_angle" in s:
                 body.append(f"<p>{_delay_angle_html(s['delay_angle'])}.</p>")
             body.append(f"<h3>Credible parameters of {_e(leg)}</h3>")
             body.append(_table(["parameter", "units", f"leg {leg}", f"subject {subject}", "population", "meaning"],
-                               _param_rows(params[leg]["params"]), (2, 3, 4)))
+                               _param_rows(params[leg]["params"], u["params"] if u else ()), (2, 3, 4)))
             body.append(f"<h3>J_φ,p of {_e(leg)} [deg]</h3>")
             body.append(_table(["trial", "horizon [ms]", "median [90 %]", f"paper {base}: mean (s.d.)"],
                                _j_rows(J_legs.get(leg, {}), label), (2, 3)))
