@@ -132,3 +132,16 @@ def test_implausible_units_are_warned_about_in_one_line(data, tmp_path, capsys):
     warned = [line for line in capsys.readouterr().err.splitlines() if line.startswith("quadshank: warning:")]
     assert len(warned) == 1, warned
     assert "trial2.csv" in warned[0] and "TN-left trial 2" in warned[0] and "pi/180" in warned[0]
+
+
+def test_a_truth_json_of_another_kind_is_left_aside(data, tmp_path, capsys):
+    import shutil
+
+    mine = tmp_path / "mine"
+    shutil.copytree(data, mine)
+    (mine / "truth.json").write_text("[1, 2]")  # the user's own file of that name
+    capsys.readouterr()
+    assert main(["--quiet", "identify", str(mine), "--out", str(tmp_path / "id")]) == 0
+    assert "truth.json: not the simulator's truth" in capsys.readouterr().err
+    s = json.loads((tmp_path / "id" / "summary.json").read_text())["legs"]
+    assert all("recovery" not in v for v in s.values())

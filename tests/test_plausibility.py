@@ -77,3 +77,9 @@ def test_a_fit_refuses_data_it_was_not_fitted_to():
     other = Cohort(tuple(x.replace(subject="JM") for x in cohort.trials))
     with pytest.raises(KeyError, match="TN-left"):
         check_fit_data("fitdir", summary, desc, other)
+
+
+def test_a_constant_angle_is_named():
+    t = _trial()
+    found = plausibility(t.replace(angle_deg=np.full(t.n_samples, 5.0)))
+    assert found == ["angle_deg is constant (5.0° throughout): no movement was recorded"]

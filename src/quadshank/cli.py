@@ -77,8 +77,22 @@ def _say(args, *lines: str) -> None:
 
 
 def _truth_beside(data: Path) -> dict | None:
+    """The simulator's truth written beside the data (``quadshank simulate``), or None; a
+    ``truth.json`` of another kind is left aside with a warning."""
     path = data / "truth.json" if data.is_dir() else data.with_name("truth.json")
-    return read_json(path) if path.exists() else None
+    if not path.exists():
+        return None
+    try:
+        truth = read_json(path)
+    except ValueError as exc:
+        print(f"quadshank: warning: {exc}; left aside (not the simulator's truth)", file=sys.stderr)
+        return None
+    if not isinstance(truth, dict) or not isinstance(truth.get("legs"), dict) or not all(
+            isinstance(v, dict) for v in truth["legs"].values()):
+        print(f"quadshank: warning: {path}: not the simulator's truth (a 'legs' object of legs); left aside",
+              file=sys.stderr)
+        return None
+    return truth
 
 
 def _inputs(args) -> list[Path]:

@@ -233,6 +233,8 @@ def plausibility(trial: Trial) -> list[str]:
     0.01 or 100 another unit or scale.
     """
     dt = trial.sampling_period_s
+    if trial.n_samples > 1 and np.ptp(trial.angle_deg) == 0:
+        return [f"angle_deg is constant ({float(trial.angle_deg[0])!r}° throughout): no movement was recorded"]
     window = max(7, int(round(PLAUSIBILITY_WINDOW_S / dt)) | 1)
     if trial.n_samples < 3 * window:
         return []
