@@ -488,3 +488,38 @@ def test_an_earlier_output_of_the_same_command_is_written_over(base, tmp_path, c
     (other / ".quadshank-output").write_text("fit\n")  # another command's output
     rc, lines = _run(COMMANDS["identify"](base / "data", other), capsys)
     _assert_refused(rc, lines, [str(other), "no earlier output of `quadshank identify`"], None)
+
+
+FIT_COMMANDS = {
+    "report": lambda fit, data, out: ["report", str(fit), "--data", str(data), "--out", str(out)],
+    "diagnose": lambda fit, data, out: ["diagnose", str(fit), "--data", str(data), "--out", str(out)],
+    "evaluate": lambda fit, data, out: ["evaluate", str(data), "--fit", str(fit), "--out", str(out)],
+    "compare": lambda fit, data, out: ["compare", str(fit), str(fit), "--data", str(data), "--out", str(out)],
+    "predict": lambda fit, data, out: ["predict", str(fit), "--stimulation", str(data / T1), "--out", str(out)],
+}
+
+
+@pytest.mark.parametrize("damage", ["truncated", "another file", "no summary"])
+@pytest.mark.parametrize("command", FIT_COMMANDS)
+def test_a_damaged_fit_folder_is_refused(base, tmp_path, capsys, command, damage):
+    from quadshank.inference import FitResult
+
+    fit = tmp_path / "fit"
+    fit.mkdir()
+    FitResult(model="model1", effects=[], trials=[1], legs={}, diagnostics={"ok": True}, banner=None, settings={},
+              chain_method="vectorized", sampling_period_s=DT, interval=[0.05, 0.95], code={}).write(fit)
+    (fit / "fit.nc").write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(500) if damage == "truncated" else b"time_s,angle\n1,2\n")
+    if damage == "no summary":
+        (fit / "summary.json").unlink()
+    before = _hashes(tmp_path)
+    rc, lines = _run(FIT_COMMANDS[command](fit, base / "data", tmp_path / "out"), capsys)
+    _assert_refused(rc, lines, [str(fit)], tmp_path / "out")
+    assert _hashes(tmp_path) == before
+
+
+def test_an_empty_output_name_is_refused(base, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for argv in (["identify", str(base / "data"), "--out", ""], ["convert", str(base / "cohort.nc"), " "]):
+        rc, lines = _run(argv, capsys)
+        _assert_refused(rc, lines, ["give"], None)
+    assert list(tmp_path.iterdir()) == []

@@ -720,9 +720,13 @@ def main(argv: list[str] | None = None) -> int:
     mark = None
     try:
         if args.command == "convert":
+            if not args.dst.strip():
+                raise ValueError("convert: give the destination (a folder, or a file ending in .nc)")
             if Path(args.dst).suffix.lower() != ".nc":  # a folder of recordings
                 mark = prepare_output(Path(args.dst), "convert", _inputs(args), args.overwrite)
-        elif getattr(args, "out", None):
+        elif hasattr(args, "out"):
+            if not (args.out or "").strip():
+                raise ValueError("--out: give the folder for the results (an empty name is the current folder)")
             mark = prepare_output(Path(args.out), args.command, _inputs(args), args.overwrite)
         with warnings.catch_warnings():
             warnings.simplefilter("always", DataWarning)

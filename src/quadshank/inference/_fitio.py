@@ -476,8 +476,13 @@ def read_summary(folder: str | os.PathLike) -> FitResult:
 def load_fit(folder: str | os.PathLike):
     """(InferenceData, Model without values, description) of a saved fit."""
 
-    idata = az.from_netcdf(_complete_fit(folder) / "fit.nc")
-    desc = from_json(idata.posterior.attrs["quadshank_model"])
+    path = _complete_fit(folder) / "fit.nc"
+    try:
+        idata = az.from_netcdf(path)
+        desc = from_json(idata.posterior.attrs["quadshank_model"])
+    except Exception as exc:  # noqa: BLE001 - whatever a damaged or foreign file raises, it is not a fit
+        raise FitFolderError(f"{path}: not a readable quadshank fit ({exc}); run `quadshank fit` again into "
+                             f"{folder}") from None
     return idata, model_from_description(desc), desc
 
 
