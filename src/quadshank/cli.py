@@ -13,25 +13,26 @@ from pathlib import Path
 
 import matplotlib
 
-from .commands.demo import run_demo
+from .commands.demo import Demo, run_demo
 from .commands.diagnose import run_diagnose
 from .commands.discover import run_discover
 from .commands.evaluate import run_evaluate, run_posterior_evaluate
 from .commands.fit import run_fit
-from .commands.predict import run_predict
 from .commands.identify import run_identify
+from .commands.predict import PlanPrediction, run_predict
 from .commands.recovery import run_likelihood_calibration, run_recovery
-from .commands.report import run_report
-from .commands.reproduce import run_reproduce
+from .commands.report import Report, run_report
+from .commands.reproduce import Reproduction, run_reproduce
 from .common._io import read_json
 from .data._interchange import DataWarning, convert, load_cohort, write_interchange
 from .data._paper import LEGS
 from .data._simulate import simulate_cohort, write_truth
-from .evaluation._posterior import check_fit_data
+from .evaluation._posterior import PosteriorEvaluation, check_fit_data
+from .evaluation._prediction import Evaluation
 from .inference._fitio import FitResult, check_fit_files, load_fit, read_summary
-from .inference._identify import load_identification
+from .inference._identify import Identification, load_identification
 from .inference._nuts import SEQUENTIAL_FROM_SAMPLES, STARTS, FitSettings
-from .loop._diagnose import Diagnosis
+from .loop._diagnose import Diagnosis, Discovery
 from .model._model import MODELS
 
 __all__ = ["main"]
@@ -40,10 +41,10 @@ EXPECTED_ERRORS: tuple[type[BaseException], ...] = (OSError, KeyError, ValueErro
 
 #: The result kinds (``summary.json`` schema) a command may find in its output folder from an earlier run of its own.
 OUTPUT_KINDS = {
-    "identify": {"identification"}, "evaluate": {"evaluation", "posterior-evaluation"}, "fit": {"fit"},
-    "reproduce": {"reproduction"}, "diagnose": {"diagnosis"}, "discover": {"discovery"},
-    "compare": {"posterior-evaluation"}, "report": {"report"}, "demo": {"demo"}, "recovery": set(),
-    "likelihood-check": set(), "simulate": set(), "convert": set(), "predict": {"prediction"},
+    "identify": {Identification.KIND}, "evaluate": {Evaluation.KIND, PosteriorEvaluation.KIND}, "fit": {FitResult.KIND},
+    "reproduce": {Reproduction.KIND}, "diagnose": {Diagnosis.KIND}, "discover": {Discovery.KIND},
+    "compare": {PosteriorEvaluation.KIND}, "report": {Report.KIND}, "demo": {Demo.KIND}, "recovery": set(),
+    "likelihood-check": set(), "simulate": set(), "convert": set(), "predict": {PlanPrediction.KIND},
 }
 #: Commands whose output folder is a folder of recordings.
 DATA_WRITERS = ("simulate", "convert")

@@ -22,9 +22,10 @@ from scipy.signal import savgol_filter
 
 from ..common._io import atomic_path
 
-__all__ = ["Trial", "Cohort", "derive_velocity", "derive_acceleration", "derivation_settings", "VELOCITY_WINDOW",
-           "ACCELERATION_WINDOW_S",
-           "leg_key"]
+__all__ = [
+    "Trial", "Cohort", "derive_velocity", "derive_acceleration", "derivation_settings", "VELOCITY_WINDOW",
+    "ACCELERATION_WINDOW_S", "leg_key",
+]  # fmt: skip
 
 #: Savitzky–Golay window (samples) used to derive velocity from the angle.
 VELOCITY_WINDOW = 7
@@ -68,6 +69,11 @@ ACCELERATION_WINDOW_S = 0.07
 ACCELERATION_POLYORDER = 3
 
 
+def _acceleration_window(dt: float) -> int:
+    """:data:`ACCELERATION_WINDOW_S` in samples at ``dt``: odd, at least 5."""
+    return max(5, int(round(ACCELERATION_WINDOW_S / dt)) | 1)
+
+
 def derive_acceleration(angle_deg: np.ndarray, dt: float) -> np.ndarray:
     """Knee angular acceleration [deg/s²] from the sampled angle [deg], off-line, for
     recordings without an accelerometer.
@@ -81,7 +87,7 @@ def derive_acceleration(angle_deg: np.ndarray, dt: float) -> np.ndarray:
     lie within a few per cent of those from the accelerometer (``docs/data-format.md``).
     """
     angle = np.asarray(angle_deg, dtype=float)
-    window = max(5, int(round(ACCELERATION_WINDOW_S / dt)) | 1)
+    window = _acceleration_window(dt)
     if angle.size < window:
         return np.gradient(np.gradient(angle, dt), dt) if angle.size > 2 else np.zeros_like(angle)
     return savgol_filter(angle, window, ACCELERATION_POLYORDER, deriv=2, delta=dt, mode="interp")
@@ -92,8 +98,7 @@ def derivation_settings(sampling_period_s: float) -> dict:
     return {
         "velocity": {"method": "Savitzky-Golay, zero-phase", "window_samples": VELOCITY_WINDOW,
                      "polyorder": VELOCITY_POLYORDER},
-        "acceleration": {"method": "Savitzky-Golay, zero-phase", "window_samples":
-                         max(5, int(round(ACCELERATION_WINDOW_S / sampling_period_s)) | 1),
+        "acceleration": {"method": "Savitzky-Golay, zero-phase", "window_samples": _acceleration_window(sampling_period_s),
                          "polyorder": ACCELERATION_POLYORDER},
     }
 

@@ -6,16 +6,21 @@ save it and return its path); they never show it.
 
 from ._figures import (
     plot_delay_angle,
-    plot_plan_predictions,
     plot_delay_scan,
     plot_j_vs_horizon,
+    plot_plan_predictions,
     plot_posterior_j_vs_horizon,
     plot_posterior_predictions,
     plot_predictions,
     plot_signals,
     plot_twitch_dependence,
 )
-from ._loop import discovery_markdown, predictive_checks, ranking_markdown, residual_figures
+from ._loop import (
+    discovery_markdown,
+    predictive_checks,
+    ranking_markdown,
+    residual_figures,
+)
 from ._report import (
     plot_delay_posterior,
     plot_leg_predictions,
