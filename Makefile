@@ -15,7 +15,7 @@ install: $(BIN)/.installed
 
 ## the main job: the paper reproduced on the built-in simulated cohort, written to results/demo/
 demo: $(BIN)/.installed
-	$(BIN)/quadshank demo --out results/demo
+	$(BIN)/quadshank demo --out results/demo --overwrite
 
 ## the report test opens pages in a real headless browser: Debian's Chromium, installed once
 CHROMIUM := /usr/bin/chromium
