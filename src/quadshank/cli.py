@@ -27,9 +27,9 @@ from .common._io import read_json
 from .data._interchange import DataWarning, convert, load_cohort, write_interchange
 from .data._paper import LEGS
 from .data._simulate import simulate_cohort, write_truth
-from .evaluation._posterior import PosteriorEvaluation, check_fit_data
+from .evaluation._posterior import PosteriorEvaluation, check_fit_legs, load_fits
 from .evaluation._prediction import Evaluation
-from .inference._fitio import FitResult, check_fit_files, load_fit, read_summary
+from .inference._fitio import FitResult, read_summary
 from .inference._identify import Identification, load_identification
 from .inference._nuts import SEQUENTIAL_FROM_SAMPLES, STARTS, FitSettings
 from .loop._diagnose import Diagnosis, Discovery
@@ -376,11 +376,10 @@ def _say_ranking(args, summary: Diagnosis) -> None:
 
 
 def cmd_diagnose(args) -> int:
-    fit_summary = read_summary(args.fitdir)
-    idata, model, desc = load_fit(args.fitdir)
-    check_fit_files(args.fitdir, idata, fit_summary)
-    cohort, _ = _loop_data(args, fit_summary)
-    check_fit_data(args.fitdir, fit_summary, desc, cohort)
+    (fit,) = load_fits([args.fitdir])
+    model, desc = fit.model, fit.desc
+    cohort, _ = _loop_data(args, fit.summary)
+    check_fit_legs([fit], cohort)
     command = _command_line(args)
     if args.confirm < 0:
         raise ValueError(f"--confirm must be a number of leaders, at least 0, not {args.confirm}")

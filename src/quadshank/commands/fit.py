@@ -18,7 +18,6 @@ from ..inference._fitio import (
 from ..inference._nuts import FitSettings, run_nuts
 from ..inference._priors import build_model, delay_prior_from
 
-
 #: A leg with fewer pulses than this in its fitted trials has active parameters its own data hardly
 #: inform (the classical identification asks for 8 isolated twitches; one twitch pins nothing down).
 FEW_PULSES = 8
@@ -82,15 +81,16 @@ def run_fit(
         extra["data"] = str(data_source)
     desc = from_json(idata.posterior.attrs["quadshank_model"])
     extra["data_fingerprint"] = cohort.fingerprint(desc["legs"], desc["trials"])
-    fitted = cohort.select(desc["legs"], desc["trials"]).trials
+    fitted = cohort.select(desc["legs"], desc["trials"])
     derived = {
-        signal: {**how, "trials": [f"{t.key} trial {t.trial}" for t in fitted if not getattr(t, f"{signal}_measured")]}
+        signal: {**how, "trials": [f"{t.key} trial {t.trial}" for t in fitted.trials
+                                   if not getattr(t, f"{signal}_measured")]}
         for signal, how in derivation_settings(cohort.sampling_period_s).items()
     }
     derived = {signal: d for signal, d in derived.items() if d["trials"]}
     if derived:
         extra["derived_signals"] = derived
-    uninformed = uninformed_legs(m, cohort.select(desc["legs"], desc["trials"]))
+    uninformed = uninformed_legs(m, fitted)
     if uninformed:
         extra["uninformed"] = uninformed
     return save_fit(idata, out, extra=extra)
