@@ -31,6 +31,38 @@ def test_isolated_twitches_and_quiet_mask():
     assert not q[30:66].any() and q[66:100].all() and not q[100].any()
 
 
+def test_isolated_twitches_skip_excluded_epochs():
+    u = np.zeros(400)
+    u[[30, 200, 330]] = 1.0
+    exclude = np.zeros(400, bool)
+    exclude[240] = True  # within 200's 50 samples after
+    assert isolated_twitches(u, exclude=exclude).tolist() == [30, 330]
+    exclude[:] = False
+    exclude[10] = True  # within 30's 25 samples before
+    assert isolated_twitches(u, exclude=exclude).tolist() == [200, 330]
+
+
+def test_identification_leaves_excluded_samples_out():
+    """An artefact over a stretch of twitches and quiet samples, once excluded, moves nothing."""
+    cohort, _ = simulate_cohort(legs=("OT-left",), minutes=3.0, seed=5, trials=(1,))
+    clean = cohort.get("OT-left", 1)
+    exclude = np.zeros(clean.n_samples, bool)
+    exclude[3000:6000] = True
+    acc = clean.acceleration_deg_s2.copy()
+    acc[3000:6000] += 3000.0 * np.sin(np.arange(3000) / 7.0)
+    r_clean = identify_leg(clean.replace(exclude=exclude))
+    r_dirty = identify_leg(clean.replace(acceleration_deg_s2=acc, exclude=exclude))
+    assert r_dirty.pulses.tolist() == r_clean.pulses.tolist() and not ((r_clean.pulses > 2975) & (r_clean.pulses < 6000)).any()
+    assert r_dirty.n_quiet == r_clean.n_quiet
+    for name in ("model1", "model3"):
+        a, b = r_clean.models[name].flat_params(), r_dirty.models[name].flat_params()
+        assert all(float(a[k]) == pytest.approx(float(b[k]), rel=1e-4, abs=1e-9) for k in a), name
+    # left in, the artefact would have moved the passive estimates
+    moved = identify_leg(clean.replace(acceleration_deg_s2=acc))
+    assert abs(moved.passive["gravity"] - r_clean.passive["gravity"]) > 0.01 * r_clean.passive["gravity"] or \
+        abs(moved.passive["damping"] - r_clean.passive["damping"]) > 0.05 * r_clean.passive["damping"]
+
+
 def test_fit_darma_recovers_exact_coefficients_and_the_delay():
     rng = np.random.default_rng(3)
     n = 6000

@@ -662,3 +662,61 @@ def test_start_and_end_cut_a_trial_and_keep_its_times(folder, cohort):
 def test_a_bad_start_or_end_is_named(folder, start, end, column, text):
     _add_manifest_columns(folder, start_s=[start, "", ""], end_s=[end, "", ""])
     assert_problem(problems_of(folder), MAN, column, 2, text)
+
+
+# --------------------------------------------------------------------------- exclude
+def test_exclude_column_is_read_kept_in_netcdf_and_written_back(folder, tmp_path):
+    flags = np.zeros(N, int)
+    flags[:35] = 1  # a release
+    flags[200:210] = 1  # an artefact
+    add_column(folder / TN1, "exclude", "0")
+    rows = read_rows(folder / TN1)
+    j = rows[0].index("exclude")
+    for r, f in zip(rows[1:], flags):
+        r[j] = str(f)
+    write_rows(folder / TN1, rows)
+    got = read_interchange(folder)
+    np.testing.assert_array_equal(got.get("TN-left", 1).exclude, flags.astype(bool))
+    assert not got.get("TN-left", 2).exclude.any() and got.get("TN-left", 2).exclude.shape == (N,)
+    # NetCDF keeps it; an interchange folder written back has the column only where something is excluded
+    nc = tmp_path / "c.nc"
+    got.save_netcdf(nc)
+    np.testing.assert_array_equal(ix.read_netcdf(nc).get("TN-left", 1).exclude, flags.astype(bool))
+    back = write_interchange(got, tmp_path / "back")
+    assert "exclude" in read_rows(back / TN1)[0] and "exclude" not in read_rows(back / TN2)[0]
+    np.testing.assert_array_equal(read_interchange(back).get("TN-left", 1).exclude, flags.astype(bool))
+    # start_s cuts the flags with the samples; the fingerprint sees the flags
+    _add_manifest_columns(folder, start_s=["0.2", "", ""])
+    cut = read_interchange(folder).get("TN-left", 1)
+    np.testing.assert_array_equal(cut.exclude, flags[20:].astype(bool))
+    plain = make_cohort()
+    assert got.fingerprint(trials=[2]) == plain.fingerprint(trials=[2])
+    assert got.fingerprint(trials=[1]) != plain.fingerprint(trials=[1])
+
+
+@pytest.mark.parametrize(("values", "row", "text"), [({5: "2"}, 6, "not 0 or 1"), ({9: "0.5"}, 10, "not 0 or 1"),
+                                                     ({3: "yes"}, 4, "non-numeric")])
+def test_a_bad_exclude_flag_is_named(folder, values, row, text):
+    add_column(folder / TN1, "exclude", "0")
+    for i, v in values.items():
+        set_cell(folder / TN1, i + 1, "exclude", v)
+    assert_problem(problems_of(folder), TN1, "exclude", row, text)
+
+
+def test_a_trial_with_every_sample_excluded_is_refused(folder):
+    add_column(folder / TN2, "exclude", "1")
+    assert_problem(problems_of(folder), TN2, "exclude", None, "at least 2")
+
+
+def test_excluded_samples_leave_the_prediction_starts():
+    from quadshank.evaluation import prediction_starts
+
+    t = make_trial("TN", "left", 1, 0.0)
+    flags = np.zeros(N, bool)
+    flags[100:105] = True
+    starts = prediction_starts(t.replace(exclude=flags), 20)
+    runs = starts[:, None] + np.arange(21)[None, :]
+    assert not flags[runs].any()
+    assert set(prediction_starts(t, 20)) - set(starts) == set(range(80, 105))
+    with pytest.raises(ValueError, match="no stretch of 21 samples"):
+        prediction_starts(t.replace(exclude=np.arange(N) % 10 == 0), 20)

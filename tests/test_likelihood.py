@@ -66,6 +66,7 @@ def _reference_loglik(model, trials, d, sigma, nu, resolution, response_length):
         last = np.flatnonzero(stim > 0)[-1]
         if resolution == "twitch" and last + MAX_DELAY + TWITCH_SAMPLES > angle.size:
             keep[starts >= starts[starts <= last][-1]] = False  # the window the trial's end cuts short
+        keep &= np.add.reduceat(t.exclude.astype(int), starts) == 0  # a window with an excluded sample
         scale, nu_n = _window_t(sigma, nu, n)
         total += stats.t.logpdf(E - Mw, df=nu_n, scale=scale)[keep].sum()
     return total
@@ -83,6 +84,60 @@ def test_sparse_delay_loglik_matches_reference(cohort_truth, number):
     for d in (0, 4, MAX_DELAY):
         ref = _reference_loglik(model, trials, d, 35.0, 6.0, data.resolution, data.response_length)
         assert ll[d] == pytest.approx(ref, rel=2e-5, abs=0.5), d
+
+
+def _excluding(cohort, leg, stretches):
+    """The cohort with the samples ``stretches`` [(trial, start, stop)] of ``leg`` excluded and
+    their acceleration replaced by nonsense."""
+    trials = []
+    for t in cohort.trials:
+        exclude, acc = t.exclude.copy(), t.acceleration_deg_s2.copy()
+        for trial, a, b in stretches:
+            if t.key == leg and t.trial == trial:
+                exclude[a:b] = True
+                acc[a:b] = 1e5
+        trials.append(t.replace(exclude=exclude, acceleration_deg_s2=acc))
+    return type(cohort)(tuple(trials), cohort.attrs)
+
+
+@pytest.mark.parametrize("number", [1, 2, 3])
+def test_excluded_samples_leave_the_likelihood_but_their_pulses_act(cohort_truth, number):
+    """Excluded samples (and, on twitch windows, the whole window they fall in) are not compared,
+    whatever they hold; the pulses delivered in them still act on the samples after them."""
+    cohort, truth = cohort_truth
+    leg = "JM-right"
+    model = _true_model(number, truth, leg)
+    pulses = cohort.get(leg, 1).pulse_indices
+    # a stretch holding a pulse whose response runs out into compared samples (at the sample
+    # resolution), and one sample inside a twitch window of trial 2
+    p = int(pulses[len(pulses) // 2])
+    q = int(cohort.get(leg, 2).pulse_indices[3])
+    stretches = [(1, 200, 900), (1, p - 2, p + 2), (2, q + 5, q + 6)]
+    dirty = _excluding(cohort, leg, stretches)
+    data = L.prepare(dirty, model, trials=(1, 2), legs=[leg])
+    x = {k: v[0] for k, v in data.leg_arrays().items()}
+    noise = {"sigma": 35.0, "nu": 6.0}
+    ll = np.asarray(L.leg_loglik_by_delay(model, noise, x, data.response_length))[:, 0]
+    for d in (0, 4, MAX_DELAY):
+        ref = _reference_loglik(model, dirty.trials_of(leg), d, 35.0, 6.0, data.resolution, data.response_length)
+        assert np.isfinite(ref) and ll[d] == pytest.approx(ref, rel=2e-5, abs=0.5), d
+    compared = int(data.sample_mask.sum())
+    clean = int(L.prepare(cohort, model, trials=(1, 2), legs=[leg]).sample_mask.sum())
+    excluded = sum(b - a for _, a, b in stretches)
+    if data.resolution == "sample":
+        assert clean - compared == excluded
+        # the excluded pulse still acts: without it the likelihood of the samples after it differs
+        silent = dirty.trials_of(leg)[0].stimulation.copy()
+        silent[p] = 0.0
+        without = _excluding(cohort, leg, stretches)
+        without = type(cohort)(tuple(t.replace(stimulation=silent) if t.key == leg and t.trial == 1 else t
+                                     for t in without.trials), cohort.attrs)
+        data0 = L.prepare(without, model, trials=(1, 2), legs=[leg])
+        x0 = {k: v[0] for k, v in data0.leg_arrays().items()}
+        ll0 = np.asarray(L.leg_loglik_by_delay(model, noise, x0, data0.response_length))[:, 0]
+        assert abs(ll0[4] - ll[4]) > 1.0
+    else:
+        assert clean - compared > excluded  # whole windows go
 
 
 def test_pointwise_segments_sum_to_the_delay_loglik(cohort_truth):

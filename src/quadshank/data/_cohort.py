@@ -109,7 +109,10 @@ class Trial:
 
     Units: angle [deg] (0 = shank at rest, positive = extension), velocity
     [deg/s], acceleration [deg/s²], stimulation = recruitment level u in [0, 1]
-    of the pulse delivered at that sample (0 when none).
+    of the pulse delivered at that sample (0 when none).  ``exclude`` marks
+    samples left out of every comparison with the model (a release, a spasm, a
+    sensor artefact): the likelihood, the classical identification and J skip
+    them, while the model still runs through them (None: nothing excluded).
     """
 
     subject: str
@@ -124,6 +127,7 @@ class Trial:
     velocity_measured: bool = True
     source: str = ""
     acceleration_measured: bool = True
+    exclude: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.time_s)
@@ -132,6 +136,10 @@ class Trial:
             if arr.shape != (n,):
                 raise ValueError(f"{self.key} trial {self.trial}: {name} has shape {arr.shape}, expected ({n},)")
             object.__setattr__(self, name, arr)
+        exclude = np.zeros(n, bool) if self.exclude is None else np.asarray(self.exclude, dtype=bool)
+        if exclude.shape != (n,):
+            raise ValueError(f"{self.key} trial {self.trial}: exclude has shape {exclude.shape}, expected ({n},)")
+        object.__setattr__(self, "exclude", exclude)
 
     @property
     def key(self) -> str:
@@ -158,9 +166,10 @@ class Trial:
         velocity_deg_s=None,
         time_s=None,
         source: str = "",
+        exclude=None,
     ) -> Trial:
         """Build a trial, deriving the velocity and the acceleration from the angle when they
-        are not given (None)."""
+        are not given (None).  The derivation runs through excluded samples too."""
         angle = np.asarray(angle_deg, dtype=float)
         if time_s is None:
             time_s = np.arange(angle.size) * sampling_period_s
@@ -183,6 +192,7 @@ class Trial:
             velocity_measured=measured,
             source=source,
             acceleration_measured=accelerometer,
+            exclude=exclude,
         )
 
     def replace(self, **changes) -> Trial:
@@ -247,6 +257,8 @@ class Cohort:
                      f"{t.acceleration_measured}".encode())
             for name in _SIGNALS:
                 h.update(np.ascontiguousarray(getattr(t, name), dtype=np.float64).tobytes())
+            if t.exclude.any():  # recordings without excluded samples hash as they always did
+                h.update(b"exclude" + np.packbits(t.exclude).tobytes())
         return h.hexdigest()[:16]
 
     def select(self, legs: Sequence[str] | None = None, trials: Sequence[int] | None = None) -> Cohort:
@@ -271,6 +283,10 @@ class Cohort:
             for i, t in enumerate(self.trials):
                 arr[i, : t.n_samples] = getattr(t, name)
             data[name] = (("trial", "sample"), arr)
+        exclude = np.zeros((len(self.trials), n_max), np.int8)
+        for i, t in enumerate(self.trials):
+            exclude[i, : t.n_samples] = t.exclude
+        data["exclude"] = (("trial", "sample"), exclude)
         coords = {
             "subject": ("trial", np.array([t.subject for t in self.trials], dtype=object)),
             "leg": ("trial", np.array([t.leg for t in self.trials], dtype=object)),
@@ -288,6 +304,7 @@ class Cohort:
             "velocity_deg_s": "deg/s",
             "acceleration_deg_s2": "deg/s^2",
             "stimulation": "1",
+            "exclude": "1",
         }
         for name, unit in units.items():
             ds[name].attrs["units"] = unit
@@ -312,6 +329,8 @@ class Cohort:
                     acceleration_measured=bool(ds["acceleration_measured"].values[i])
                     if "acceleration_measured" in ds else True,
                     source=str(ds["source"].values[i]),
+                    # files written before samples could be excluded have no such variable
+                    exclude=np.asarray(ds["exclude"].values[i, :n]) != 0 if "exclude" in ds else None,
                     **sig,
                 )
             )

@@ -35,6 +35,7 @@ Trial CSV — one row per sample, columns in any order, names exact:
 | `acceleration_deg_s2` | optional: angular acceleration [deg/s²] (from an accelerometer) |
 | `stimulation`         | recruitment level u in [0, 1] of the pulse delivered at that sample, 0 when none |
 | `velocity_deg_s`      | optional: measured angular velocity [deg/s]                |
+| `exclude`             | optional: 1 where the sample is left out of every comparison with the model (a release, a spasm, a sensor artefact), else 0 |
 
 When `velocity_deg_s` is absent the velocity is derived from the angle
 (:func:`~quadshank.data._cohort.derive_velocity`) and the trial is marked
@@ -62,7 +63,8 @@ All files are checked and all problems are collected; if there is any, an
 4. **Time**: strictly increasing; uniform (each step within 1 % of the median
    step); the median step equals the manifest's `sampling_period_s` within a
    relative 1e-3.
-5. **Stimulation** within [0, 1].
+5. **Stimulation** within [0, 1]; **exclude** 0 or 1, and at least two
+   samples of a trial not excluded.
 6. **Units**: an angle whose samples lie within ±pi (3.2), the 1 % at each end
    left out (glitches), while the angle moves (by more than 0.05 in a trial
    with pulses, 0.5 in one without) is taken to be in radians and rejected.
@@ -122,9 +124,9 @@ DEFAULT_SAMPLING_PERIOD_S = 0.01
 _MANIFEST_REQUIRED = ("subject", "leg", "trial", "file")
 _MANIFEST_OPTIONAL = ("sampling_period_s", "start_s", "end_s")
 _TRIAL_REQUIRED = ("time_s", "angle_deg", "stimulation")
-_TRIAL_OPTIONAL = ("acceleration_deg_s2", "velocity_deg_s")
+_TRIAL_OPTIONAL = ("acceleration_deg_s2", "velocity_deg_s", "exclude")
 #: Column order used when writing a trial file.
-_TRIAL_WRITE_ORDER = ("time_s", "angle_deg", "velocity_deg_s", "acceleration_deg_s2", "stimulation")
+_TRIAL_WRITE_ORDER = ("time_s", "angle_deg", "velocity_deg_s", "acceleration_deg_s2", "stimulation", "exclude")
 _LEGS = ("left", "right")
 
 #: A step may differ from the median step by this fraction before the grid counts as non-uniform.
@@ -242,9 +244,12 @@ def plausibility(trial: Trial) -> list[str]:
     checks = [("acceleration_deg_s2", 2, "deg/s²")] if trial.acceleration_measured else []
     if trial.velocity_measured:
         checks.append(("velocity_deg_s", 1, "deg/s"))
+    kept = ~trial.exclude  # an excluded artefact is not evidence of a wrong unit or sign
+    if np.count_nonzero(kept) < 3 * window:
+        return []
     for column, order, unit in checks:
-        derived = savgol_filter(trial.angle_deg, window, 3, deriv=order, delta=dt)
-        measured = savgol_filter(getattr(trial, column), window, 3)
+        derived = savgol_filter(trial.angle_deg, window, 3, deriv=order, delta=dt)[kept]
+        measured = savgol_filter(getattr(trial, column), window, 3)[kept]
         if np.std(derived) == 0 or np.std(measured) == 0:
             continue
         corr = float(np.corrcoef(measured, derived)[0, 1])
@@ -448,6 +453,17 @@ def _check_signals(
             problems, file, "stimulation", [(int(lines[i]), repr(float(stim[i]))) for i in out],
             "value {} outside [0, 1] (recruitment level of the pulse, 0 when none)",
         )
+
+    exclude = signals.get("exclude")
+    if exclude is not None:
+        out = np.flatnonzero((exclude != 0) & (exclude != 1))
+        _report_cells(
+            problems, file, "exclude", [(int(lines[i]), repr(float(exclude[i]))) for i in out],
+            "value {} is not 0 or 1 (1: the sample is left out of the comparison with the model)",
+        )
+        if not out.size and np.count_nonzero(exclude == 0) < 2:
+            problems.append(Problem(file, "exclude", None, f"{np.count_nonzero(exclude == 0)} of {exclude.size} "
+                                    "samples not excluded; at least 2 are needed"))
 
     angle = signals.get("angle_deg")
     if angle is not None and stim is not None and angle.size:
@@ -743,6 +759,7 @@ def read_interchange(folder: str | os.PathLike) -> Cohort:
             velocity_deg_s=s["velocity_deg_s"],
             time_s=s["time_s"],
             source=e.file,
+            exclude=s["exclude"],
         )
         trials.append(trim(whole, e.start_s, e.end_s))
     cohort = Cohort(tuple(trials), {"source": str(folder), "source_format": "interchange"})
@@ -888,15 +905,18 @@ def _check_cohort(cohort: Cohort, names: Sequence[str], *, listing: str = MANIFE
 
 
 def _written_columns(trial: Trial) -> list[str]:
-    """A trial's columns in a CSV: a derived velocity or acceleration is not written (it is derived again)."""
-    derived = {"velocity_deg_s": not trial.velocity_measured, "acceleration_deg_s2": not trial.acceleration_measured}
-    return [n for n in _TRIAL_WRITE_ORDER if not derived.get(n, False)]
+    """A trial's columns in a CSV: a derived velocity or acceleration is not written (it is derived again),
+    nor an ``exclude`` column that excludes nothing."""
+    left_out = {"velocity_deg_s": not trial.velocity_measured, "acceleration_deg_s2": not trial.acceleration_measured,
+                "exclude": not trial.exclude.any()}
+    return [n for n in _TRIAL_WRITE_ORDER if not left_out.get(n, False)]
 
 
 def _write_trial_csv(trial: Trial, path: Path) -> None:
-    """Write one trial's CSV (velocity only when it was measured); floats as ``repr``."""
+    """Write one trial's CSV (velocity only when it was measured); floats as ``repr``, exclude as 0/1."""
     names = _written_columns(trial)
-    columns = [list(map(repr, getattr(trial, n).tolist())) for n in names]
+    columns = [list(map(repr, getattr(trial, n).tolist())) if n != "exclude" else
+               ["1" if x else "0" for x in trial.exclude] for n in names]
     with open(path, "w", encoding="utf-8", newline="") as fh:
         fh.write(",".join(names) + "\n")
         fh.writelines(",".join(cells) + "\n" for cells in zip(*columns))

@@ -4,7 +4,8 @@ J_φ,p = sqrt( (1/l) Σ_n (φ_{n+p} - φ̂_{n+p|n})² ): from every start n the 
 runs ``max(horizons)`` samples ahead once, initialised with the measured
 passive state at n and the active part carried over from the run that started
 at n-1; the prediction is read at every horizon p.  All horizons use the same
-l starts (n = 0 .. N-1-max(horizons)), so they are comparable.
+l starts (n = 0 .. N-1-max(horizons)), so they are comparable.  A start whose run meets an
+excluded sample (``Trial.exclude``) is left out.
 
 The sign test follows section III-E-1: for each horizon and each pair of
 models, the J values of the two models are paired within leg and trial (the
@@ -44,11 +45,20 @@ def horizon_samples(sampling_period_s: float, horizons_ms=HORIZONS_MS) -> dict[i
 
 
 def prediction_starts(trial: Trial, horizon: int, stride: int = 1) -> np.ndarray:
-    """Starts n = 0, stride, 2·stride, … < N - horizon (all horizons share them)."""
+    """Starts n = 0, stride, 2·stride, … < N - horizon (all horizons share them), leaving out
+    every start whose run from n to n + horizon meets an excluded sample (``Trial.exclude``):
+    its initial state or one of its targets would be one."""
     n = trial.n_samples - horizon
     if n <= 0:
         raise ValueError(f"{trial.key} trial {trial.trial}: {trial.n_samples} samples, fewer than the horizon {horizon}")
-    return np.arange(0, n, stride)
+    starts = np.arange(0, n, stride)
+    if trial.exclude.any():
+        before = np.concatenate([[0], np.cumsum(trial.exclude, dtype=np.int64)])  # excluded samples before k
+        starts = starts[before[starts + horizon + 1] == before[starts]]
+        if not starts.size:
+            raise ValueError(f"{trial.key} trial {trial.trial}: no stretch of {horizon + 1} samples without an "
+                             "excluded sample, so no prediction to score")
+    return starts
 
 
 def predictions(model: Model, trial: Trial, horizon: int | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -153,7 +153,7 @@ def _passive_columns(angle, velocity, k2):
 
 
 def identify_passive(trials: list[Trial] | tuple[Trial, ...]) -> tuple[dict, float, int]:
-    """Passive parameters (D', G', k1', k2) from the quiet samples of ``trials``.
+    """Passive parameters (D', G', k1', k2) from the quiet samples of ``trials`` (excluded ones left out).
 
     Only samples at or below :data:`PASSIVE_MAX_ANGLE_DEG` (+60°, the top of
     the paper's operating range) are used: eq. (8) describes the shank within
@@ -165,7 +165,7 @@ def identify_passive(trials: list[Trial] | tuple[Trial, ...]) -> tuple[dict, flo
     """
     ang, vel, acc = [], [], []
     for t in trials:
-        m = quiet_mask(t.stimulation) & (t.angle_deg <= PASSIVE_MAX_ANGLE_DEG)
+        m = quiet_mask(t.stimulation) & (t.angle_deg <= PASSIVE_MAX_ANGLE_DEG) & ~t.exclude
         ang.append(t.angle_deg[m])
         vel.append(t.velocity_deg_s[m])
         acc.append(t.acceleration_deg_s2[m])
@@ -200,8 +200,9 @@ def identify_passive(trials: list[Trial] | tuple[Trial, ...]) -> tuple[dict, flo
 # ============================================================================ twitches
 
 
-def isolated_twitches(stimulation: np.ndarray, epoch: int = TWITCH_SAMPLES) -> np.ndarray:
-    """Indices of pulses with ``epoch`` quiet samples before and ``2*epoch`` after."""
+def isolated_twitches(stimulation: np.ndarray, epoch: int = TWITCH_SAMPLES, exclude=None) -> np.ndarray:
+    """Indices of pulses with ``epoch`` quiet samples before and ``2*epoch`` after, none of
+    those samples excluded (``exclude``: True on excluded samples; None: none)."""
     stim = np.asarray(stimulation)
     pulses = np.flatnonzero(stim > 0)
     n = len(stim)
@@ -210,6 +211,10 @@ def isolated_twitches(stimulation: np.ndarray, epoch: int = TWITCH_SAMPLES) -> n
     prev_gap = np.diff(pulses, prepend=-(10**9))
     next_gap = np.diff(pulses, append=10**9)
     ok = (prev_gap > epoch) & (next_gap > 2 * epoch) & (pulses >= epoch) & (pulses + 2 * epoch <= n)
+    if exclude is not None and np.any(exclude):
+        before = np.concatenate([[0], np.cumsum(np.asarray(exclude, dtype=int))])  # excluded samples before k
+        lo, hi = np.clip(pulses - epoch, 0, n), np.clip(pulses + 2 * epoch, 0, n)
+        ok &= before[hi] == before[lo]
     return pulses[ok]
 
 
@@ -263,11 +268,11 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
         dtype=float,
     )
     u = trial.stimulation
-    pulses = isolated_twitches(u)
+    pulses = isolated_twitches(u, exclude=trial.exclude)
     if pulses.size < MIN_TWITCHES:
         raise IdentificationError(
             f"{where}: only {pulses.size} isolated twitches (a pulse with {TWITCH_SAMPLES} quiet samples "
-            f"before and {2 * TWITCH_SAMPLES} after); the classical identification needs at least {MIN_TWITCHES} "
+            f"before and {2 * TWITCH_SAMPLES} after, none of them excluded); the classical identification needs at least {MIN_TWITCHES} "
             "(`quadshank fit` does not: it fits every sample, trains of pulses too)"
         )
     pulses = pulses[pulses > MAX_DELAY + 2]

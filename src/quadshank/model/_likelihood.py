@@ -139,7 +139,8 @@ class LikelihoodData:
     """Per-leg arrays, padded to common sizes and stacked on a leading leg axis.
 
     Trials of a leg are concatenated with masked gaps between them, so no
-    pulse's response reaches into the next trial.
+    pulse's response reaches into the next trial.  A trial's excluded samples
+    (``Trial.exclude``) are masked with the whole window they fall in.
     """
 
     legs: tuple[str, ...]
@@ -254,6 +255,15 @@ def _uncut(stim: np.ndarray, starts: np.ndarray, resolution: str) -> np.ndarray:
     return mask
 
 
+def _excluded_windows(exclude: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """True on every sample of a window that holds an excluded sample: a window's sum is
+    compared whole or not at all (on one-sample windows, the excluded samples themselves)."""
+    if not exclude.any():
+        return np.zeros(exclude.size, bool)
+    window = np.cumsum(starts) - 1
+    return np.isin(window, np.unique(window[exclude]))
+
+
 def max_shift(model: Model) -> int:
     """Largest shortening of the delay the model's delay effect allows (0 without one)."""
     eff = model.delay_effect
@@ -299,7 +309,8 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         if not chosen:
             have = sorted(t.trial for t in cohort.trials_of(leg))
             raise KeyError(f"leg {leg} has no trial {', '.join(map(str, trials))} (it has {have})")
-        cols = {k: [] for k in ("angle", "velocity", "acceleration", "stimulation", "mask", "start", "segment", "trial_start")}
+        cols = {k: [] for k in ("angle", "velocity", "acceleration", "stimulation", "mask", "pulse_ok", "start", "segment",
+                                 "trial_start")}
         offset = 0
         seg0 = 0
         for t in chosen:
@@ -310,7 +321,10 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
             cols["acceleration"] += [t.acceleration_deg_s2, np.zeros(gap)]
             cols["stimulation"] += [t.stimulation, np.zeros(gap)]
             starts = _windows(t.stimulation, resolution)
-            cols["mask"] += [_uncut(t.stimulation, starts, resolution), np.zeros(gap, bool)]
+            uncut = _uncut(t.stimulation, starts, resolution)
+            compared = uncut & ~_excluded_windows(t.exclude, starts)
+            cols["mask"] += [compared, np.zeros(gap, bool)]
+            cols["pulse_ok"] += [uncut, np.zeros(gap, bool)]
             cols["start"] += [starts, np.ones(gap, bool)]
             seg = seg0 + np.arange(n) // SEGMENT_SAMPLES
             cols["segment"] += [seg, np.full(gap, -1)]
@@ -371,7 +385,14 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
     for i, x in enumerate(per_leg):
         segment_mask[i, : x["n_segments"]] = True
 
-    pulses = [np.flatnonzero((stimulation[i] > 0) & sample_mask[i]) for i in range(L)]
+    pulse_ok = pad("pulse_ok", False, bool)
+    delivered = [np.flatnonzero((stimulation[i] > 0) & pulse_ok[i]) for i in range(L)]
+    # the pulses whose response the likelihood compares somewhere: a pulse in an excluded stretch
+    # still acts on the samples after it, except on twitch windows, where its response lies whole
+    # in its own (excluded) window.  Every delivered pulse counts for the pulse effects' history
+    # (count, interval) below.
+    acting = [sample_mask[i][p] | (resolution != "twitch") for i, p in enumerate(delivered)]
+    pulses = [p[a] for p, a in zip(delivered, acting)]
     P = _bucket(max(1, max(p.size for p in pulses)))
     pulse_sample = np.zeros((L, P), np.int64)
     pulse_u = np.zeros((L, P), np.float32)
@@ -379,16 +400,17 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
     pulse_count = np.zeros((L, P), np.float32)
     pulse_time = np.zeros((L, P), np.float32)
     dt = model.sampling_period_s
-    for i, p in enumerate(pulses):
-        pulse_sample[i, : p.size] = p
-        pulse_u[i, : p.size] = stimulation[i, p]
+    for i, (p, a) in enumerate(zip(delivered, acting)):
         k0 = per_leg[i]["trial_start"][p]  # first sample of each pulse's trial
         new_trial = np.concatenate([[True], k0[1:] != k0[:-1]])
         first = np.maximum.accumulate(np.where(new_trial, np.arange(p.size), 0))
-        pulse_count[i, : p.size] = np.arange(p.size) - first
-        pulse_time[i, : p.size] = (p - k0) * dt
-        ipi = np.concatenate([[0.0], np.diff(p) * dt])
-        pulse_ipi[i, : p.size] = np.where(new_trial, FIRST_IPI_S + (p - k0) * dt, ipi)
+        ipi = np.where(new_trial, FIRST_IPI_S + (p - k0) * dt, np.concatenate([[0.0], np.diff(p) * dt]))
+        n = int(a.sum())
+        pulse_sample[i, :n] = p[a]
+        pulse_u[i, :n] = stimulation[i, p[a]]
+        pulse_count[i, :n] = (np.arange(p.size) - first)[a]
+        pulse_time[i, :n] = ((p - k0) * dt)[a]
+        pulse_ipi[i, :n] = ipi[a]
 
     # at delay d a pulse's response may reach from d - K (the shortest delay an angle
     # effect allows) to d + R - 1 samples after it: R + K extended lags

@@ -27,6 +27,18 @@ def _pulses(ax, t, u, y):
     ax.vlines(t[k], 0, y * u[k], color="k", lw=0.8, label="stimulation (scaled by u)")
 
 
+def _shade_excluded(ax, trial, sl: slice) -> None:
+    """Grey bands over the trial's excluded samples (``Trial.exclude``) within ``sl``."""
+    ex = np.asarray(trial.exclude[sl], dtype=int)
+    if not ex.any():
+        return
+    edges = np.diff(np.concatenate([[0], ex, [0]]))
+    t, dt = trial.time_s[sl], trial.sampling_period_s
+    for n, (a, b) in enumerate(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1))):
+        ax.axvspan(t[a] - dt / 2, t[b - 1] + dt / 2, color="0.85", zorder=0, lw=0,
+                   label="excluded (not compared)" if n == 0 else None)
+
+
 def plot_signals(trial, equivalent_acc, *, start_s: float = 20.0, length_s: float = 8.0):
     """Fig. 2: angle, velocity, acceleration and equivalent acceleration M/I with pulses."""
     sl = _window(trial, start_s, length_s)
@@ -34,6 +46,7 @@ def plot_signals(trial, equivalent_acc, *, start_s: float = 20.0, length_s: floa
     u = trial.stimulation[sl]
     fig, axes = plt.subplots(4, 1, figsize=(9, 8), sharex=True)
     axes[0].plot(t, trial.angle_deg[sl])
+    _shade_excluded(axes[0], trial, sl)
     axes[0].set_ylabel("angle [deg]")
     axes[1].plot(t, trial.velocity_deg_s[sl])
     axes[1].set_ylabel("velocity [deg/s]")
@@ -92,6 +105,7 @@ def plot_predictions(trial, predicted: dict, p: int, *, start_s: float = 30.0, l
         target = starts + p
         keep = (target >= sl.start) & (target < sl.stop)
         ax.plot(trial.time_s[sl], trial.angle_deg[sl], "k-", lw=1.2, label="measured")
+        _shade_excluded(ax, trial, sl)
         ax.plot(trial.time_s[target[keep]], pred[keep, p - 1], "--", color=_MODEL_COLOURS.get(name), lw=1.2,
                 label=f"{name}, {p * trial.sampling_period_s * 1000:.0f} ms ahead")
         err = trial.angle_deg[target] - pred[:, p - 1]
@@ -204,6 +218,7 @@ def plot_posterior_predictions(trial, predicted: dict, p: int, *, j: dict | None
         t = trial.time_s[target[keep]]
         lo, med, hi = np.quantile(np.asarray(pred)[:, keep], (0.05, 0.5, 0.95), axis=0)
         ax.plot(trial.time_s[sl], trial.angle_deg[sl], "k-", lw=1.2, label="measured")
+        _shade_excluded(ax, trial, sl)
         line, = ax.plot(t, med, "--", color=_MODEL_COLOURS.get(name), lw=1.2,
                         label=f"{name}, {ms:.0f} ms ahead (median)")
         ax.fill_between(t, lo, hi, color=line.get_color(), alpha=0.3, lw=0, label="90 % band over draws")
