@@ -28,3 +28,27 @@ def test_candidates_follow_the_registry():
     assert "angle_delay" not in candidates(build_model("model3s", ["angle_delay"]))
     assert "linear_torque_angle" not in candidates(build_model("model3s", ["torque_angle_peak"]))
     assert "fractional_delay" not in names  # on a DARMA(2,2) twitch it re-parametrises b
+
+
+def test_a_hidden_gravity_offset_is_found_by_the_rest_offset_candidates():
+    """Gravity about 10° (the shank resting off angle 0): the two rest-offset candidates lead and
+    clear the bar, and ``gravity_offset`` finds the angle.  On stimulated trials of one minute the
+    two explain the data about equally well (they differ only in where the elasticity and the gain
+    factors act), so either may be first."""
+    import warnings
+
+    from quadshank.data._simulate import EFFECT_PARAMETERS, simulate_cohort
+    from quadshank.loop._diagnose import rank_effects
+
+    cohort, _ = simulate_cohort(legs=["JM-left"], minutes=1.0, seed=1, trials=(1,), effects=["gravity_offset"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = rank_effects(cohort, "model3s", n_draws=150, n_j_draws=30, n_starts=0,
+                         effects=("gravity_offset", "goniometer_offset", "torque_angle_peak"))
+    rows = {x["effect"]: x for x in r.rows}
+    assert {x["effect"] for x in r.rows[:2]} == {"gravity_offset", "goniometer_offset"} and r.verdict in rows
+    top = rows["gravity_offset"]
+    assert top["clears_bar"] and top["delta_elpd"] > 10 * rows["torque_angle_peak"]["delta_elpd_se"]
+    assert top["signature"] == "angle"
+    angle = top["parameters"]["JM-left"]["gravity_angle"]
+    assert angle == pytest.approx(EFFECT_PARAMETERS["gravity_offset"]["angle_deg"], abs=2.0)

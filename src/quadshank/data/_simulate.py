@@ -174,6 +174,10 @@ Hidden effects (off by default, switched on by name)
 ``goniometer_offset``
     the goniometer reads 3° when the shank hangs at rest (zeroed with the
     leg not quite vertical); the movement is unchanged.
+``gravity_offset``
+    gravity acts about 10° of extension instead of angle 0 (−G'·sin(φ − 10°)),
+    the elasticity about 0 as before, so the shank rests near 10°; each
+    trial starts at that rest.
 ``twitch_variability``
     each pulse's twitch amplitude is multiplied by a log-normal factor with
     mean 1 and coefficient of variation 0.2, drawn per pulse from a stream
@@ -204,6 +208,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from scipy.optimize import brentq
 from tqdm.auto import tqdm
 
 from ..common._io import write_json
@@ -254,6 +259,7 @@ EFFECTS = (
     "potentiation",
     "accel_resonance",
     "goniometer_offset",
+    "gravity_offset",
     "twitch_variability",
 )
 
@@ -266,6 +272,7 @@ EFFECT_PARAMETERS = {
     "potentiation": {"P": 0.8, "tau_p_s": 0.06},
     "accel_resonance": {"f_r_hz": 18.0, "zeta": 0.25},
     "goniometer_offset": {"offset_deg": 3.0},
+    "gravity_offset": {"angle_deg": 10.0},
     "twitch_variability": {"cv": 0.2},
 }
 
@@ -564,7 +571,8 @@ def _chunk_runner(substeps: int):
 
         def accel(phi, v, x2):
             m = x2
-            passive = -p["damping"] * v - p["gravity"] * jnp.sin(phi * _DEG) + p["k1"] * (jnp.exp(-p["k2"] * phi) - 1.0)
+            passive = (-p["damping"] * v - p["gravity"] * jnp.sin((phi - p["gravity_angle"]) * _DEG)
+                       + p["k1"] * (jnp.exp(-p["k2"] * phi) - 1.0))
             return m + passive, m
 
         def rhs(phi, v, z, zd, x2):
@@ -613,7 +621,7 @@ def _chunk_runner(substeps: int):
 _FLOAT_PARAMS = (
     "damping", "gravity", "k1", "k2", "gamma_angle", "gamma_velocity", "tc",
     "on_peak", "phi_opt", "width", "on_hill", "vmax", "hill_k", "g_ecc", "v_half",
-    "on_adelay", "adelay_angle", "on_res", "omega_r", "zeta",
+    "on_adelay", "adelay_angle", "on_res", "omega_r", "zeta", "gravity_angle",
 )  # fmt: skip
 
 
@@ -637,7 +645,9 @@ def _scan_params(leg: str, effects: tuple[str, ...]) -> dict:
         on_res=float("accel_resonance" in effects),
         omega_r=2 * math.pi * ep["accel_resonance"]["f_r_hz"],
         zeta=ep["accel_resonance"]["zeta"],
+        gravity_angle=ep["gravity_offset"]["angle_deg"] if "gravity_offset" in effects else 0.0,
     )
+    p["rest_deg"] = _rest_angle(p)
     delay_ms = int(round(_delay_samples(leg) * SAMPLING_PERIOD_S / INTERNAL_STEP_S))
     short_ms = delay_ms - int(round(ep["angle_delay"]["shortening_s"] / INTERNAL_STEP_S))
     if not 1 <= short_ms <= delay_ms < _BUFFER:
@@ -645,6 +655,17 @@ def _scan_params(leg: str, effects: tuple[str, ...]) -> dict:
     p["delay_ms"] = delay_ms
     p["delay_short_ms"] = short_ms
     return p
+
+
+def _rest_angle(p: dict) -> float:
+    """The angle [deg] where the passive torques balance (0 unless gravity acts about another angle)."""
+    if p["gravity_angle"] == 0.0:
+        return 0.0
+
+    def torque(phi):
+        return -p["gravity"] * math.sin(math.radians(phi - p["gravity_angle"])) + p["k1"] * math.expm1(-p["k2"] * phi)
+
+    return float(brentq(torque, -90.0, 90.0))
 
 
 def _run_plant(params: Sequence[dict], amps: np.ndarray, progress: bool = False,
@@ -670,7 +691,8 @@ def _run_plant(params: Sequence[dict], amps: np.ndarray, progress: bool = False,
         for k in ("delay_ms", "delay_short_ms"):
             p[k] = jnp.asarray(np.array([q[k] for q in params], dtype=np.int32))
         zeros = jnp.zeros(batch, dtype=jnp.float64)
-        carry = ((zeros,) * 6, jnp.zeros((batch, _BUFFER), dtype=jnp.float64))
+        rest = jnp.asarray(np.array([q.get("rest_deg", 0.0) for q in params], dtype=np.float64))
+        carry = ((rest,) + (zeros,) * 5, jnp.zeros((batch, _BUFFER), dtype=jnp.float64))
         it = range(n_chunks)
         if progress:
 

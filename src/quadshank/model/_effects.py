@@ -691,6 +691,36 @@ class FractionalDelay(TwoPathDelay):
 
 @register_effect
 @dataclasses.dataclass(frozen=True)
+class GravityOffset(Effect):
+    """Gravity about a vertical that is not angle 0: −G'·sin(φ − φ_g).
+
+    Eq. (8) takes angle 0 to be the gravity vertical, where the shank hangs.
+    A recording zeroed elsewhere, or a shank that rests away from the vertical
+    (passive tension, a seat that tilts the thigh), has gravity acting about
+    another angle while the tissues' elasticity stays where it was: the quiet
+    swings of a pendulum test then settle, and reverse, off the vertical.
+    Unlike ``goniometer_offset`` it moves gravity alone, not the elasticity or
+    the muscle's angle factors.  Replaces ``gravity``.
+    """
+
+    kind = "passive"
+    name = "gravity_offset"
+    signature = "angle"
+    replaces = ("gravity",)
+    params = (
+        Param("gravity", "deg/s^2", support="positive", prior=("lognormal", math.log(1800.0), 0.2),
+              doc="G' = G/I, as in eq. (8)"),
+        Param("gravity_angle", "deg", prior=("normal", 0.0, 10.0), doc="knee angle of the gravity vertical"),
+    )
+    gravity: Any = 1800.0
+    gravity_angle: Any = 0.0
+
+    def acceleration(self, angle, velocity):
+        return -self.gravity * sin_deg(angle - self.gravity_angle)
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
 class PeakTorqueAngle(Effect):
     """Torque–angle relation with a maximum: f(φ) = exp(−((φ − φ_opt)² − φ_opt²)/(2w²)).
 
