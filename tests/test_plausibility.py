@@ -83,3 +83,30 @@ def test_a_constant_angle_is_named():
     t = _trial()
     found = plausibility(t.replace(angle_deg=np.full(t.n_samples, 5.0)))
     assert found == ["angle_deg is constant (5.0° throughout): no movement was recorded"]
+
+
+def _pendulum(rest: float = 0.0, sign: float = 1.0, seconds: float = 12.0) -> Trial:
+    n = int(seconds / DT)
+    t = np.arange(n) * DT
+    angle = rest + sign * 50 * np.exp(-0.8 * t) * np.cos(2 * np.pi * 0.8 * t)
+    acc = np.gradient(np.gradient(angle, DT), DT)
+    return Trial.from_signals("PT", "left", 1, DT, angle, acc, np.zeros(n), time_s=t)
+
+
+def test_a_pendulum_test_about_zero_released_from_extension_is_plausible():
+    assert plausibility(_pendulum()) == []
+
+
+def test_a_pendulum_test_resting_off_zero_is_named():
+    found = plausibility(_pendulum(rest=-23.0))
+    assert any("comes to rest at -23.0°" in f and "gravity_offset" in f for f in found), found
+
+
+def test_a_pendulum_test_released_from_flexion_asks_about_the_sign():
+    found = plausibility(_pendulum(sign=-1.0))
+    assert any("starts at -50.0°" in f and "flipped" in f for f in found), found
+    # a stimulated trial is not a pendulum test
+    t = _pendulum(sign=-1.0)
+    u = np.zeros(t.n_samples)
+    u[300] = 1.0
+    assert not any("flipped" in f for f in plausibility(t.replace(stimulation=u)))

@@ -224,6 +224,12 @@ PLAUSIBILITY_WINDOW_S = 0.1
 PLAUSIBLE_RATIO = (0.5, 2.0)
 #: Correlations (measured derivative against the angle's) below which a warning says they disagree.
 PLAUSIBLE_CORRELATION = 0.5
+#: A trial without pulses whose last second moves less than this [deg] has come to rest ...
+STILL_RANGE_DEG = 2.0
+#: ... and one resting further than this [deg] from angle 0 (the shank at rest) gets a warning.
+REST_TOLERANCE_DEG = 5.0
+#: A trial without pulses that starts this far [deg] into flexion gets a warning about the sign.
+RELEASE_FLEXION_DEG = 20.0
 
 
 def plausibility(trial: Trial) -> list[str]:
@@ -240,7 +246,7 @@ def plausibility(trial: Trial) -> list[str]:
     window = max(7, int(round(PLAUSIBILITY_WINDOW_S / dt)) | 1)
     if trial.n_samples < 3 * window:
         return []
-    found = []
+    found = _pendulum_plausibility(trial) if not np.any(trial.stimulation > 0) else []
     checks = [("acceleration_deg_s2", 2, "deg/s²")] if trial.acceleration_measured else []
     if trial.velocity_measured:
         checks.append(("velocity_deg_s", 1, "deg/s"))
@@ -266,6 +272,24 @@ def plausibility(trial: Trial) -> list[str]:
         elif abs(corr) < PLAUSIBLE_CORRELATION:
             found.append(f"{column} hardly follows the angle's {what} (correlation {corr:.2f}): is it the "
                          "signal of this trial, in this column?")
+    return found
+
+
+def _pendulum_plausibility(trial: Trial) -> list[str]:
+    """A trial without pulses (a pendulum test) should swing about angle 0, the shank at rest,
+    after a release from extension: a swing that comes to rest elsewhere, or that starts deep in
+    flexion, says that the zero or the sign of the angle may be off."""
+    kept = ~trial.exclude
+    angle = trial.angle_deg[kept]
+    tail = angle[-max(2, int(round(1.0 / trial.sampling_period_s))):]
+    found = []
+    if np.ptp(tail) < STILL_RANGE_DEG and abs(float(np.median(tail))) > REST_TOLERANCE_DEG:
+        found.append(f"the shank comes to rest at {float(np.median(tail)):.1f}° (its last second), not at 0, the "
+                     "shank at rest: is angle_deg zeroed elsewhere? (the effects gravity_offset and "
+                     "goniometer_offset model such an offset)")
+    if angle[0] < -RELEASE_FLEXION_DEG:
+        found.append(f"the swing starts at {float(angle[0]):.1f}°, deep in flexion; a pendulum test is released "
+                     "from extension (positive angle_deg): is the sign of angle_deg flipped?")
     return found
 
 
