@@ -33,7 +33,7 @@ from .inference._fitio import FitResult, read_summary
 from .inference._identify import Identification, load_identification
 from .inference._nuts import SEQUENTIAL_FROM_SAMPLES, STARTS, FitSettings
 from .loop._diagnose import Diagnosis, Discovery
-from .model._model import MODELS
+from .model._model import FIT_MODELS, MODELS
 
 __all__ = ["main"]
 
@@ -553,7 +553,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     f = sub.add_parser("fit", help="hierarchical Bayesian fit (NUTS) of one model across legs")
     f.add_argument("data", help="interchange folder or .nc cohort file")
-    f.add_argument("--model", choices=list(MODELS), default="model3")
+    f.add_argument("--model", choices=list(FIT_MODELS), default="model3",
+                   help="the model; passive: the pendulum alone, for pendulum tests (default model3)")
     f.add_argument("--add-effect", action="append", metavar="NAME", help="extend the model by a registered effect")
     f.add_argument("--trials", default="1", help="identification trials, comma-separated (default 1, as the paper)")
     f.add_argument("--legs", default="", help="legs, comma-separated (default: all in the data)")

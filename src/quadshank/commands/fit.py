@@ -25,9 +25,12 @@ FEW_PULSES = 8
 
 def uninformed_legs(model, cohort: Cohort) -> dict:
     """Legs with fewer than :data:`FEW_PULSES` pulses: per leg the pulses and the parameters of
-    the muscle and the delay, whose values there come from the prior and the other legs."""
+    the muscle and the delay, whose values there come from the prior and the other legs (none for
+    the ``passive`` model, which has no muscle)."""
     active = [p.name for e in model.effects if e.kind in ("activation", "gain", "pulse", "delay")
               for p in e.declared_params()]
+    if model.activation.name == "no_muscle":
+        return {}  # the pendulum alone: nothing active to inform
     out = {}
     for leg in cohort.legs:
         pulses = int(sum(np.count_nonzero(t.stimulation > 0) for t in cohort.trials_of(leg)))

@@ -46,6 +46,7 @@ from ._likelihood import (
     prepare,
 )
 from ._model import (
+    FIT_MODELS,
     MODELS,
     PAPER_MODELS,
     Model,
@@ -66,7 +67,7 @@ __all__ = [
     "ExponentialElasticity", "AngleDelay", "FractionalDelay", "PeakTorqueAngle", "HillTorqueVelocity", "Fatigue",
     "Potentiation", "RecruitmentPower", "ActivationDamping", "GoniometerOffset", "AccelResonance",
     "GravityOffset",
-    "Model", "paper_model", "passive_effects", "MODELS", "PAPER_MODELS", "equivalent_acceleration",
+    "Model", "paper_model", "passive_effects", "MODELS", "FIT_MODELS", "PAPER_MODELS", "equivalent_acceleration",
     "simulate_angles", "predict_ahead", "active_output", "measure", "passive_acceleration",
     "LikelihoodData", "LikelihoodError", "prepare", "leg_loglik_by_delay", "leg_pointwise", "leg_active_output",
     "leg_window_cdf", "SEGMENT_SAMPLES", "N_DELAYS",

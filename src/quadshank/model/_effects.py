@@ -372,6 +372,26 @@ class ZeroOrderActivation(Effect):
 
 @register_effect
 @dataclasses.dataclass(frozen=True)
+class NoMuscle(Effect):
+    """No active torque at all: the passive pendulum of eq. (8) alone (``paper_model("passive")``).
+
+    The activation of a model fitted to pendulum tests, which hold no pulses: it has no
+    parameters, so the fit samples the passive system only (its delay, summed out, stays the
+    prior's and means nothing).
+    """
+
+    kind = "activation"
+    name = "no_muscle"
+    candidate = False
+    response_length = 1
+    params = ()
+
+    def step(self, state, u):
+        return state, 0.0 * u
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
 class Darma(Effect):
     """DARMA activation of order N, eqs. (1) and (4).
 

@@ -48,6 +48,7 @@ from ._effects import (
     Gravity,
     LinearTorqueAngle,
     LinearTorqueVelocity,
+    NoMuscle,
     PulseContext,
     StepContext,
     ZeroOrderActivation,
@@ -61,6 +62,7 @@ __all__ = [
     "paper_model",
     "PAPER_MODELS",
     "MODELS",
+    "FIT_MODELS",
     "passive_effects",
     "equivalent_acceleration",
     "simulate_angles",
@@ -263,8 +265,11 @@ def paper_model(
         active = (ZeroOrderActivation(), LinearTorqueAngle(), LinearTorqueVelocity())
     elif key == "3s":
         active = (Darma(a=jnp.array([-1.46, 0.59]), b=jnp.array([480.0, 510.0])), LinearTorqueAngle(), LinearTorqueVelocity())
+    elif key == "passive":
+        return Model((NoMuscle(),) + passive, delay=0, name="passive", sampling_period_s=float(sampling_period_s))
     else:
-        raise ValueError(f"unknown model {number!r}; the models are model1, model2, model3 (the paper's) and model3s")
+        raise ValueError(f"unknown model {number!r}; the models are model1, model2, model3 (the paper's), model3s "
+                         "and passive (the pendulum alone)")
     return Model(active + passive, delay=delay, name=f"model{key}", sampling_period_s=float(sampling_period_s))
 
 
@@ -272,6 +277,8 @@ PAPER_MODELS = ("model1", "model2", "model3")
 #: The paper's models and model3s: model 3's gain factors on model 2's shaped (DARMA) twitch,
 #: the baseline of the modelling loop, whose likelihood sees a twitch's timing and its size.
 MODELS = PAPER_MODELS + ("model3s",)
+#: The models ``quadshank fit`` takes: those above and ``passive``, the pendulum alone (pendulum tests).
+FIT_MODELS = MODELS + ("passive",)
 
 
 # ====================================================================== one sample
