@@ -195,9 +195,11 @@ def cmd_convert(args) -> int:
 def cmd_identify(args) -> int:
     data = Path(args.data)
     cohort = load_cohort(data)
-    summary = run_identify(cohort, args.out, truth=_truth_beside(data), trial=args.trial, progress=not args.quiet)
+    summary = run_identify(cohort, args.out, truth=_truth_beside(data), trial=args.trial, progress=not args.quiet,
+                           passive_objective=args.passive_objective, gravity_offset=args.gravity_offset)
     _say(args, *(f"{leg}: passive system only, from trial(s) {', '.join(map(str, s['passive_trials']))} "
-                 "(no pulses in the identification trial)" if s.get("passive_only") else
+                 f"(no pulses in the identification trial), fitted to the {s['passive_objective']}"
+                 if s.get("passive_only") else
                  f"{leg}: d = {s['delay_samples']} samples" + (
                      f"; passive system from trial(s) {', '.join(map(str, s['passive_trials']))} (no pulses)"
                      if s.get("passive_trials") else "")
@@ -537,6 +539,12 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("data", help="interchange folder or .nc cohort file")
     i.add_argument("--out", required=True)
     i.add_argument("--trial", type=int, default=1, help="identification trial (default 1, as the paper)")
+    i.add_argument("--passive-objective", choices=("auto", "acceleration", "angle"), default="auto",
+                   help="fit the passive system of pendulum tests to their angle (a free run: output error) or to "
+                        "the acceleration (eq. 8 on each sample); auto: the angle for pendulum tests, the "
+                        "acceleration on the quiet samples between pulses")
+    i.add_argument("--gravity-offset", action="store_true",
+                   help="also identify the angle gravity acts about (a shank resting off angle 0; pendulum tests)")
     i.set_defaults(func=cmd_identify)
 
     e = sub.add_parser("evaluate", help="k-step-ahead prediction errors J (Table V), sign tests, Figs. 5-6")

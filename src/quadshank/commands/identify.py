@@ -33,11 +33,14 @@ def _pick(preferred: str, available) -> str:
 
 
 def run_identify(
-    cohort: Cohort, out: str | Path, *, truth: dict | None = None, trial: int = 1, progress: bool = False
+    cohort: Cohort, out: str | Path, *, truth: dict | None = None, trial: int = 1, progress: bool = False,
+    passive_objective: str = "auto", gravity_offset: bool = False,
 ) -> Identification:
-    """Classical identification of every leg; Tables I–IV, figures, summary.json."""
+    """Classical identification of every leg; Tables I–IV, figures, summary.json.
+    ``passive_objective``, ``gravity_offset``: see :func:`~quadshank.inference.identify_cohort`."""
     out = Path(out)
-    ident = identify_cohort(cohort, trial=trial, progress=progress)
+    ident = identify_cohort(cohort, trial=trial, progress=progress, passive_objective=passive_objective,
+                            gravity_offset=gravity_offset)
     md = [f"# Classical identification (trial {trial})", ""]
     md.append(write_table(table_passive(ident, truth), out / "tables", "passive", "Passive system (eq. 8)"))
     md.append(write_table(table_i(ident, truth), out / "tables", "table1", "Table I: model 1 and delay"))

@@ -225,6 +225,7 @@ from ._paper import (
 )
 
 __all__ = [
+    "simulate_pendulum_test",
     "EFFECTS",
     "PASSIVE_TRUTH",
     "STIMULATION_DENSITY",
@@ -910,6 +911,63 @@ def simulate_response(
 
 
 # ----------------------------------------------------------------------------- output
+#: The examiner's hand at the release of a simulated pendulum test: a push that falls linearly
+#: from this acceleration [deg/s²] to 0 over RELEASE_S.
+RELEASE_PUSH_DEG_S2 = 800.0
+RELEASE_S = 0.3
+
+
+def simulate_pendulum_test(
+    passive: dict,
+    *,
+    subject: str = "PT",
+    leg: str = "left",
+    trial: int = 1,
+    seconds: float = 8.0,
+    angle0: float = 60.0,
+    hand: bool = True,
+    gravity_angle: float = 0.0,
+    angle_noise_deg: float = 0.05,
+    acceleration_noise_deg_s2: float | None = 30.0,
+    sampling_period_s: float = SAMPLING_PERIOD_S,
+    seed: int = 0,
+) -> Trial:
+    """A pendulum test: the shank held at ``angle0`` [deg], released and left to swing, no muscle.
+
+    The passive system of eq. (8) with ``passive`` = {damping, gravity, k1, k2} (gravity acting
+    about ``gravity_angle``, see the ``gravity_offset`` effect), integrated by RK4 at 0.5 ms and
+    sampled every ``sampling_period_s``.  With ``hand`` the examiner's hand pushes for the first
+    :data:`RELEASE_S` (from :data:`RELEASE_PUSH_DEG_S2` down to 0), a force no model has: the
+    release a user excludes.  White sensor noise on the angle and, unless
+    ``acceleration_noise_deg_s2`` is None (no accelerometer: derived from the angle), on the
+    acceleration.
+    """
+    D, G, k1, k2 = (float(passive[k]) for k in ("damping", "gravity", "k1", "k2"))
+
+    def f(x, t):
+        a = -D * x[1] - G * math.sin(math.radians(x[0] - gravity_angle)) + k1 * math.expm1(-k2 * x[0])
+        push = RELEASE_PUSH_DEG_S2 * (1 - t / RELEASE_S) if hand and t < RELEASE_S else 0.0
+        return np.array([x[1], a + push])
+
+    n = int(round(seconds / sampling_period_s))
+    sub = max(1, int(round(sampling_period_s / 5e-4)))
+    h = sampling_period_s / sub
+    x, t, out = np.array([float(angle0), 0.0]), 0.0, np.zeros((n, 2))
+    for k in range(n):
+        out[k] = x[0], f(x, t)[1]
+        for _ in range(sub):
+            a1 = f(x, t)
+            a2 = f(x + h / 2 * a1, t + h / 2)
+            a3 = f(x + h / 2 * a2, t + h / 2)
+            a4 = f(x + h * a3, t + h)
+            x, t = x + h / 6 * (a1 + 2 * a2 + 2 * a3 + a4), t + h
+    rng = np.random.default_rng(seed)
+    angle = out[:, 0] + rng.normal(0, angle_noise_deg, n)
+    acc = None if acceleration_noise_deg_s2 is None else out[:, 1] + rng.normal(0, acceleration_noise_deg_s2, n)
+    return Trial.from_signals(subject, leg, trial, sampling_period_s, angle, acc, np.zeros(n),
+                              source="simulated pendulum test")
+
+
 def _jsonable(v):
     if isinstance(v, dict):
         return {str(k): _jsonable(x) for k, x in v.items()}

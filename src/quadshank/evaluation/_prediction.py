@@ -27,11 +27,11 @@ from ..common._progress import progress_bar
 from ..common._results import Result
 from ..data._cohort import Cohort, Trial
 from ..data._paper import HORIZONS_MS
-from ..model._model import Model, predict_ahead
+from ..model._model import Model, measured_angle, predict_ahead, simulate_angles, true_angle
 
 __all__ = [
     "prediction_errors", "prediction_starts", "predictions", "evaluate_cohort", "sign_tests", "table_v", "ALPHA",
-    "horizon_samples", "figure_trial", "Evaluation",
+    "horizon_samples", "figure_trial", "Evaluation", "free_run_error", "free_runs",
 ]  # fmt: skip
 
 ALPHA = 0.05
@@ -84,6 +84,36 @@ def prediction_errors(model: Model, trial: Trial, horizons=None) -> dict[int, fl
         err = trial.angle_deg[starts + p] - pred[:, p - 1]
         out[p] = float(np.sqrt(np.mean(err**2)))
     return out
+
+
+def free_runs(model: Model, trial: Trial) -> list[tuple[int, np.ndarray]]:
+    """Free runs of ``model`` over ``trial``: one per stretch of samples not excluded, from the
+    stretch's first measured angle and velocity (the active part at rest), driven by the
+    trial's stimulation.  Returns ``(start, angle)`` per stretch, the angle as the goniometer
+    would read it."""
+    model.check_period(trial.sampling_period_s, f"{trial.key} trial {trial.trial}")
+    kept = (~trial.exclude).astype(int)
+    edges = np.diff(np.concatenate([[0], kept, [0]]))
+    out = []
+    for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
+        if b - a < 2:
+            continue
+        a0 = true_angle(model, np.float32(trial.angle_deg[a]))
+        angle, _, _ = simulate_angles(model, np.asarray(trial.stimulation[a:b], np.float32), a0,
+                                      np.float32(trial.velocity_deg_s[a]))
+        out.append((int(a), np.asarray(measured_angle(model, angle), dtype=float)))
+    return out
+
+
+def free_run_error(model: Model, trial: Trial) -> float:
+    """RMS [deg] of the free runs' angle (:func:`free_runs`) against the measured angle: how well
+    the model reproduces a whole recording from its initial state alone (for a pendulum test,
+    the swing from the release).  J judges predictions a fixed horizon ahead instead."""
+    runs = free_runs(model, trial)
+    if not runs:
+        raise ValueError(f"{trial.key} trial {trial.trial}: no two consecutive samples not excluded")
+    err = np.concatenate([angle - trial.angle_deg[a : a + angle.size] for a, angle in runs])
+    return float(np.sqrt(np.mean(err**2)))
 
 
 def evaluate_cohort(

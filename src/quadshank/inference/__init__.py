@@ -29,8 +29,10 @@ from ._identify import (
     identify_cohort,
     identify_leg,
     identify_passive,
+    identify_passive_free_run,
     load_identification,
     models_from_summary,
+    passive_model,
 )
 from ._nuts import FitRun, FitSettings, fit, fit_screen, run_nuts
 from ._priors import build_model, delay_prior_from, model_params
@@ -47,6 +49,7 @@ from ._summaries import INTERVAL, interval, pooled_draws
 
 __all__ = [
     "IdentificationError", "LegIdentification", "PassiveIdentification", "identify_cohort", "identify_leg", "identify_passive",
+    "identify_passive_free_run", "passive_model",
     "Identification", "models_from_summary", "load_identification",
     "FitSettings", "fit", "run_nuts", "FitRun", "FitResult", "fit_screen", "build_model", "model_params", "delay_prior_from", "numpyro_model",
     "LaplaceFit", "laplace_fit", "leg_draw_models", "delay_evidence", "delay_modes", "DelayModes", "delta_elpd",

@@ -30,6 +30,8 @@ import dataclasses
 from pathlib import Path
 from typing import ClassVar
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import least_squares
 
@@ -37,13 +39,16 @@ from ..common._progress import progress_bar
 from ..common._results import Result
 from ..data._cohort import SAME_PERIOD_REL, Cohort, Trial
 from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S, TWITCH_SAMPLES
-from ..model._model import Model, equivalent_acceleration, paper_model, passive_effects
+from ..model._model import Model, equivalent_acceleration, paper_model, passive_effects, simulate_angles
 
 __all__ = [
     "LegIdentification",
     "PassiveIdentification",
     "passive_model",
     "identify_passive",
+    "identify_passive_free_run",
+    "free_run_segments",
+    "PASSIVE_OBJECTIVES",
     "isolated_twitches",
     "identify_leg",
     "identify_cohort",
@@ -60,6 +65,11 @@ QUIET_AFTER_PULSE = MAX_DELAY + TWITCH_SAMPLES
 PASSIVE_MAX_ANGLE_DEG = 60.0
 #: Fewest isolated twitches needed for a meaningful identification.
 MIN_TWITCHES = 8
+#: What the passive identification fits: the measured acceleration (equation error, eq. 8 on
+#: each quiet sample) or the angle of a free run (output error), on pendulum tests only.
+PASSIVE_OBJECTIVES = ("acceleration", "angle")
+#: Shortest stretch of usable samples [s] a free run is compared on.
+FREE_RUN_MIN_S = 1.0
 
 
 class IdentificationError(ValueError):
@@ -86,12 +96,14 @@ class LegIdentification:
     g1_std: float  # std of the per-twitch integrated response (Table I)
     rms_error_pct: dict  # Table IV: model1 / model3 RMS error of T as % of G'_1
     passive_trials: tuple = ()  # trials without pulses the passive system came from (empty: the quiet samples of `trial`)
+    passive_objective: str = "acceleration"  # what the passive system was fitted to (PASSIVE_OBJECTIVES)
 
     def summary(self) -> dict:
         return {
             "delay_samples": int(self.delay),
             "identification_trial": int(self.trial),
             "passive_trials": [int(t) for t in self.passive_trials],
+            "passive_objective": self.passive_objective,
             "n_isolated_twitches": int(len(self.pulses)),
             "passive": {k: float(v) for k, v in self.passive.items()},
             **{name: m.flat_params() for name, m in self.models.items() if name != "passive"},
@@ -114,6 +126,7 @@ class PassiveIdentification:
     n_quiet: int
     passive_trials: tuple
     sampling_period_s: float
+    passive_objective: str = "acceleration"  # what the passive system was fitted to (PASSIVE_OBJECTIVES)
 
     @property
     def models(self) -> dict:
@@ -124,6 +137,7 @@ class PassiveIdentification:
             "identification_trial": int(self.trial),
             "passive_only": True,
             "passive_trials": [int(t) for t in self.passive_trials],
+            "passive_objective": self.passive_objective,
             "passive": {k: float(v) for k, v in self.passive.items()},
             "n_quiet_samples": int(self.n_quiet),
         }
@@ -147,13 +161,25 @@ def quiet_mask(stimulation: np.ndarray, quiet: int = QUIET_AFTER_PULSE) -> np.nd
     return mask
 
 
-def _passive_columns(angle, velocity, k2):
-    # acc = D*(-v) + G*(-sin) + k1*(exp(-k2 phi) - 1)
-    return np.column_stack([-velocity, -np.sin(np.deg2rad(angle)), np.expm1(-k2 * angle)])
+def _passive_columns(angle, velocity, k2, gravity_offset: bool = False):
+    # acc = D*(-v) + G*(-sin) + k1*(exp(-k2 phi) - 1); about a gravity angle g,
+    # -G sin(phi - g) = -(G cos g) sin(phi) + (G sin g) cos(phi): one more column
+    cols = [-velocity, -np.sin(np.deg2rad(angle)), np.expm1(-k2 * angle)]
+    if gravity_offset:
+        cols.append(np.cos(np.deg2rad(angle)))
+    return np.column_stack(cols)
 
 
-def identify_passive(trials: list[Trial] | tuple[Trial, ...]) -> tuple[dict, float, int]:
-    """Passive parameters (D', G', k1', k2) from the quiet samples of ``trials`` (excluded ones left out).
+def _with_gravity_angle(d: float, gc: float, k1: float, k2: float, gs: float) -> dict:
+    """Passive parameters from the coefficients of the columns with a gravity offset."""
+    return {"damping": d, "gravity": float(np.hypot(gc, gs)), "k1": k1, "k2": k2,
+            "gravity_angle": float(np.degrees(np.arctan2(gs, gc)))}
+
+
+def identify_passive(trials: list[Trial] | tuple[Trial, ...], gravity_offset: bool = False) -> tuple[dict, float, int]:
+    """Passive parameters (D', G', k1', k2) from the quiet samples of ``trials`` (excluded ones left out);
+    with ``gravity_offset``, also the angle gravity acts about (``gravity_angle``, see the
+    ``gravity_offset`` effect).
 
     Only samples at or below :data:`PASSIVE_MAX_ANGLE_DEG` (+60°, the top of
     the paper's operating range) are used: eq. (8) describes the shank within
@@ -180,21 +206,99 @@ def identify_passive(trials: list[Trial] | tuple[Trial, ...]) -> tuple[dict, flo
 
     best = None
     for k2 in np.geomspace(1e-3, 0.3, 61):
-        X = _passive_columns(angle, velocity, k2)
+        X = _passive_columns(angle, velocity, k2, gravity_offset)
         coef, *_ = np.linalg.lstsq(X, accel, rcond=None)
         rss = float(np.sum((accel - X @ coef) ** 2))
         if best is None or rss < best[0]:
             best = (rss, k2, coef)
-    _, k2, (d0, g0, k10) = best
-    x0 = np.array([max(d0, 1e-3), max(g0, 1.0), max(k10, 1e-3), k2])
+    _, k2, coef = best
+    d0, g0, k10 = coef[:3]
+    x0 = np.array([max(d0, 1e-3), max(g0, 1.0), max(k10, 1e-3), k2, *coef[3:]])
+    extra = len(coef) - 3
 
     def resid(p):
-        return _passive_columns(angle, velocity, p[3]) @ p[:3] - accel
+        return _passive_columns(angle, velocity, p[3], gravity_offset) @ np.concatenate([p[:3], p[4:]]) - accel
 
-    fit = least_squares(resid, x0, bounds=([0, 0, 0, 1e-4], [np.inf, np.inf, np.inf, 1.0]), x_scale="jac")
-    D, G, k1, k2 = fit.x
+    fit = least_squares(resid, x0, bounds=([0, 0, 0, 1e-4] + [-np.inf] * extra, [np.inf, np.inf, np.inf, 1.0]
+                                           + [np.inf] * extra), x_scale="jac")
     rms = float(np.sqrt(np.mean(fit.fun**2)))
+    if gravity_offset:
+        return _with_gravity_angle(*map(float, fit.x)), rms, int(angle.size)
+    D, G, k1, k2 = fit.x
     return {"damping": D, "gravity": G, "k1": k1, "k2": k2}, rms, int(angle.size)
+
+
+def free_run_segments(trial: Trial) -> list[tuple[int, int]]:
+    """The stretches ``[start, stop)`` of ``trial`` a free run is compared on: runs of quiet samples
+    (:func:`quiet_mask`: the release and the samples after a pulse left out) that are not
+    excluded, at least :data:`FREE_RUN_MIN_S` long.  Each starts a free run afresh from its
+    first sample's measured state (an excluded spasm may have moved the shank)."""
+    usable = quiet_mask(trial.stimulation) & ~trial.exclude
+    edges = np.diff(np.concatenate([[0], usable.astype(int), [0]]))
+    shortest = max(2, int(round(FREE_RUN_MIN_S / trial.sampling_period_s)))
+    return [(int(a), int(b)) for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1))
+            if b - a >= shortest]
+
+
+_PASSIVE_NAMES = ("damping", "gravity", "k1", "k2")
+
+
+def _free_run_residuals(params, segments, dt: float):
+    """Free-run angle minus measured angle on every segment (concatenated), eq. (8) without a
+    muscle with parameters exp(params[:4]) (and the gravity angle params[4] where given);
+    ``segments``: (angle0, velocity0, measured, weight) per segment (weight 0 where the angle
+    is beyond :data:`PASSIVE_MAX_ANGLE_DEG`)."""
+    values = dict(zip(_PASSIVE_NAMES, jnp.exp(params[:4])))
+    if params.shape[0] > 4:
+        values["gravity_angle"] = params[4]
+    model = paper_model("passive", passive_effects(**values), sampling_period_s=dt)
+    out = []
+    for angle0, velocity0, measured, weight in segments:
+        angle, _, _ = simulate_angles(model, jnp.zeros(measured.shape[0], measured.dtype), angle0, velocity0)
+        out.append((angle - measured) * weight)
+    return jnp.concatenate(out)
+
+
+def identify_passive_free_run(trials: list[Trial] | tuple[Trial, ...], start: dict | None = None,
+                              gravity_offset: bool = False) -> tuple[dict, float, int]:
+    """Passive parameters (D', G', k1', k2) of trials without pulses (pendulum tests) that make
+    the free run of eq. (8) follow the measured angle: output-error least squares.
+
+    Each usable stretch (:func:`free_run_segments`) is simulated from its first sample's
+    measured angle and velocity, as J and the free-run error judge a model, and compared
+    with the measured angle wherever the knee is at most :data:`PASSIVE_MAX_ANGLE_DEG`
+    extended.  The parameters start from ``start`` (default: the equation-error estimate of
+    :func:`identify_passive`, which is close) and are refined by trust-region least squares
+    with the exact Jacobian (JAX, double precision).  With ``gravity_offset`` the angle gravity
+    acts about is fitted too (``gravity_angle``).  Returns the parameters, the RMS angle error
+    [deg] of the free runs and the number of samples compared.
+    """
+    if start is None:
+        start, _, _ = identify_passive(trials, gravity_offset=gravity_offset)
+    dt = trials[0].sampling_period_s
+    with jax.enable_x64(True):
+        segments = []
+        for t in trials:
+            for a, b in free_run_segments(t):
+                measured = jnp.asarray(t.angle_deg[a:b], jnp.float64)
+                weight = jnp.asarray(t.angle_deg[a:b] <= PASSIVE_MAX_ANGLE_DEG, jnp.float64)
+                segments.append((jnp.float64(t.angle_deg[a]), jnp.float64(t.velocity_deg_s[a]), measured, weight))
+        if not segments:
+            where = ", ".join(f"{t.key} trial {t.trial}" for t in trials)
+            raise IdentificationError(f"{where}: no stretch of {FREE_RUN_MIN_S:g} s without pulses and excluded "
+                                      "samples to compare a free run with")
+        resid = jax.jit(lambda p: _free_run_residuals(p, segments, dt))
+        jac = jax.jit(jax.jacfwd(lambda p: _free_run_residuals(p, segments, dt)))
+        x0 = np.log([max(float(start[k]), 1e-6) for k in _PASSIVE_NAMES])
+        if gravity_offset:
+            x0 = np.append(x0, float(start.get("gravity_angle", 0.0)))
+        fit = least_squares(lambda p: np.asarray(resid(jnp.asarray(p))), x0,
+                            jac=lambda p: np.asarray(jac(jnp.asarray(p))), method="trf", x_scale="jac")
+        n = int(sum(float(jnp.sum(w)) for *_, w in segments))
+    params = dict(zip(_PASSIVE_NAMES, map(float, np.exp(fit.x[:4]))))
+    if gravity_offset:
+        params["gravity_angle"] = float(fit.x[4])
+    return params, float(np.sqrt(np.sum(fit.fun**2) / max(n, 1))), n
 
 
 # ============================================================================ twitches
@@ -323,7 +427,8 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
 
 
 def identify_cohort(
-    cohort: Cohort, trial: int = 1, progress: bool = False
+    cohort: Cohort, trial: int = 1, progress: bool = False, passive_objective: str = "auto",
+    gravity_offset: bool = False,
 ) -> dict[str, LegIdentification | PassiveIdentification]:
     """Identify every leg of the cohort from its trial number ``trial``.
 
@@ -331,23 +436,44 @@ def identify_cohort(
     trials, as the paper took it from pendulum tests; otherwise from the quiet samples of
     ``trial``.  A leg whose trial ``trial`` holds no pulse gets its passive system alone
     (:class:`PassiveIdentification`).
-    """
 
+    ``passive_objective``: ``"acceleration"`` (equation error, :func:`identify_passive`),
+    ``"angle"`` (output error on the free swing, :func:`identify_passive_free_run`; pendulum
+    tests only) or ``"auto"``: the angle where a leg has pendulum tests, which predicts their
+    swing best, the acceleration on the quiet samples between pulses, where a free run
+    cannot go.  ``gravity_offset``: also fit the angle gravity acts about (legs with pendulum
+    tests only: between pulses the muscle's gain factors would take it up).
+    """
+    if passive_objective not in PASSIVE_OBJECTIVES + ("auto",):
+        raise ValueError(f"unknown passive objective {passive_objective!r}; use auto, acceleration or angle")
     out: dict = {}
     for leg in progress_bar(cohort.legs, desc="identify", enabled=progress):
         chosen = cohort.get(leg, trial)
         passive_trials = [t for t in cohort.trials_of(leg) if not np.any(t.stimulation > 0)]
         if not passive_trials:
+            if gravity_offset:
+                raise IdentificationError(
+                    f"{leg}: a gravity offset is identified from free swings, and the leg has no trial without "
+                    "pulses (a pendulum test); leave out the gravity offset (or fit it: `quadshank fit "
+                    "--add-effect gravity_offset`)")
+            if passive_objective == "angle":
+                raise IdentificationError(
+                    f"{leg}: the passive objective 'angle' fits free swings, and the leg has no trial without "
+                    "pulses (a pendulum test); use the objective 'auto' or 'acceleration'")
             out[leg] = identify_leg(chosen)
             continue
-        passive, p_rms, n_quiet = identify_passive(passive_trials)
+        objective = "acceleration" if passive_objective == "acceleration" else "angle"
+        if objective == "angle":
+            passive, p_rms, n_quiet = identify_passive_free_run(passive_trials, gravity_offset=gravity_offset)
+        else:
+            passive, p_rms, n_quiet = identify_passive(passive_trials, gravity_offset=gravity_offset)
         numbers = tuple(t.trial for t in passive_trials)
         if not np.any(chosen.stimulation > 0):
             out[leg] = PassiveIdentification(leg, trial, {k: float(v) for k, v in passive.items()}, p_rms, n_quiet,
-                                             numbers, chosen.sampling_period_s)
+                                             numbers, chosen.sampling_period_s, objective)
         else:
             out[leg] = dataclasses.replace(identify_leg(chosen, passive=passive), passive_rms_residual=p_rms,
-                                           n_quiet=n_quiet, passive_trials=numbers)
+                                           n_quiet=n_quiet, passive_trials=numbers, passive_objective=objective)
     return out
 
 

@@ -46,6 +46,7 @@ from ._effects import (
     Effect,
     ExponentialElasticity,
     Gravity,
+    GravityOffset,
     LinearTorqueAngle,
     LinearTorqueVelocity,
     NoMuscle,
@@ -244,9 +245,11 @@ register_pytree(Model, ["effects", "delay"], ["name", "sampling_period_s"])
 # ====================================================================== the paper's models
 
 
-def passive_effects(damping=1.0, gravity=1800.0, k1=25.0, k2=0.05) -> tuple[Effect, ...]:
-    """The passive system of eqs. (6)–(8) as three effects."""
-    return (Damping(damping), Gravity(gravity), ExponentialElasticity(k1, k2))
+def passive_effects(damping=1.0, gravity=1800.0, k1=25.0, k2=0.05, gravity_angle=None) -> tuple[Effect, ...]:
+    """The passive system of eqs. (6)–(8) as three effects; with ``gravity_angle`` [deg], gravity
+    acts about that angle (``gravity_offset`` in place of ``gravity``)."""
+    g = Gravity(gravity) if gravity_angle is None else GravityOffset(gravity, gravity_angle)
+    return (Damping(damping), g, ExponentialElasticity(k1, k2))
 
 
 def paper_model(

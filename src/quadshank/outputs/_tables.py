@@ -102,12 +102,19 @@ def table_passive(ident: dict, truth: dict | None = None) -> list[dict]:
     for leg, r in ident.items():
         t = _leg_truth(truth, leg)
         row = {"leg": leg}
-        for k, unit in (("damping", "1/s"), ("gravity", "deg/s²"), ("k1", "deg/s²"), ("k2", "1/deg")):
+        for k, unit in (("damping", "1/s"), ("gravity", "deg/s²"), ("k1", "deg/s²"), ("k2", "1/deg"),
+                        ("gravity_angle", "deg")):
+            if k not in r.passive:  # gravity_angle: only where it was identified
+                continue
             row[f"{k} [{unit}]"] = r.passive[k]
-            if t:
+            if t and k in t["passive"]:
                 row[f"{k} true"] = t["passive"][k]
         row["quiet samples"] = r.n_quiet
-        row["rms residual [deg/s²]"] = r.passive_rms_residual
+        if getattr(r, "passive_objective", "acceleration") == "angle":
+            row["fitted to"] = "angle (free run)"
+            row["rms free-run error [deg]"] = r.passive_rms_residual
+        else:
+            row["rms residual [deg/s²]"] = r.passive_rms_residual
         trials = getattr(r, "passive_trials", ())
         row["from"] = (f"trial{'s' if len(trials) > 1 else ''} {', '.join(map(str, trials))} (no pulses)" if trials
                        else f"quiet samples of trial {r.trial}")
