@@ -720,3 +720,42 @@ def test_excluded_samples_leave_the_prediction_starts():
     assert set(prediction_starts(t, 20)) - set(starts) == set(range(80, 105))
     with pytest.raises(ValueError, match="no stretch of 21 samples"):
         prediction_starts(t.replace(exclude=np.arange(N) % 10 == 0), 20)
+
+
+# --------------------------------------------------------------------------- a stimulator's columns
+def _as_stimulator(path: Path, width_per_u: float = 400.0, current: float | None = None) -> np.ndarray:
+    """Replace ``stimulation`` by ``pulse_width_us`` (u × width_per_u) and, given, a constant
+    ``current_mA`` on the pulses; returns the old stimulation."""
+    rows = read_rows(path)
+    j = rows[0].index("stimulation")
+    u = np.array([float(r[j]) for r in rows[1:]])
+    rows[0][j] = "pulse_width_us"
+    for r, x in zip(rows[1:], u):
+        r[j] = repr(float(x * width_per_u))
+    if current is not None:
+        rows[0].append("current_mA")
+        for r, x in zip(rows[1:], u):
+            r.append(repr(float(current if x > 0 else 0.0)))
+    write_rows(path, rows)
+    return u
+
+
+def test_a_stimulators_pulse_width_and_current_give_the_relative_charge(folder):
+    u1 = _as_stimulator(folder / TN1, 300.0, current=40.0)
+    u2 = _as_stimulator(folder / TN2, 150.0, current=40.0)  # half the widths of trial 1
+    got = read_interchange(folder)
+    top = max(u1.max() * 300.0, u2.max() * 150.0)
+    np.testing.assert_allclose(got.get("TN-left", 1).stimulation, u1 * 300.0 / top)
+    np.testing.assert_allclose(got.get("TN-left", 2).stimulation, u2 * 150.0 / top)
+    assert got.get("TN-left", 1).stimulation.max() == 1.0
+    np.testing.assert_array_equal(got.get("JM-right", 1).stimulation, make_cohort().get("JM-right", 1).stimulation)
+
+
+@pytest.mark.parametrize(("change", "column", "row", "text"), [
+    (lambda f: add_column(f, "pulse_width_us", "0"), "pulse_width_us", 1, "either stimulation or pulse_width_us"),
+    (lambda f: (_as_stimulator(f), set_cell(f, 22, "pulse_width_us", "-300")), "pulse_width_us", 22, "negative"),
+    (lambda f: drop_column(f, "stimulation"), "stimulation", 1, "or give pulse_width_us and/or current_mA"),
+])
+def test_a_stimulators_columns_are_checked(folder, change, column, row, text):
+    change(folder / TN1)
+    assert_problem(problems_of(folder), TN1, column, row, text)

@@ -36,6 +36,13 @@ Trial CSV — one row per sample, columns in any order, names exact:
 | `stimulation`         | recruitment level u in [0, 1] of the pulse delivered at that sample, 0 when none |
 | `velocity_deg_s`      | optional: measured angular velocity [deg/s]                |
 | `exclude`             | optional: 1 where the sample is left out of every comparison with the model (a release, a spasm, a sensor artefact), else 0 |
+| `pulse_width_us`, `current_mA` | instead of `stimulation`, a stimulator's log: the pulse width [µs] and/or current [mA] of the pulse delivered at that sample, 0 when none |
+
+A trial given as `pulse_width_us` and/or `current_mA` gets as its ``stimulation``
+each pulse's charge (their product; one alone stands for itself) over the largest
+charge of the leg across its trials so given: the relative charge in (0, 1], which
+a recruitment curve (the ``recruitment_sigmoid`` effect) maps to the share of the
+muscle recruited.  Written back, the relative charge is the ``stimulation`` column.
 
 When `velocity_deg_s` is absent the velocity is derived from the angle
 (:func:`~quadshank.data._cohort.derive_velocity`) and the trial is marked
@@ -63,8 +70,9 @@ All files are checked and all problems are collected; if there is any, an
 4. **Time**: strictly increasing; uniform (each step within 1 % of the median
    step); the median step equals the manifest's `sampling_period_s` within a
    relative 1e-3.
-5. **Stimulation** within [0, 1]; **exclude** 0 or 1, and at least two
-   samples of a trial not excluded.
+5. **Stimulation** within [0, 1], or a stimulator's `pulse_width_us` /
+   `current_mA` (not both kinds), not negative; **exclude** 0 or 1, and at
+   least two samples of a trial not excluded.
 6. **Units**: an angle whose samples lie within ±pi (3.2), the 1 % at each end
    left out (glitches), while the angle moves (by more than 0.05 in a trial
    with pulses, 0.5 in one without) is taken to be in radians and rejected.
@@ -124,7 +132,9 @@ DEFAULT_SAMPLING_PERIOD_S = 0.01
 _MANIFEST_REQUIRED = ("subject", "leg", "trial", "file")
 _MANIFEST_OPTIONAL = ("sampling_period_s", "start_s", "end_s")
 _TRIAL_REQUIRED = ("time_s", "angle_deg", "stimulation")
-_TRIAL_OPTIONAL = ("acceleration_deg_s2", "velocity_deg_s", "exclude")
+_TRIAL_OPTIONAL = ("acceleration_deg_s2", "velocity_deg_s", "exclude", "pulse_width_us", "current_mA")
+#: Columns of a stimulator's log that may stand in for `stimulation`: the charge of each pulse.
+_STIMULATOR = ("pulse_width_us", "current_mA")
 #: Column order used when writing a trial file.
 _TRIAL_WRITE_ORDER = ("time_s", "angle_deg", "velocity_deg_s", "acceleration_deg_s2", "stimulation", "exclude")
 _LEGS = ("left", "right")
@@ -312,9 +322,13 @@ class _Table:
 
 
 def _read_table(
-    path: Path, file: str, required: Sequence[str], optional: Sequence[str], problems: list[Problem]
+    path: Path, file: str, required: Sequence[str], optional: Sequence[str], problems: list[Problem],
+    alternatives: dict[str, tuple[str, ...]] | None = None,
 ) -> _Table | None:
-    """Read a CSV file, reporting structural problems; ``None`` when it is unusable."""
+    """Read a CSV file, reporting structural problems; ``None`` when it is unusable.
+
+    ``alternatives``: a required column that other (optional) columns may stand in for; a
+    file must hold the column or its stand-ins, not both."""
     header: list[str] | None = None
     header_line = 1
     rows: list[list[str]] = []
@@ -362,8 +376,14 @@ def _read_table(
         else:
             columns[name] = i
     for name in required:
-        if name not in columns:
-            problems.append(Problem(file, name, header_line, f"missing column (header is: {','.join(header)})"))
+        instead = (alternatives or {}).get(name, ())
+        given = [c for c in instead if c in columns]
+        if name not in columns and not given:
+            also = f"; or give {' and/or '.join(instead)}" if instead else ""
+            problems.append(Problem(file, name, header_line, f"missing column (header is: {','.join(header)}){also}"))
+        elif name in columns and given:
+            problems.append(Problem(file, given[0], header_line, f"give either {name} or {' and/or '.join(instead)}, "
+                                    "not both"))
 
     if not rows:
         problems.append(Problem(file, None, None, "no data rows (only the header)"))
@@ -470,8 +490,16 @@ def _check_signals(
                                 f"sampling_period_s = {float(sampling_period_s)!r} s {period_origin}")
                     )
 
+    for column in _STIMULATOR:
+        values = signals.get(column)
+        if values is not None:
+            _report_cells(problems, file, column, [(int(lines[i]), repr(float(values[i])))
+                                                   for i in np.flatnonzero(values < 0)],
+                          "negative value {} (0 where no pulse was delivered)")
     stim = signals.get("stimulation")
-    if stim is not None:
+    if stim is None and any(signals.get(c) is not None for c in _STIMULATOR):
+        stim = _charge(signals)  # for the radian rule below: where pulses were delivered
+    elif stim is not None:
         out = np.flatnonzero((stim < 0) | (stim > 1))
         _report_cells(
             problems, file, "stimulation", [(int(lines[i]), repr(float(stim[i]))) for i in out],
@@ -735,7 +763,8 @@ def read_interchange(folder: str | os.PathLike) -> Cohort:
         if e.path is None or e.key in seen_files:
             continue
         seen_files.add(e.key)
-        table = _read_table(e.path, e.file, _TRIAL_REQUIRED, _TRIAL_OPTIONAL, problems)
+        table = _read_table(e.path, e.file, _TRIAL_REQUIRED, _TRIAL_OPTIONAL, problems,
+                            alternatives={"stimulation": _STIMULATOR})
         if table is None:
             continue
         signals = {
@@ -769,9 +798,12 @@ def read_interchange(folder: str | os.PathLike) -> Cohort:
     if problems:
         raise InterchangeError(problems, context)
 
+    relative = _relative_charges(entries, signals_of)
     trials = []
     for i, e in enumerate(entries):
         s = signals_of[i]
+        if i in relative:
+            s = {**s, "stimulation": relative[i]}
         whole = Trial.from_signals(  # a derived velocity is derived from the whole recording, then cut
             e.subject,
             e.leg,
@@ -789,6 +821,28 @@ def read_interchange(folder: str | os.PathLike) -> Cohort:
     cohort = Cohort(tuple(trials), {"source": str(folder), "source_format": "interchange"})
     _warn_implausible(cohort, [str(folder / e.file) for e in entries])
     return cohort
+
+
+def _charge(signals: dict[str, np.ndarray | None]) -> np.ndarray:
+    """Each sample's pulse charge in µs·mA from a stimulator's columns (a column not given counts as
+    1, so pulse width alone or current alone gives a charge in its own unit)."""
+    given = [signals[c] for c in _STIMULATOR if signals.get(c) is not None]
+    return np.prod(np.abs(given), axis=0) if given else np.zeros(0)
+
+
+def _relative_charges(entries: Sequence[_Entry], signals_of: dict) -> dict[int, np.ndarray]:
+    """``stimulation`` of the trials given as a stimulator's columns: each pulse's charge over the
+    largest of its leg (across the leg's trials so given), in (0, 1]."""
+    charges = {i: _charge(s) for i, s in signals_of.items() if s.get("stimulation") is None}
+    largest: dict[tuple, float] = {}
+    for i, q in charges.items():
+        key = (entries[i].subject, entries[i].leg)
+        largest[key] = max(largest.get(key, 0.0), float(q.max(initial=0.0)))
+    out = {}
+    for i, q in charges.items():
+        top = largest[(entries[i].subject, entries[i].leg)]
+        out[i] = q / top if top > 0 else np.zeros_like(q)
+    return out
 
 
 def _span(time: np.ndarray, start_s: float | None, end_s: float | None) -> np.ndarray:

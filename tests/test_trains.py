@@ -1,0 +1,81 @@
+"""Stimulation as real stimulators deliver it: trains at 20–50 Hz whose pulse width is modulated,
+read from a stimulator's columns and fitted through a recruitment curve."""
+
+from __future__ import annotations
+
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from quadshank.cli import main
+from quadshank.data import Cohort, Trial, write_interchange
+from quadshank.data._paper import TABLE_III
+from quadshank.data._simulate import PASSIVE_TRUTH, simulate_response
+from quadshank.model import RecruitmentSigmoid
+
+LEG = "JM-left"
+DT = 0.01
+WIDTH_US = 400.0  # the stimulator's widest pulse
+RECRUITMENT = {"u50": 0.55, "u_width": 0.12}
+
+
+def train_stimulation(seconds: float, seed: int) -> np.ndarray:
+    """Trains of 3–6 pulses at 20, 25, 33 or 50 Hz every 1–2 s, each train at one relative charge
+    in [0.2, 1] (the first at 1: the widest pulse)."""
+    rng = np.random.default_rng(seed)
+    u = np.zeros(int(round(seconds / DT)))
+    k, level = 100, 1.0
+    while k < u.size - 100:
+        period = int(rng.choice([2, 3, 4, 5]))
+        for j in range(int(rng.integers(3, 7))):
+            u[k + j * period] = level
+        k += int(rng.uniform(1.0, 2.0) / DT)
+        level = rng.uniform(0.2, 1.0)
+    return u
+
+
+@pytest.fixture(scope="module")
+def train_data(tmp_path_factory):
+    """90 s of trains: the muscle recruited along the truth's curve from each pulse's relative
+    charge, written as a stimulator logs it (pulse width in µs, 0 between pulses), with the
+    simulator's sensors and their noise."""
+    u = train_stimulation(90.0, seed=4)
+    recruited = np.asarray(RecruitmentSigmoid(**RECRUITMENT).recruitment(jnp.asarray(u))) * (u > 0)
+    sim = simulate_response(LEG, recruited, noise=True, seed=1)
+    trial = Trial.from_signals("JM", "left", 1, DT, sim["angle_deg"], sim["acceleration_deg_s2"], u)
+    folder = write_interchange(Cohort((trial,)), tmp_path_factory.mktemp("trains") / "data")
+    path = folder / "JM-left-trial1.csv"
+    lines = path.read_text().splitlines()
+    header = lines[0].split(",")
+    j = header.index("stimulation")
+    header[j] = "pulse_width_us"
+    rows = [",".join(header)]
+    for line in lines[1:]:
+        cells = line.split(",")
+        cells[j] = repr(float(cells[j]) * WIDTH_US)
+        rows.append(",".join(cells))
+    path.write_text("\n".join(rows) + "\n")
+    return folder
+
+
+def test_trains_from_a_stimulators_log_are_fitted_through_a_recruitment_curve(train_data, tmp_path, capsys):
+    folder = train_data
+    out = tmp_path / "fit"
+    rc = main(["-q", "fit", str(folder), "--model", "model3", "--add-effect", "recruitment_sigmoid", "--chains", "2",
+               "--warmup", "300", "--draws", "300", "--out", str(out)])
+    s = json.loads((out / "summary.json").read_text())
+    assert rc in (0, 3) and s["diagnostics"]["rhat_max"] < 1.05 and s["diagnostics"]["divergences"] == 0
+    p = {k: v["median"] for k, v in s["legs"][LEG]["params"].items()}
+    assert p["u50"] == pytest.approx(RECRUITMENT["u50"], abs=0.03)
+    assert p["u_width"] == pytest.approx(RECRUITMENT["u_width"], rel=0.15)
+    assert p["gain"] == pytest.approx(TABLE_III[LEG]["G2"], rel=0.08)
+    assert p["gamma_angle"] == pytest.approx(TABLE_III[LEG]["gamma_angle"], rel=0.15)
+    for k in ("damping", "gravity"):
+        assert p[k] == pytest.approx(PASSIVE_TRUTH[LEG][k], rel=0.05), k
+    # the classical identification cannot use trains: it says which leg and trial, why, and what can
+    capsys.readouterr()
+    assert main(["-q", "identify", str(folder), "--out", str(tmp_path / "id")]) == 2
+    err = capsys.readouterr().err
+    assert "JM-left trial 1" in err and "isolated twitches" in err and "quadshank fit" in err
