@@ -187,8 +187,11 @@ def cmd_simulate(args) -> int:
 
 def cmd_convert(args) -> int:
     # a folder of recordings was checked (new, empty, an earlier conversion or --overwrite) before the work began
-    dst = convert(args.src, args.dst, overwrite=args.overwrite or Path(args.dst).suffix.lower() != ".nc")
-    _say(args, f"converted {args.src} -> {dst}")
+    if args.resample is not None and not args.resample > 0:
+        raise ValueError(f"--resample {args.resample:g}: the new sampling period must be positive (in seconds)")
+    dst = convert(args.src, args.dst, overwrite=args.overwrite or Path(args.dst).suffix.lower() != ".nc",
+                  resample_s=args.resample)
+    _say(args, f"converted {args.src} -> {dst}" + (f", resampled to {args.resample * 1000:g} ms" if args.resample else ""))
     return 0
 
 
@@ -530,9 +533,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the recordings' sampling period [ms], a whole number from 1 to 32 (default: the paper's 10)")
     s.set_defaults(func=cmd_simulate)
 
-    c = sub.add_parser("convert", help="interchange folder <-> NetCDF file, losslessly")
+    c = sub.add_parser("convert", help="interchange folder <-> NetCDF file, losslessly (or resampled)")
     c.add_argument("src")
     c.add_argument("dst")
+    c.add_argument("--resample", type=float, default=None, metavar="PERIOD_S",
+                   help="resample every trial to this period [s] (anti-aliased; irregular time stamps allowed)")
     c.set_defaults(func=cmd_convert)
 
     i = sub.add_parser("identify", help="classical identification as the paper (Tables I-IV)")

@@ -15,6 +15,7 @@ from ..inference._fitio import (
     save_fit,
     to_inference_data,
 )
+from ..inference._identify import check_delay_range
 from ..inference._nuts import FitSettings, run_nuts
 from ..inference._priors import build_model, delay_prior_from
 
@@ -63,6 +64,7 @@ def run_fit(
     """
     settings = settings or FitSettings()
     out = Path(out)
+    check_delay_range(cohort.sampling_period_s)
     m = build_model(model, add_effects, sampling_period_s=cohort.sampling_period_s)
     log_prior = None
     if delay_from is not None:

@@ -43,6 +43,7 @@ from ._paper import (
     TABLE_V,
     TWITCH_SAMPLES,
 )
+from ._resample import resample_cohort, resample_trial
 from ._simulate import (
     EFFECTS,
     PASSIVE_TRUTH,
@@ -57,7 +58,7 @@ from ._simulate import (
 __all__ = [
     "Cohort", "Trial", "derive_velocity", "derive_acceleration", "leg_key", "VELOCITY_WINDOW", "ACCELERATION_WINDOW_S",
     "InterchangeError", "Problem", "DataWarning", "plausibility", "read_interchange", "read_netcdf", "write_interchange", "load_cohort", "convert",
-    "parse_number", "trim", "read_stimulation_plan",
+    "parse_number", "trim", "read_stimulation_plan", "resample_trial", "resample_cohort",
     "MANIFEST_NAME", "DEFAULT_SAMPLING_PERIOD_S",
     "EFFECTS", "PASSIVE_TRUTH", "default_truth", "simulate_cohort", "simulate_pendulum_test", "simulate_response", "stimulation_sequence",
     "write_truth",

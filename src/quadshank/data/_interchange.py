@@ -106,6 +106,7 @@ from scipy.signal import savgol_filter
 
 from ..common._io import temp_sibling
 from ._cohort import Cohort, Trial, leg_key
+from ._resample import resample_cohort, resample_trial
 
 __all__ = [
     "trim",
@@ -450,11 +451,13 @@ def _check_signals(
     sampling_period_s: float | None,
     period_origin: str,
     problems: list[Problem],
+    uniform: bool = True,
 ) -> None:
     """Rules 4-6 on columns already known to be finite (``None`` = unusable, skipped).
 
     ``lines`` gives the line number of each sample; ``period_origin`` says
-    where the expected sampling period comes from (for the message).
+    where the expected sampling period comes from (for the message).  ``uniform=False``
+    (data to be resampled) waives the uniform grid and the manifest's period.
     """
     lines = np.asarray(lines)
     time = signals.get("time_s")
@@ -471,7 +474,7 @@ def _check_signals(
                             f"time not strictly increasing: {float(time[i + 1])!r} s follows {float(time[i])!r} s "
                             f"(row {int(lines[i])})")
                 )
-            else:
+            elif uniform:
                 median = float(np.median(step))
                 off = np.flatnonzero(np.abs(step - median) > UNIFORM_TOLERANCE * median)
                 if off.size:
@@ -735,12 +738,17 @@ def _file_id(path: Path) -> tuple[int, int]:
 
 
 # --------------------------------------------------------------------------- reading
-def read_interchange(folder: str | os.PathLike) -> Cohort:
+def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = None) -> Cohort:
     """Validate an interchange folder completely and load it as a :class:`Cohort`.
 
     Every problem in every file is collected first; if there is any, an
     :class:`InterchangeError` listing all of them is raised.  Trials keep the
     manifest's order; ``Trial.source`` is the manifest's ``file`` value.
+
+    ``resample_s``: put every trial on a uniform grid of that period
+    (:func:`~quadshank.data._resample.resample_trial`: anti-aliased, pulses to the nearest
+    sample); the recordings' time stamps then need only increase (irregular stamps, another
+    period than the manifest's), with no gap beyond 1.5 median steps.
     """
     folder = Path(folder)
     if not folder.exists():
@@ -777,7 +785,8 @@ def read_interchange(folder: str | os.PathLike) -> Cohort:
                 if has_period
                 else f"(the default; {MANIFEST_NAME} has no sampling_period_s column)"
             )
-            _check_signals(e.file, table.lines, signals, e.sampling_period_s, origin, problems)
+            _check_signals(e.file, table.lines, signals, e.sampling_period_s, origin, problems,
+                           uniform=resample_s is None)
             time = signals.get("time_s")
             if e.span_ok and time is not None and time.size and (e.start_s is not None or e.end_s is not None):
                 kept = int(np.count_nonzero(_span(time, e.start_s, e.end_s)))
@@ -818,6 +827,8 @@ def read_interchange(folder: str | os.PathLike) -> Cohort:
             exclude=s["exclude"],
         )
         trials.append(trim(whole, e.start_s, e.end_s))
+    if resample_s is not None:
+        trials = [resample_trial(t, resample_s) for t in trials]
     cohort = Cohort(tuple(trials), {"source": str(folder), "source_format": "interchange"})
     _warn_implausible(cohort, [str(folder / e.file) for e in entries])
     return cohort
@@ -1138,14 +1149,17 @@ def load_cohort(path: str | os.PathLike) -> Cohort:
     )
 
 
-def convert(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: bool = False) -> Path:
-    """Convert between the two forms, losslessly; returns ``dst``.
+def convert(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: bool = False,
+            resample_s: float | None = None) -> Path:
+    """Convert between the two forms, losslessly (unless resampled); returns ``dst``.
 
     An interchange folder becomes a NetCDF file (``dst`` must end in ``.nc``);
     a NetCDF file becomes an interchange folder (``dst`` must not end in
     ``.nc``).  The NetCDF file records the folder as the cohort's source.  An
     existing ``dst`` (a file, or a folder that is not empty) is refused unless
     ``overwrite`` (see :func:`write_interchange` for what that replaces).
+    ``resample_s``: every trial resampled to that period on the way
+    (:func:`~quadshank.data._resample.resample_trial`).
     """
     src, dst = Path(src), Path(dst)
     if src.exists() and dst.exists() and src.resolve() == dst.resolve():
@@ -1159,11 +1173,13 @@ def convert(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: bool =
             raise ValueError(f"{dst}: inside the data folder {src}; write the NetCDF file elsewhere")
         if dst.exists() and not overwrite:
             raise FileExistsError(f"{dst}: exists; give a new name (or --overwrite to replace it)")
-        return read_interchange(src).save_netcdf(dst)
+        return read_interchange(src, resample_s=resample_s).save_netcdf(dst)
     if src.is_file() and _is_netcdf_name(src):
         if _is_netcdf_name(dst):
             raise ValueError(f"{dst}: a NetCDF file converts to an interchange folder; give a folder name, not .nc")
-        return write_interchange(read_netcdf(src), dst, overwrite=overwrite)
+        cohort = read_netcdf(src)
+        return write_interchange(cohort if resample_s is None else resample_cohort(cohort, resample_s), dst,
+                                 overwrite=overwrite)
     if not src.exists():
         raise FileNotFoundError(f"{src}: no such file or folder")
     raise ValueError(

@@ -27,6 +27,7 @@ Per leg, from the identification trial (trial 1 by default):
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from pathlib import Path
 from typing import ClassVar
 
@@ -38,6 +39,7 @@ from scipy.optimize import least_squares
 from ..common._progress import progress_bar
 from ..common._results import Result
 from ..data._cohort import SAME_PERIOD_REL, Cohort, Trial
+from ..data._interchange import DataWarning
 from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S, TWITCH_SAMPLES
 from ..model._model import Model, equivalent_acceleration, paper_model, passive_effects, simulate_angles
 
@@ -54,6 +56,8 @@ __all__ = [
     "identify_cohort",
     "fit_darma",
     "IdentificationError",
+    "DelayRangeWarning",
+    "check_delay_range",
     "Identification",
     "models_from_summary",
     "load_identification",
@@ -70,6 +74,26 @@ MIN_TWITCHES = 8
 PASSIVE_OBJECTIVES = ("acceleration", "angle")
 #: Shortest stretch of usable samples [s] a free run is compared on.
 FREE_RUN_MIN_S = 1.0
+
+
+#: Shortest longest-delay [s] the delays considered (0 … MAX_DELAY samples) should reach: the
+#: paper's delays were 40–50 ms.
+SHORTEST_DELAY_RANGE_S = 0.06
+
+
+class DelayRangeWarning(DataWarning):
+    """The data's sampling period makes the delays considered (0 … 10 samples) too short."""
+
+
+def check_delay_range(sampling_period_s: float) -> None:
+    """Warn when MAX_DELAY samples at ``sampling_period_s`` reach less than
+    :data:`SHORTEST_DELAY_RANGE_S`: the models count their delay (and the twitch) in samples."""
+    reach = MAX_DELAY * sampling_period_s
+    if reach < SHORTEST_DELAY_RANGE_S:
+        warnings.warn(
+            f"at a sampling period of {sampling_period_s * 1000:g} ms the delays considered reach {MAX_DELAY} samples "
+            f"= {reach * 1000:g} ms, shorter than a muscle's delay may be (the paper's: 40-50 ms); resample the "
+            "recordings, e.g. `quadshank convert DATA data.nc --resample 0.01`", DelayRangeWarning, stacklevel=2)
 
 
 class IdentificationError(ValueError):
@@ -446,6 +470,7 @@ def identify_cohort(
     """
     if passive_objective not in PASSIVE_OBJECTIVES + ("auto",):
         raise ValueError(f"unknown passive objective {passive_objective!r}; use auto, acceleration or angle")
+    check_delay_range(cohort.sampling_period_s)
     out: dict = {}
     for leg in progress_bar(cohort.legs, desc="identify", enabled=progress):
         chosen = cohort.get(leg, trial)
