@@ -5,6 +5,8 @@ made by `discover --confirm` (the start model, and round 1's leader confirmed
 against it) serve `diagnose` and `compare`.
 """
 
+import contextlib
+import io
 import json
 
 import numpy as np
@@ -29,15 +31,19 @@ def discovered(tmp_path_factory):
     root = tmp_path_factory.mktemp("discover")
     write_interchange(_cohort("potentiation"), root / "data")
     out = root / "discover"
-    rc = main(["--quiet", "discover", str(root / "data"), "--effects", "potentiation,cubic_torque_angle",
-               "--max-rounds", "2", "--confirm", "--chains", "1", "--warmup", "30", "--draws", "30", "--out", str(out)])
-    return root, out, rc
+    with contextlib.redirect_stderr(io.StringIO()) as err:  # the progress bars, to check what they say
+        rc = main(["discover", str(root / "data"), "--effects", "potentiation,cubic_torque_angle",
+                   "--max-rounds", "2", "--confirm", "--chains", "1", "--warmup", "30", "--draws", "30", "--out", str(out)])
+    return root, out, rc, err.getvalue()
 
 
 def test_discover_on_the_command_line_with_a_user_effect(discovered):
     """The whole loop in one command; the user-written effect is screened like the others; NUTS confirms."""
-    root, out, rc = discovered
+    root, out, rc, progress = discovered
     assert rc == 0
+    # the progress line says which round and which candidate the loop is on
+    assert "round 1 of at most 2: screening effects" in progress and "model3s + cubic_torque_angle" in progress
+    assert "round 2 of at most 2: screening effects" in progress
     s = json.loads((out / "summary.json").read_text())
     assert s["added"] == ["potentiation"]
     assert s["final_model"] == "model3s+potentiation"
@@ -97,7 +103,7 @@ def test_diagnose_a_saved_fit(discovered, tmp_path, scratch_registry):
         def factor(self, ctx):
             return jnp.log(-1.0 - self.g**2) * ctx.angle  # NaN everywhere: no finite density
 
-    root, out, _ = discovered
+    root, out, _, _ = discovered
     fitdir = out / "confirm" / "fit-start"
     assert json.loads((fitdir / "summary.json").read_text())["data"] == str((root / "data").resolve())
     diag = tmp_path / "diag"
@@ -128,7 +134,7 @@ def test_diagnose_a_saved_fit(discovered, tmp_path, scratch_registry):
 def test_compare_before_and_after(discovered, tmp_path):
     """`compare A B`: J bands side by side, ΔELPD in B's favour, and each fit's residual figures and
     findings; the baseline's residual trends over the preceding interpulse interval."""
-    _, out, _ = discovered
+    _, out, _, _ = discovered
     cmp = tmp_path / "cmp"
     final = out / json.loads((out / "summary.json").read_text())["confirm"]["final"]["folder"]
     assert main(["--quiet", "compare", str(out / "confirm" / "fit-start"), str(final),

@@ -118,6 +118,7 @@ def run_diagnose(
     base: LaplaceFit | None = None,
     seed: int = 0,
     n_starts: int = 3,
+    progress_label: str = "",
     confirm_from=None,
     n_confirm: int = 1,
 ) -> Diagnosis:
@@ -132,7 +133,7 @@ def run_diagnose(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     ranking = rank_effects(cohort, model, trials=trials, legs=legs, effects=effects, base=base, seed=seed,
-                           n_starts=n_starts, progress=progress)
+                           n_starts=n_starts, progress=progress, progress_label=progress_label)
     screen_verdict = ranking.verdict
     if confirm_from is not None:
         ranking.verdict = confirm_leaders(cohort, ranking, confirm_from, out / "confirm", n_confirm=n_confirm,

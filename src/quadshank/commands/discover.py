@@ -81,7 +81,7 @@ def run_discover(
     for k in range(1, max_rounds + 1):
         s = run_diagnose(
             cohort, current, out / f"round-{k}", trials=trials, legs=legs, effects=effects, base=base, progress=progress,
-            confirm_from=nuts_folder,
+            confirm_from=nuts_folder, progress_label=f"round {k} of at most {max_rounds}: ",
         )
         rounds.append({"model": current.name, "verdict": s.verdict, "sentence": s.sentence, "J_ms": s.J_ms, "elpd": s.elpd})
         if s.screen_verdict is not None:

@@ -191,6 +191,7 @@ def rank_effects(
     n_starts: int = 3,
     base: LaplaceFit | None = None,
     progress: bool = False,
+    progress_label: str = "",
 ) -> Ranking:
     """Screen every one-effect extension of ``model``; returns a :class:`Ranking`.
 
@@ -198,6 +199,8 @@ def rank_effects(
     the cohort, the identification trials included: the loop asks where the
     model fails on the measurements it has).  ``n_starts``: prior draws tried, besides the
     prior median, for the parameters an extension adds (:func:`quadshank.inference._screen.laplace_fit`).
+    ``progress``: a progress bar over the candidates, naming the one being screened, its
+    description prefixed by ``progress_label`` (discover: the round).
     """
     model = build_model(model, sampling_period_s=cohort.sampling_period_s) if isinstance(model, str) else model
     legs = tuple(legs) if legs is not None else cohort.legs
@@ -219,7 +222,10 @@ def rank_effects(
         base = laplace_fit(cohort, model, trials, legs, **kw)
     J0 = j_draws(base, cohort, eval_trials, n_draws=n_j_draws, start_stride=start_stride)
     fits, rows, failed = {}, [], {}
-    for name in progress_bar(effects, desc="screening effects", enabled=progress):
+    bar = progress_bar(effects, desc=f"{progress_label}screening effects", enabled=progress)
+    for name in bar:
+        if hasattr(bar, "set_postfix_str"):
+            bar.set_postfix_str(f"{model.name} + {name}")
         try:
             ext = laplace_fit(cohort, _extend(model, name), trials, legs, start=base, **kw)
             d, se = delta_elpd(base, ext)
