@@ -52,3 +52,24 @@ def test_a_hidden_gravity_offset_is_found_by_the_rest_offset_candidates():
     assert top["signature"] == "angle"
     angle = top["parameters"]["JM-left"]["gravity_angle"]
     assert angle == pytest.approx(EFFECT_PARAMETERS["gravity_offset"]["angle_deg"], abs=2.0)
+
+
+def test_a_hidden_end_of_range_in_extension_is_found_and_located():
+    """The knee meets the end of its range at 75° (a torque rising by e every 5°): the loop puts
+    ``extension_limit`` first, past the bar, with the limit where the truth has it."""
+    import warnings
+
+    from quadshank.data._simulate import EFFECT_PARAMETERS, simulate_cohort
+    from quadshank.loop._diagnose import rank_effects
+
+    cohort, _ = simulate_cohort(legs=["JM-left"], minutes=1.0, seed=1, trials=(1,), effects=["extension_limit"])
+    assert max(t.angle_deg.max() for t in cohort) < 85.0  # no swing far beyond the end of the range
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = rank_effects(cohort, "model3s", n_draws=150, n_j_draws=30, n_starts=0,
+                         effects=("extension_limit", "torque_angle_peak", "gravity_offset", "hill_velocity"))
+    check_hidden_first(r, "extension_limit")
+    truth = EFFECT_PARAMETERS["extension_limit"]
+    found = r.rows[0]["parameters"]["JM-left"]
+    assert found["phi_limit"] == pytest.approx(truth["phi_limit_deg"], abs=2.0)
+    assert found["limit_width"] == pytest.approx(truth["width_deg"], rel=0.2)

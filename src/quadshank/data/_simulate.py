@@ -178,6 +178,10 @@ Hidden effects (off by default, switched on by name)
     gravity acts about 10° of extension instead of angle 0 (−G'·sin(φ − 10°)),
     the elasticity about 0 as before, so the shank rests near 10°; each
     trial starts at that rest.
+``extension_limit``
+    the knee meets the end of its range in extension: a passive torque
+    −1000·exp((φ − 75°)/5°) deg/s², so the shank no longer swings far
+    beyond 80°.
 ``twitch_variability``
     each pulse's twitch amplitude is multiplied by a log-normal factor with
     mean 1 and coefficient of variation 0.2, drawn per pulse from a stream
@@ -261,6 +265,7 @@ EFFECTS = (
     "accel_resonance",
     "goniometer_offset",
     "gravity_offset",
+    "extension_limit",
     "twitch_variability",
 )
 
@@ -274,6 +279,7 @@ EFFECT_PARAMETERS = {
     "accel_resonance": {"f_r_hz": 18.0, "zeta": 0.25},
     "goniometer_offset": {"offset_deg": 3.0},
     "gravity_offset": {"angle_deg": 10.0},
+    "extension_limit": {"phi_limit_deg": 75.0, "width_deg": 5.0, "torque_deg_s2": 1000.0},
     "twitch_variability": {"cv": 0.2},
 }
 
@@ -573,7 +579,8 @@ def _chunk_runner(substeps: int):
         def accel(phi, v, x2):
             m = x2
             passive = (-p["damping"] * v - p["gravity"] * jnp.sin((phi - p["gravity_angle"]) * _DEG)
-                       + p["k1"] * (jnp.exp(-p["k2"] * phi) - 1.0))
+                       + p["k1"] * (jnp.exp(-p["k2"] * phi) - 1.0)
+                       - p["limit_torque"] * jnp.exp((phi - p["phi_limit"]) / p["limit_width"]))
             return m + passive, m
 
         def rhs(phi, v, z, zd, x2):
@@ -622,7 +629,8 @@ def _chunk_runner(substeps: int):
 _FLOAT_PARAMS = (
     "damping", "gravity", "k1", "k2", "gamma_angle", "gamma_velocity", "tc",
     "on_peak", "phi_opt", "width", "on_hill", "vmax", "hill_k", "g_ecc", "v_half",
-    "on_adelay", "adelay_angle", "on_res", "omega_r", "zeta", "gravity_angle",
+    "on_adelay", "adelay_angle", "on_res", "omega_r", "zeta", "gravity_angle", "limit_torque", "phi_limit",
+    "limit_width",
 )  # fmt: skip
 
 
@@ -647,6 +655,9 @@ def _scan_params(leg: str, effects: tuple[str, ...]) -> dict:
         omega_r=2 * math.pi * ep["accel_resonance"]["f_r_hz"],
         zeta=ep["accel_resonance"]["zeta"],
         gravity_angle=ep["gravity_offset"]["angle_deg"] if "gravity_offset" in effects else 0.0,
+        limit_torque=ep["extension_limit"]["torque_deg_s2"] if "extension_limit" in effects else 0.0,
+        phi_limit=ep["extension_limit"]["phi_limit_deg"],
+        limit_width=ep["extension_limit"]["width_deg"],
     )
     p["rest_deg"] = _rest_angle(p)
     delay_ms = int(round(_delay_samples(leg) * SAMPLING_PERIOD_S / INTERNAL_STEP_S))
@@ -660,11 +671,12 @@ def _scan_params(leg: str, effects: tuple[str, ...]) -> dict:
 
 def _rest_angle(p: dict) -> float:
     """The angle [deg] where the passive torques balance (0 unless gravity acts about another angle)."""
-    if p["gravity_angle"] == 0.0:
+    if p["gravity_angle"] == 0.0 and p["limit_torque"] == 0.0:
         return 0.0
 
     def torque(phi):
-        return -p["gravity"] * math.sin(math.radians(phi - p["gravity_angle"])) + p["k1"] * math.expm1(-p["k2"] * phi)
+        return (-p["gravity"] * math.sin(math.radians(phi - p["gravity_angle"])) + p["k1"] * math.expm1(-p["k2"] * phi)
+                - p["limit_torque"] * math.exp((phi - p["phi_limit"]) / p["limit_width"]))
 
     return float(brentq(torque, -90.0, 90.0))
 
