@@ -29,6 +29,7 @@ from ..evaluation._prediction import (
     Evaluation,
     evaluate_cohort,
     figure_trial,
+    free_run_errors,
     horizon_samples,
     predictions,
     sign_tests,
@@ -263,6 +264,12 @@ def run_evaluate(
         for tr, hv in sorted(trials.items())
     ]
     md.append(write_table(per_leg, out / "tables", "j_per_leg", "J_φ,p per leg and trial [deg]"))
+    free = free_run_errors(cohort, models)
+    if free:
+        rows = [{"model": m, "leg": leg, "trial": tr, "free run [deg]": v}
+                for m, legs in free.items() for leg, trials in legs.items() for tr, v in sorted(trials.items())]
+        md.append(write_table(rows, out / "tables", "free_run", "Pendulum tests: RMS error of the free swing from "
+                              "its first measured state [deg]"))
 
     save_figure(plot_j_vs_horizon(T), out / "figures" / "table5_j_vs_horizon.png")
     leg = _pick("JM-left", cohort.legs)
@@ -281,6 +288,7 @@ def run_evaluate(
         legs=list(cohort.legs),
         horizons_samples=list(horizon_samples(cohort.sampling_period_s).values()),
         evaluation_seconds=elapsed,
+        free_run=free,
     )
     atomic_write_text(out / "report.md", "\n".join(md))
     result.write(out)

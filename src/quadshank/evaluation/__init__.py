@@ -28,6 +28,7 @@ from ._prediction import (
     figure_trial,
     horizon_samples,
     free_run_error,
+    free_run_errors,
     free_runs,
     prediction_errors,
     prediction_starts,
@@ -55,7 +56,7 @@ from ._residuals import (
 )
 
 __all__ = [
-    "free_run_error", "free_runs", "prediction_errors", "prediction_starts", "predictions", "evaluate_cohort", "sign_tests", "table_v", "horizon_samples",
+    "free_run_error", "free_run_errors", "free_runs", "prediction_errors", "prediction_starts", "predictions", "evaluate_cohort", "sign_tests", "table_v", "horizon_samples",
     "figure_trial", "Evaluation",
     "LoadedFit", "PosteriorEvaluation", "load_fits", "posterior_predictions", "posterior_prediction_errors", "posterior_j", "summarise_j",
     "psis_loo", "loo_report", "figure_window", "window_predictions", "check_fit_data", "check_fit_legs", "plan_predictions",

@@ -31,7 +31,7 @@ from ..model._model import Model, measured_angle, predict_ahead, simulate_angles
 
 __all__ = [
     "prediction_errors", "prediction_starts", "predictions", "evaluate_cohort", "sign_tests", "table_v", "ALPHA",
-    "horizon_samples", "figure_trial", "Evaluation", "free_run_error", "free_runs",
+    "horizon_samples", "figure_trial", "Evaluation", "free_run_error", "free_runs", "free_run_errors",
 ]  # fmt: skip
 
 ALPHA = 0.05
@@ -205,3 +205,17 @@ class Evaluation(Result):
     legs: list
     horizons_samples: list
     evaluation_seconds: float
+    free_run: dict = dataclasses.field(default_factory=dict)  # model -> leg -> trial -> [deg], pendulum tests
+
+
+def free_run_errors(cohort: Cohort, models: dict[str, dict[str, Model]]) -> dict:
+    """:func:`free_run_error` of every model on every trial without pulses (a pendulum test: the
+    swing from its release), ``{model: {leg: {trial: deg}}}``; trials with pulses are judged by J
+    alone (a free run through minutes of twitches measures the drift, not the model)."""
+    out: dict = {}
+    for t in cohort:
+        if np.any(t.stimulation > 0):
+            continue
+        for name, m in models[t.key].items():
+            out.setdefault(name, {}).setdefault(t.key, {})[str(t.trial)] = free_run_error(m, t)
+    return out
