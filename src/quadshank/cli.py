@@ -34,6 +34,7 @@ from .inference._identify import Identification, load_identification
 from .inference._nuts import SEQUENTIAL_FROM_SAMPLES, STARTS, FitSettings
 from .loop._diagnose import Diagnosis, Discovery
 from .model._model import FIT_MODELS, MODELS
+from .model._plugins import load_effects_file, load_entry_point_effects
 
 __all__ = ["main"]
 
@@ -46,6 +47,8 @@ OUTPUT_KINDS = {
     "compare": {PosteriorEvaluation.KIND}, "report": {Report.KIND}, "demo": {Demo.KIND}, "recovery": set(),
     "likelihood-check": set(), "simulate": set(), "convert": set(), "predict": {PlanPrediction.KIND},
 }
+#: Commands that build or load models, and so may need a user's effects (--effects-file).
+EFFECT_USERS = ("fit", "diagnose", "discover", "compare", "evaluate", "report", "predict", "recovery")
 #: Commands whose output folder is a folder of recordings.
 DATA_WRITERS = ("simulate", "convert")
 #: The hidden file that marks a folder as a command's output (the command's name in it).
@@ -695,10 +698,14 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--max-tree-depth", type=int, default=5,
                    help="NUTS tree depth: at most 2^depth - 1 leapfrog steps a draw (quadshank fit: 8)")
     d.set_defaults(func=cmd_demo)
-    for sp in sub.choices.values():
+    for name, sp in sub.choices.items():
         sp.add_argument("--overwrite", action="store_true",
                         help="write into a folder that holds something else (files of the same names are "
                              "replaced, nothing else is touched)")
+        if name in EFFECT_USERS:
+            sp.add_argument("--effects-file", action="append", metavar="FILE.py", default=[],
+                            help="a Python file defining your own effects (@register_effect), loaded first; "
+                                 "a fit records it, and later commands import it again from there")
     return p
 
 
@@ -745,6 +752,10 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings():
             warnings.simplefilter("always", DataWarning)
             warnings.showwarning = _one_line_warnings(warnings.showwarning)
+            if args.command in EFFECT_USERS:
+                load_entry_point_effects()
+                for path in args.effects_file:
+                    _say(args, f"effects from {path}: {', '.join(load_effects_file(path))}")
             try:
                 return int(args.func(args) or 0)
             finally:

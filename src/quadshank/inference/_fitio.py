@@ -30,6 +30,7 @@ from ..common._random import jax_key, numpy_rng
 from ..common._results import Result
 from ..data._paper import SAMPLING_PERIOD_S
 from ..model._effects import AngleDelay, get_effect
+from ..model._plugins import effect_origin, ensure_effects
 from ..model._likelihood import N_DELAYS, LikelihoodData
 from ..model._model import Model
 from ._draws import (
@@ -95,6 +96,7 @@ class FitResult(Result):
     data_fingerprint: str | None = None  # of the legs and trials fitted (Cohort.fingerprint)
     derived_signals: dict | None = None  # signals derived from the angle (no sensor): how, and for which trials
     uninformed: dict | None = None  # leg -> pulses, and the active parameters its own data hardly inform
+    effect_origins: dict | None = None  # a user's effect -> its module, file and source hash (not built-ins)
 
     @property
     def ok(self) -> bool:
@@ -416,6 +418,8 @@ def fit_summary(idata) -> dict:
     if curves:
         # the population curve: every leg's draws pooled
         extra["delay_angle_population"] = {"angle_deg": ANGLE_GRID.tolist(), **interval(np.concatenate(curves))}
+    if desc.get("effect_origins"):
+        extra["effect_origins"] = desc["effect_origins"]
     return {
         "model": desc["model"],
         "effects": desc["effects"],
@@ -514,9 +518,11 @@ def posterior_models(idata, model: Model, leg: str, n_draws: int | None = None, 
 
 
 def describe_fit(model: Model, data: LikelihoodData, settings: FitSettings) -> dict:
+    origins = {e.name: effect_origin(e.name) for e in model.effects}
     return {
         "model": model.name,
         "effects": [e.name for e in model.effects],
+        "effect_origins": {name: o for name, o in origins.items() if o is not None},
         "params": {
             p.name: {"units": p.units, "prior": list(p.prior), "level": p.level, "shape": list(p.shape), "doc": p.doc}
             for p in model_params(model)
@@ -534,7 +540,9 @@ def describe_fit(model: Model, data: LikelihoodData, settings: FitSettings) -> d
 
 
 def model_from_description(desc: dict) -> Model:
-    """Rebuild the (unparameterised) Model a fit was made with."""
+    """Rebuild the (unparameterised) Model a fit was made with; a user's effect is imported again
+    from the file the fit recorded, and refused when its source changed (:func:`ensure_effects`)."""
+    ensure_effects(desc["effects"], desc.get("effect_origins"), f"the fit of model {desc['model']!r}")
     effects = [get_effect(n)() for n in desc["effects"]]
     model = Model(tuple(effects), name=desc["model"], sampling_period_s=desc.get("sampling_period_s", SAMPLING_PERIOD_S))
     # a fit that summed a step parameter out drew it under the hard step, and is evaluated so
