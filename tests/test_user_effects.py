@@ -86,3 +86,22 @@ def test_an_effects_file_that_defines_nothing_or_fails_is_named(tmp_path, capsys
         err = capsys.readouterr().err
         assert err.startswith("quadshank: error:") and str(path) in err and text in err
         assert not (tmp_path / "fit").exists() or not any((tmp_path / "fit").iterdir())
+
+
+def test_effects_offered_by_an_installed_package_are_loaded(tmp_path, monkeypatch, scratch_registry):
+    """An entry point of the group quadshank.effects, as an installed package declares one: here a
+    module on the path, found through a stand-in for the installed metadata."""
+    import importlib.metadata
+
+    from quadshank.model import _plugins
+    from quadshank.model._effects import registered_effects
+
+    (tmp_path / "lab_effects.py").write_text(EFFECT.replace("squared_torque_angle", "lab_squared_angle"))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    ep = importlib.metadata.EntryPoint(name="lab", value="lab_effects", group=_plugins.ENTRY_POINT_GROUP)
+    monkeypatch.setattr(_plugins.importlib.metadata, "entry_points",
+                        lambda group=None: [ep] if group == _plugins.ENTRY_POINT_GROUP else [])
+    assert _plugins.load_entry_point_effects() == ["lab_squared_angle"]
+    assert "lab_squared_angle" in registered_effects()
+    assert _plugins.effect_origin("lab_squared_angle")["module"] == "lab_effects"
+    assert _plugins.effect_origin("gravity") is None

@@ -25,7 +25,8 @@ import inspect
 import sys
 from pathlib import Path
 
-from ._effects import _REGISTRY, Effect, register_effect
+from . import _effects
+from ._effects import Effect, register_effect
 
 __all__ = ["load_effects_file", "load_entry_point_effects", "effect_origin", "ensure_effects", "ENTRY_POINT_GROUP",
            "EffectSourceError"]
@@ -50,7 +51,7 @@ def _source_hash(cls: type) -> str | None:
 def effect_origin(name: str) -> dict | None:
     """Where the registered effect ``name`` came from: ``{"module", "file", "source_sha256"}``
     (the hash of its class's source), or None for a built-in effect."""
-    cls = _REGISTRY[name]
+    cls = _effects._REGISTRY[name]
     if cls.__module__ == _BUILT_IN_MODULE:
         return None
     file = inspect.getsourcefile(cls) if not cls.__module__.startswith("__main__") else None
@@ -69,7 +70,7 @@ def load_effects_file(path) -> list[str]:
         raise ValueError(f"{path}: an effects file is a Python file ending in .py")
     resolved = path.resolve()
     module_name = "quadshank_user_effects_" + hashlib.sha256(str(resolved).encode()).hexdigest()[:12]
-    before = dict(_REGISTRY)
+    before = dict(_effects._REGISTRY)
     spec = importlib.util.spec_from_file_location(module_name, resolved)
     module = importlib.util.module_from_spec(spec)
     sys.modules[module_name] = module  # dataclasses and inspect look the module up by name
@@ -78,7 +79,7 @@ def load_effects_file(path) -> list[str]:
     except Exception as exc:
         sys.modules.pop(module_name, None)
         raise ValueError(f"{path}: the effects file failed to import: {type(exc).__name__}: {exc}") from exc
-    found = [n for n, cls in _REGISTRY.items() if before.get(n) is not cls]
+    found = [n for n, cls in _effects._REGISTRY.items() if before.get(n) is not cls]
     if not found:
         raise ValueError(f"{path}: defines no effect (decorate each with @register_effect)")
     return found
@@ -87,16 +88,16 @@ def load_effects_file(path) -> list[str]:
 def load_entry_point_effects() -> list[str]:
     """Import every entry point of the group :data:`ENTRY_POINT_GROUP`; returns the effects they
     registered.  An entry point that fails to load is named in the error."""
-    before = dict(_REGISTRY)
+    before = dict(_effects._REGISTRY)
     for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
         try:
             obj = ep.load()
         except Exception as exc:
             raise ValueError(f"the effects of entry point {ep.name!r} ({ep.value}) failed to load: "
                              f"{type(exc).__name__}: {exc}") from exc
-        if inspect.isclass(obj) and issubclass(obj, Effect) and obj.name not in _REGISTRY:
+        if inspect.isclass(obj) and issubclass(obj, Effect) and obj.name not in _effects._REGISTRY:
             register_effect(obj)
-    return [n for n, cls in _REGISTRY.items() if before.get(n) is not cls]
+    return [n for n, cls in _effects._REGISTRY.items() if before.get(n) is not cls]
 
 
 def ensure_effects(names, origins: dict | None, where: str) -> None:
@@ -107,14 +108,14 @@ def ensure_effects(names, origins: dict | None, where: str) -> None:
     origins = origins or {}
     for name in names:
         origin = origins.get(name)
-        if name not in _REGISTRY and origin and origin.get("file") and Path(origin["file"]).is_file():
+        if name not in _effects._REGISTRY and origin and origin.get("file") and Path(origin["file"]).is_file():
             load_effects_file(origin["file"])
-        if name not in _REGISTRY:
+        if name not in _effects._REGISTRY:
             hint = (f"it came from {origin['file']}, which is not there any more" if origin and origin.get("file")
                     else "give the file that defines it with --effects-file")
             raise EffectSourceError(f"{where}: effect {name!r} is not registered; {hint}")
         if origin and origin.get("source_sha256"):
-            now = _source_hash(_REGISTRY[name])
+            now = _source_hash(_effects._REGISTRY[name])
             if now is not None and now != origin["source_sha256"]:
                 raise EffectSourceError(
                     f"{where}: effect {name!r} has changed since the fit was made (its source hashes to {now}, "
