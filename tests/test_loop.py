@@ -1,6 +1,8 @@
 """The modelling loop finds a hidden torque–angle maximum, Hill torque–velocity and angle-dependent
 delay (see loop_cases.py; fatigue, potentiation and no hidden effect: test_loop_none.py)."""
 
+import math
+
 import pytest
 from loop_cases import HIDDEN, check_hidden_first, rankings
 
@@ -56,7 +58,9 @@ def test_a_hidden_gravity_offset_is_found_by_the_rest_offset_candidates():
 
 def test_a_hidden_end_of_range_in_extension_is_found_and_located():
     """The knee meets the end of its range at 75° (a torque rising by e every 5°): the loop puts
-    ``extension_limit`` first, past the bar, with the limit where the truth has it."""
+    ``extension_limit`` first, past the bar, with the limit's torque and width the truth's.  With
+    the package's default starts: from the prior median alone (a torque too small to matter at
+    the angles these data reach) the optimiser does not find it."""
     import warnings
 
     from quadshank.data._simulate import EFFECT_PARAMETERS, simulate_cohort
@@ -66,10 +70,11 @@ def test_a_hidden_end_of_range_in_extension_is_found_and_located():
     assert max(t.angle_deg.max() for t in cohort) < 85.0  # no swing far beyond the end of the range
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        r = rank_effects(cohort, "model3s", n_draws=150, n_j_draws=30, n_starts=0,
+        r = rank_effects(cohort, "model3s", n_draws=150, n_j_draws=30,
                          effects=("extension_limit", "torque_angle_peak", "gravity_offset", "hill_velocity"))
     check_hidden_first(r, "extension_limit")
     truth = EFFECT_PARAMETERS["extension_limit"]
     found = r.rows[0]["parameters"]["JM-left"]
-    assert found["phi_limit"] == pytest.approx(truth["phi_limit_deg"], abs=2.0)
-    assert found["limit_width"] == pytest.approx(truth["width_deg"], rel=0.2)
+    at_full_extension = truth["torque_deg_s2"] * math.exp((90.0 - truth["phi_limit_deg"]) / truth["width_deg"])
+    assert found["limit_stiffness"] == pytest.approx(at_full_extension, rel=0.15)
+    assert found["limit_width"] == pytest.approx(truth["width_deg"], rel=0.1)

@@ -739,36 +739,38 @@ class GravityOffset(Effect):
         return -self.gravity * sin_deg(angle - self.gravity_angle)
 
 
-#: Passive torque [deg/s²] of ``extension_limit`` at its limit angle.
-EXTENSION_LIMIT_TORQUE = 1000.0
+#: Knee angle [deg] at which ``extension_limit`` states its stiffness: full extension.
+FULL_EXTENSION_DEG = 90.0
 
 
 @register_effect
 @dataclasses.dataclass(frozen=True)
 class ExtensionLimit(Effect):
-    """The end of the knee's range in extension: −K·exp((φ − φ_lim)/w), K = 1000 deg/s².
+    """The end of the knee's range in extension: −K·exp((φ − 90°)/w).
 
     Eq. (8)'s elasticity stiffens in flexion only; a real knee meets the end of its range near
     full extension (capsule, ligaments, the hamstrings stretched in the seated position), where
-    the passive torque rises steeply.  ``phi_limit`` is the angle where that torque reaches
-    :data:`EXTENSION_LIMIT_TORQUE` (about half the gravity term's largest), ``limit_width`` how
-    steeply it rises (by e per width).  Its absence shows as a residual against the angle at
-    the top of the swing.
+    the passive torque rises steeply.  ``limit_stiffness`` K is that torque at full extension
+    (:data:`FULL_EXTENSION_DEG`), ``limit_width`` w how steeply it rises (by e per w).  Its
+    prior reaches down to torques too small to matter, so a knee that never meets its limit
+    is described by the effect too.  Its absence shows as a residual against the angle at the
+    top of the swing.
     """
 
     kind = "passive"
     name = "extension_limit"
     signature = "angle"
     params = (
-        Param("phi_limit", "deg", prior=("normal", 80.0, 15.0), doc="angle where the limit's torque is 1000 deg/s²"),
+        Param("limit_stiffness", "deg/s^2", support="positive", prior=("lognormal", math.log(30.0), 2.5),
+              doc="the limit's torque at full extension (90°)"),
         Param("limit_width", "deg", support="positive", prior=("lognormal", math.log(6.0), 0.5),
               doc="rise of the limit's torque by e"),
     )
-    phi_limit: Any = 80.0
+    limit_stiffness: Any = 30.0
     limit_width: Any = 6.0
 
     def acceleration(self, angle, velocity):
-        return -EXTENSION_LIMIT_TORQUE * jnp.exp((angle - self.phi_limit) / self.limit_width)
+        return -self.limit_stiffness * jnp.exp((angle - FULL_EXTENSION_DEG) / self.limit_width)
 
 
 @register_effect
