@@ -46,6 +46,10 @@ LONGEST_FIRST = (
     "test_loop.py",
     "test_recovery.py",
     "test_report.py",
+    "test_user_effects.py",
+    "test_sampling_period.py",
+    "test_trains.py",
+    "test_pendulum.py",
 )
 
 

@@ -141,6 +141,12 @@ def test_fit_model_passive_recovers_the_pendulum_with_the_release_excluded(tmp_p
     # 2 × 400 draws do not always explore to the checks' ESS; the curve and D' are what must be right
     assert rc in (0, 3) and s["diagnostics"]["rhat_max"] < 1.05 and s["diagnostics"]["divergences"] <= 5
     assert "uninformed" not in s and s["model"] == "passive"
+    # its report shows no delay: there is no muscle for one
+    assert main(["-q", "report", str(tmp_path / "fit"), "--out", str(tmp_path / "report"), "--draws", "5",
+                 "--start-stride", "50"]) == 0
+    page = next((tmp_path / "report").glob("subject-*.html")).read_text()
+    assert "No muscle, so no delay" in page and "Delay posterior" not in page
+    assert "– (no muscle)" in (tmp_path / "report" / "index.html").read_text()
     for subject, passive in truths.items():
         params = s["legs"][f"{subject}-left"]["params"]
         assert set(params) == {"damping", "gravity", "k1", "k2", "sigma", "nu"}

@@ -443,6 +443,7 @@ def write_report(
     nav = '<nav><a href="index.html">cohort index</a>' + "".join(
         f'<a href="{_e(p)}">subject {_e(s)}</a>' for s, p in pages.items()) + "</nav>"
     figures_per_page: dict[str, int] = {}
+    muscle = "no_muscle" not in fs.effects  # the pendulum alone (--model passive) has no delay to show
 
     # ---------------------------------------------------------------- subject pages
     for subject in progress_bar(subjects, desc="report pages", enabled=progress):
@@ -454,9 +455,11 @@ def write_report(
                     "log-normal prior); grey: the prior's 90 % interval. Legs pulled towards their subject and the "
                     "population show how much the hierarchy pools.</p>")
         body.append(_figure(_data_uri(plot_shrinkage(subject, sl, params)), f"shrinkage of subject {subject}"))
-        body.append('<h2 id="delay">Delay posterior</h2>')
-        body.append(_figure(_data_uri(plot_delay_posterior(sl, fs.legs, dt)), f"delay posterior of subject {subject}"))
-        figs += 2
+        figs += 1
+        if muscle:
+            body.append('<h2 id="delay">Delay posterior</h2>')
+            body.append(_figure(_data_uri(plot_delay_posterior(sl, fs.legs, dt)), f"delay posterior of subject {subject}"))
+            figs += 1
         if any("delay_angle" in fs.legs[leg] for leg in sl):
             body.append('<h2 id="delay-angle">Delay against knee angle</h2>')
             sub = {leg: fs.legs[leg] for leg in sl if "delay_angle" in fs.legs[leg]}
@@ -472,7 +475,9 @@ def write_report(
             s = fs.legs[leg]
             u = (fs.uninformed or {}).get(leg)
             body.append(f'<h2 id="leg-{_e(_safe(leg))}">Leg {_e(leg)}</h2>')
-            body.append(f"<p>Delay: {_e(_delay_text(s, dt))}{' (prior only)' if u else ''}. Files: "
+            delay = (f"Delay: {_e(_delay_text(s, dt))}{' (prior only)' if u else ''}" if muscle else
+                     "No muscle, so no delay: the pendulum alone")
+            body.append(f"<p>{delay}. Files: "
                         f'<a href="legs/{_e(_safe(leg))}.csv">CSV</a>, <a href="legs/{_e(_safe(leg))}.json">JSON</a>.</p>')
             if u:
                 body.append(f'<p class="note prior-only-note">{_e(leg)}: {_e(u["why"])} in the fitted trials. Its delay '
@@ -504,7 +509,7 @@ def write_report(
         j = J_legs.get(leg, {})
         tr = sorted(j, key=int)[-1] if j else None
         rows.append([
-            _e(subject), f'<a href="{_e(pages[subject])}#leg-{_e(_safe(leg))}">{_e(leg)}</a>', _e(_delay_text(s, dt)),
+            _e(subject), f'<a href="{_e(pages[subject])}#leg-{_e(_safe(leg))}">{_e(leg)}</a>', _e(_delay_text(s, dt)) if muscle else "– (no muscle)",
             (f"trial {_e(tr)}: {_q(j[tr].get('1000'))}" if tr else "–"),
             '<span class="ok">passed</span>' if diag_ok else '<span class="fail">FAILED</span>',
         ])
