@@ -3,6 +3,7 @@
 Nothing here knows the model or the data; the other subpackages import it, never the reverse.
 """
 
+from ._arrays import stretches
 from ._io import (
     atomic_path,
     atomic_write_bytes,
@@ -17,6 +18,7 @@ from ._random import jax_key, numpy_rng
 from ._results import SCHEMA_VERSION, Result, SchemaError
 
 __all__ = [
+    "stretches",
     "atomic_path", "atomic_write_bytes", "atomic_write_text", "read_json", "write_json", "save_figure",
     "progress_bar", "code_fingerprint", "code_provenance", "__version__", "Result", "SchemaError", "SCHEMA_VERSION",
     "numpy_rng", "jax_key",

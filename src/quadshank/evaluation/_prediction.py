@@ -23,6 +23,7 @@ from typing import ClassVar
 import numpy as np
 from scipy.stats import binomtest
 
+from ..common._arrays import stretches
 from ..common._progress import progress_bar
 from ..common._results import Result
 from ..data._cohort import Cohort, Trial
@@ -92,10 +93,8 @@ def free_runs(model: Model, trial: Trial) -> list[tuple[int, np.ndarray]]:
     trial's stimulation.  Returns ``(start, angle)`` per stretch, the angle as the goniometer
     would read it."""
     model.check_period(trial.sampling_period_s, f"{trial.key} trial {trial.trial}")
-    kept = (~trial.exclude).astype(int)
-    edges = np.diff(np.concatenate([[0], kept, [0]]))
     out = []
-    for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
+    for a, b in stretches(~trial.exclude):
         if b - a < 2:
             continue
         a0 = true_angle(model, np.float32(trial.angle_deg[a]))

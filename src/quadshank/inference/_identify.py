@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import least_squares
 
+from ..common._arrays import stretches
 from ..common._progress import progress_bar
 from ..common._results import Result
 from ..data._cohort import SAME_PERIOD_REL, Cohort, Trial
@@ -257,11 +258,8 @@ def free_run_segments(trial: Trial) -> list[tuple[int, int]]:
     (:func:`quiet_mask`: the release and the samples after a pulse left out) that are not
     excluded, at least :data:`FREE_RUN_MIN_S` long.  Each starts a free run afresh from its
     first sample's measured state (an excluded spasm may have moved the shank)."""
-    usable = quiet_mask(trial.stimulation) & ~trial.exclude
-    edges = np.diff(np.concatenate([[0], usable.astype(int), [0]]))
     shortest = max(2, int(round(FREE_RUN_MIN_S / trial.sampling_period_s)))
-    return [(int(a), int(b)) for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1))
-            if b - a >= shortest]
+    return [(a, b) for a, b in stretches(quiet_mask(trial.stimulation) & ~trial.exclude) if b - a >= shortest]
 
 
 _PASSIVE_NAMES = ("damping", "gravity", "k1", "k2")

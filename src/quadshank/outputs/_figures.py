@@ -5,6 +5,7 @@ from __future__ import annotations
 import matplotlib.pyplot as plt
 import numpy as np
 
+from ..common._arrays import stretches
 from ..data._paper import HORIZONS_MS, TABLE_V
 
 __all__ = [
@@ -29,12 +30,8 @@ def _pulses(ax, t, u, y):
 
 def _shade_excluded(ax, trial, sl: slice) -> None:
     """Grey bands over the trial's excluded samples (``Trial.exclude``) within ``sl``."""
-    ex = np.asarray(trial.exclude[sl], dtype=int)
-    if not ex.any():
-        return
-    edges = np.diff(np.concatenate([[0], ex, [0]]))
     t, dt = trial.time_s[sl], trial.sampling_period_s
-    for n, (a, b) in enumerate(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1))):
+    for n, (a, b) in enumerate(stretches(trial.exclude[sl])):
         ax.axvspan(t[a] - dt / 2, t[b - 1] + dt / 2, color="0.85", zorder=0, lw=0,
                    label="excluded (not compared)" if n == 0 else None)
 
