@@ -264,12 +264,27 @@ def run_evaluate_and_report(args, cohort, models, out):
     return summary
 
 
+#: ``fit``'s warm-up and draws per chain by default, and with ``--target-ess`` (a short warm-up
+#: from the screen's metric, then blocks of draws)
+FIXED_LENGTHS = (1000, 1000)
+TARGET_LENGTHS = (200, 100)
+
+
+def fit_lengths(args) -> tuple[int, int]:
+    """Warm-up and draws (or block) per chain: the user's, else the defaults for how the fit draws."""
+    warmup, draws = TARGET_LENGTHS if args.target_ess is not None else FIXED_LENGTHS
+    return (warmup if args.warmup is None else args.warmup, draws if args.draws is None else args.draws)
+
+
 def cmd_fit(args) -> int:
     cohort = load_cohort(Path(args.data))
+    warmup, draws = fit_lengths(args)
     settings = FitSettings(
         chains=args.chains,
-        warmup=args.warmup,
-        draws=args.draws,
+        warmup=warmup,
+        draws=draws,
+        target_ess=args.target_ess,
+        time_limit_s=args.time_limit,
         seed=args.seed,
         trials=tuple(_int_list(args.trials, "--trials")),
         start=args.start,
@@ -299,6 +314,10 @@ def cmd_fit(args) -> int:
         f"R-hat max {diag['rhat_max']:.3f}, bulk ESS min {diag['ess_bulk_min']:.0f}, "
         f"divergences {diag['divergences']}, E-BFMI min {diag['bfmi_min']:.2f}",
     )
+    if summary.target is not None:
+        t = summary.target
+        _say(args, f"target ESS {t['target_ess']}: {t['stopped']}, after {t['blocks']} block(s), "
+                   f"{t['draws_per_chain']} draws per chain, {t['seconds']:.0f} s from the start")
     for w in diag.get("warnings", []):
         print(f"quadshank: warning: {w}", file=sys.stderr)
     for leg, u in (summary.uninformed or {}).items():
@@ -575,8 +594,17 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--trials", default="1", help="identification trials, comma-separated (default 1, as the paper)")
     f.add_argument("--legs", default="", help="legs, comma-separated (default: all in the data)")
     f.add_argument("--chains", type=int, default=4)
-    f.add_argument("--warmup", type=int, default=1000)
-    f.add_argument("--draws", type=int, default=1000)
+    f.add_argument("--warmup", type=int, default=None,
+                   help=f"warm-up draws per chain (default {FIXED_LENGTHS[0]}; {TARGET_LENGTHS[0]} with --target-ess)")
+    f.add_argument("--draws", type=int, default=None,
+                   help=f"draws per chain (default {FIXED_LENGTHS[1]}); with --target-ess the size of each block "
+                        f"(default {TARGET_LENGTHS[1]})")
+    f.add_argument("--target-ess", type=int, default=None, metavar="N",
+                   help="draw in blocks until bulk and tail ESS reach N for every parameter and R-hat passes, "
+                        "or until --time-limit; the summary says which")
+    f.add_argument("--time-limit", type=float, default=FitSettings.time_limit_s, metavar="SECONDS",
+                   help="with --target-ess: begin no block that would end later than this after the start "
+                        f"(default {FitSettings.time_limit_s:.0f})")
     f.add_argument("--seed", type=int, default=0)
     f.add_argument(
         "--delay-from",

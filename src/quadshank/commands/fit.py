@@ -78,6 +78,8 @@ def run_fit(
         extra["delay_evidence_seconds"] = run.delay_evidence_seconds
         extra["screen_restarted"] = {leg: {"from_delay": a, "to_delay": b} for leg, (a, b) in run.screen_restarted.items()}
     extra["sampling_seconds"] = run.sampling_seconds
+    if run.target is not None:
+        extra["target"] = run.target
     idata = to_inference_data(
         run.mcmc, m, run.data, settings, delay_source=None if delay_from is None else str(delay_from),
         log_delay_prior=log_prior, delay_evidence=run.delay_evidence,

@@ -42,7 +42,7 @@ from ._draws import (
 )
 from ._nuts import FitSettings, chain_method
 from ._priors import NOISE_PARAMS, model_params, step_param
-from ._summaries import INTERVAL, interval, pooled_draws
+from ._summaries import INTERVAL, THRESHOLDS, interval, pooled_draws
 
 __all__ = [
     "check_fit_files",
@@ -59,8 +59,6 @@ __all__ = [
     "THRESHOLDS",
 ]
 
-#: Acceptance of a fit: R-hat below, ESS (bulk and tail) at least per chain, no divergence, E-BFMI above.
-THRESHOLDS = {"rhat_max": 1.01, "ess_per_chain": 100, "divergences": 0, "bfmi_min": 0.3}
 #: Two chains whose P(d) of one leg lie further apart than this (total variation) sample different delays.
 DELAY_SPLIT_TV = 0.5
 #: A delay the per-delay Laplace evidence gives at least the first weight, and the chains' pooled
@@ -97,6 +95,7 @@ class FitResult(Result):
     derived_signals: dict | None = None  # signals derived from the angle (no sensor): how, and for which trials
     uninformed: dict | None = None  # leg -> pulses, and the active parameters its own data hardly inform
     effect_origins: dict | None = None  # a user's effect -> its module, file and source hash (not built-ins)
+    target: dict | None = None  # drawn to a target ESS: how the blocks ended (inference.target_status)
 
     @property
     def ok(self) -> bool:

@@ -13,12 +13,15 @@ median remain as options.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
+import io
 import math
 import sys
 import time
 
+import arviz as az
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -33,14 +36,19 @@ from ..model._likelihood import (
 )
 from ..model._model import Model
 from ._density import numpyro_model
+from ._draws import hyper_draws
 from ._priors import model_params
 from ._screen import delay_modes, laplace_fit, restart_screen
 from ._starts import _init_near, classical_start
+from ._summaries import THRESHOLDS
 
 __all__ = [
     "FitSettings",
     "FitRun",
+    "BlockDraws",
     "run_nuts",
+    "target_status",
+    "convergence_status",
     "model_params",
     "numpyro_model",
     "fit",
@@ -87,6 +95,15 @@ class FitSettings:
     #: missed it, and the weights, stored in the fit, are checked against the chains' P(d):
     #: a delay holding ≥ 0.1 of that weight that no chain visits draws a warning.
     delay_evidence: bool = True
+    #: Draw to an effective sample size rather than a number of draws: after ``warmup`` and a first
+    #: block of ``draws`` per chain, further blocks of ``draws`` follow until every check of the
+    #: fit's R-hat and ESS passes with bulk and tail ESS at least this (and at least
+    #: ``THRESHOLDS["ess_per_chain"]`` per chain), or until ``time_limit_s`` would pass
+    #: (:func:`target_status`).  None: exactly ``warmup`` + ``draws``.
+    target_ess: int | None = None
+    #: With ``target_ess``: seconds from the fit's start (screen and compilation included) after
+    #: which no further block is begun; a block that would end past it is not begun either.
+    time_limit_s: float = 1800.0
 
     def __post_init__(self):
         if self.start not in STARTS:
@@ -100,6 +117,10 @@ class FitSettings:
             raise ValueError(f"target_accept must lie between 0 and 1, not {self.target_accept}")
         if not self.trials:
             raise ValueError("trials: give at least one trial to fit")
+        if self.target_ess is not None and int(self.target_ess) < 1:
+            raise ValueError(f"target_ess must be at least 1, not {self.target_ess}")
+        if not self.time_limit_s > 0:
+            raise ValueError(f"time_limit_s must be positive, not {self.time_limit_s}")
 
 
 def chain_method(settings: FitSettings, data: LikelihoodData) -> str:
@@ -247,6 +268,9 @@ class FitRun:
     #: seconds spent weighing the delays (None: not weighed), and on everything else up to the draws
     delay_evidence_seconds: float | None
     sampling_seconds: float
+    #: with :attr:`FitSettings.target_ess`: how the blocks ended (:func:`target_status`, plus
+    #: ``blocks``, ``stopped`` and ``seconds``); None for a fixed number of draws
+    target: dict | None = None
 
 
 def run_nuts(
@@ -277,11 +301,12 @@ def run_nuts(
         screen, evidence, moved = delay_start(cohort, settings, screen, log_delay_prior, progress=progress)
         evidence_seconds = time.perf_counter() - t1
     with jax.enable_x64(True):
-        mcmc, data = _fit(cohort, model, settings, legs, progress, log_delay_prior, screen)
+        mcmc, data = _fit(cohort, model, settings, legs, progress, log_delay_prior, screen, started=t0)
     # JAX dispatches asynchronously: the draws may still be computing when the run returns
     jax.block_until_ready(mcmc.get_samples(group_by_chain=True))
     sampling = time.perf_counter() - t0 - (evidence_seconds or 0.0)
-    return FitRun(mcmc, data, evidence, moved, evidence_seconds, sampling)
+    target = mcmc.target if isinstance(mcmc, BlockDraws) else None
+    return FitRun(mcmc, data, evidence, moved, evidence_seconds, sampling, target)
 
 
 def fit(
@@ -297,7 +322,7 @@ def fit(
     return run.mcmc, run.data
 
 
-def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen):
+def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen, started=None):
     data = prepare(cohort, model, trials=settings.trials, legs=legs)
     arrays = {k: v.astype(jnp.float64) if jnp.issubdtype(v.dtype, jnp.floating) else v for k, v in data.leg_arrays().items()}
     if log_delay_prior is not None:
@@ -335,13 +360,141 @@ def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen):
         num_samples=settings.draws,
         num_chains=settings.chains,
         chain_method=chain_method(settings, data),
-        progress_bar=progress,
+        # numpyro's stepping loop with a progress bar calls one jitted step, which later blocks of the
+        # same size reuse; its loop without the bar is compiled whole, again for every block
+        progress_bar=progress or settings.target_ess is not None,
         # the data are arguments of the jitted sampler, not constants folded into it:
         # the chains (and later fits of the same shapes) compile it once
         jit_model_args=True,
     )
-    mcmc.run(jax.random.PRNGKey(settings.seed), arrays, extra_fields=("diverging", "energy", "num_steps"), init_params=init_params)
+    key = jax.random.PRNGKey(settings.seed)
+    if settings.target_ess is not None:
+        started = time.perf_counter() if started is None else started
+        return _draw_to_target(mcmc, key, arrays, init_params, model, data, settings, started, progress), data
+    mcmc.run(key, arrays, extra_fields=_FIELDS, init_params=init_params)
     return mcmc, data
+
+
+#: The sampler's statistics kept with every draw.
+_FIELDS = ("diverging", "energy", "num_steps")
+#: Sites that are no parameter: each leg's log P(d | θ) (and of (d, shift)), not checked for convergence.
+_NOT_CHECKED = ("delay_logp", "delay_shift_logp")
+
+
+@dataclasses.dataclass(frozen=True)
+class BlockDraws:
+    """Draws gathered in blocks by a fit with :attr:`FitSettings.target_ess`: the samples and
+    statistics of every block, chain by chain, read as those of one numpyro ``MCMC``
+    (:func:`quadshank.inference.to_inference_data` takes either)."""
+
+    samples: dict
+    extra: dict
+    #: how the blocks ended: :func:`target_status` of all the draws, with ``blocks``, ``stopped``, ``seconds``
+    target: dict
+
+    @staticmethod
+    def _grouped(values: dict, group_by_chain: bool) -> dict:
+        if group_by_chain:
+            return dict(values)
+        return {k: v.reshape(v.shape[0] * v.shape[1], *v.shape[2:]) for k, v in values.items()}
+
+    def get_samples(self, group_by_chain: bool = False) -> dict:
+        """Every block's draws: ``{site: (chains, draws, ...)}``, or (chains·draws, ...) pooled."""
+        return self._grouped(self.samples, group_by_chain)
+
+    def get_extra_fields(self, group_by_chain: bool = False) -> dict:
+        """Every block's sampler statistics (diverging, energy, num_steps), shaped as :meth:`get_samples`."""
+        return self._grouped(self.extra, group_by_chain)
+
+
+def convergence_status(draws: dict, needed: float, rhat_max: float = THRESHOLDS["rhat_max"]) -> dict:
+    """Whether draws ``{name: (chains, draws, ...)}`` pass R-hat and ESS: the largest rank-normalised
+    split R-hat below ``rhat_max`` (with two chains or more) and the smallest bulk and tail ESS
+    (arviz) at least ``needed``.  ``lagging``: the variable furthest from passing."""
+    post = az.convert_to_dataset({k: np.asarray(v) for k, v in draws.items()})
+    chains, n = post.sizes["chain"], post.sizes["draw"]
+
+    def per_var(ds, fn):
+        out = {v: float(fn(np.asarray(ds[v]))) for v in ds.data_vars if np.isfinite(np.asarray(ds[v])).any()}
+        return out or {"": float("nan")}
+
+    rhat = per_var(az.rhat(post), np.nanmax) if chains > 1 else {"": float("nan")}
+    bulk = per_var(az.ess(post, method="bulk"), np.nanmin)
+    tail = per_var(az.ess(post, method="tail"), np.nanmin)
+    ess = {v: min(bulk[v], tail.get(v, bulk[v])) for v in bulk}
+    # how far each variable is from passing, as a ratio: needed ESS over its ESS, R-hat's excess over the limit's
+    shortfall = {v: needed / max(e, 1e-9) for v, e in ess.items()}
+    for v, r in rhat.items():
+        if np.isfinite(r):
+            shortfall[v] = max(shortfall.get(v, 0.0), (r - 1.0) / (rhat_max - 1.0))
+    rhat_worst, bulk_min, tail_min = max(rhat.values()), min(bulk.values()), min(tail.values())
+    met = bulk_min >= needed and tail_min >= needed and (chains < 2 or rhat_worst < rhat_max)
+    return {"met": bool(met), "draws_per_chain": int(n), "ess_needed": needed, "rhat_max": rhat_worst,
+            "ess_bulk_min": bulk_min, "ess_tail_min": tail_min, "lagging": max(shortfall, key=shortfall.get)}
+
+
+def target_status(samples: dict, model: Model, data: LikelihoodData, settings: FitSettings) -> dict:
+    """Whether a fit's draws ``{site: (chains, draws, ...)}`` meet :attr:`FitSettings.target_ess`
+    (:func:`convergence_status`).
+
+    Checks what the fit's acceptance (:func:`quadshank.inference.diagnose_sampling`) checks of
+    R-hat and ESS, on the same variables: the sampled sites and the population and subject values
+    drawn from them.  The ESS needed is the larger of the target and ``THRESHOLDS["ess_per_chain"]``
+    per chain.  Divergences are counted by the caller.
+    """
+    chains = next(iter(samples.values())).shape[0]
+    kept = {k: np.asarray(v) for k, v in samples.items() if k not in _NOT_CHECKED}
+    kept.update(hyper_draws(model, kept, data.leg_subject, len(data.subjects), settings.seed))
+    return convergence_status(kept, max(int(settings.target_ess or 0), THRESHOLDS["ess_per_chain"] * chains))
+
+
+def _draw_to_target(mcmc, key, arrays, init_params, model, data, settings, started, progress) -> BlockDraws:
+    """Warm-up and a first block, then blocks of the same size until :func:`target_status` is met,
+    a draw diverges (more draws do not mend that), or the next block would end past the time limit."""
+
+    # numpyro writes its progress bar to stderr; a quiet fit sends it nowhere
+    def quiet():
+        return contextlib.nullcontext() if progress else contextlib.redirect_stderr(io.StringIO())
+
+    samples, extra = [], []
+
+    def draw(**kw):
+        t = time.perf_counter()
+        with quiet():
+            mcmc.run(key if not samples else mcmc.post_warmup_state.rng_key, arrays, extra_fields=_FIELDS, **kw)
+        samples.append({k: np.asarray(v) for k, v in mcmc.get_samples(group_by_chain=True).items()})
+        extra.append({k: np.asarray(v) for k, v in mcmc.get_extra_fields(group_by_chain=True).items()})
+        return time.perf_counter() - t
+
+    # the first block's seconds hold the warm-up and the compilation: the next block's time is
+    # overestimated until one has been timed alone
+    seconds = draw(init_params=init_params)
+    while True:
+        joined = {k: np.concatenate([b[k] for b in samples], axis=1) for k in samples[0]}
+        joined_extra = {k: np.concatenate([b[k] for b in extra], axis=1) for k in extra[0]}
+        status = target_status(joined, model, data, settings)
+        divergences = int(joined_extra["diverging"].sum())
+        elapsed = time.perf_counter() - started
+        if status["met"] and not divergences:
+            stopped = "target met"
+        elif divergences:
+            stopped = f"{divergences} divergent transitions (more draws do not mend them)"
+        elif elapsed + seconds > settings.time_limit_s:
+            stopped = f"time limit of {settings.time_limit_s:.0f} s: another block would end past it"
+        else:
+            if progress:
+                print(f"fit: {status['draws_per_chain']} draws per chain (last block {seconds:.0f} s): "
+                      f"bulk ESS {status['ess_bulk_min']:.0f}, tail ESS {status['ess_tail_min']:.0f}, R-hat {status['rhat_max']:.3f} "
+                      f"(needed: ESS {status['ess_needed']}, R-hat < {THRESHOLDS['rhat_max']}; furthest: "
+                      f"{status['lagging']}); "
+                      f"{settings.draws} more per chain", file=sys.stderr, flush=True)
+            mcmc.post_warmup_state = mcmc.last_state
+            seconds = draw()
+            continue
+        target = {**status, "target_ess": int(settings.target_ess), "divergences": divergences,
+                  "blocks": len(samples), "stopped": stopped, "seconds": round(elapsed, 1),
+                  "time_limit_s": settings.time_limit_s}
+        return BlockDraws(joined, joined_extra, target)
 
 
 # ============================================================================ after sampling

@@ -5,7 +5,10 @@ from __future__ import annotations
 import arviz as az
 import numpy as np
 
-__all__ = ["INTERVAL", "interval", "pooled_draws"]
+__all__ = ["INTERVAL", "THRESHOLDS", "interval", "pooled_draws"]
+
+#: Acceptance of a fit: R-hat below, ESS (bulk and tail) at least per chain, no divergence, E-BFMI above.
+THRESHOLDS = {"rhat_max": 1.01, "ess_per_chain": 100, "divergences": 0, "bfmi_min": 0.3}
 
 #: Quantiles of the equal-tailed 90 % interval reported everywhere.
 INTERVAL = (0.05, 0.95)
