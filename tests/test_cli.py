@@ -82,7 +82,7 @@ def test_demo_small(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(_demo, "DEMO_EFFECTS", ("potentiation",))  # one candidate keeps the test short
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--minutes", "1", "--legs", "TN-left,OT-left",
-                 "--chains", "1", "--warmup", "20", "--draws", "20"]) == 0
+                 "--chains", "1", "--warmup", "20", "--draws", "20", "--time-limit", "1"]) == 0
     err = capsys.readouterr().err
     assert f"open the report: {out / 'report' / 'index.html'}" in err
     assert "did not pass its checks" in err  # 20 draws cannot pass; the demo says so and goes on
@@ -91,6 +91,9 @@ def test_demo_small(tmp_path, monkeypatch, capsys):
     assert list(s["seconds"]) == ["reproduce", "fit", "evaluate", "diagnose", "report"]
     fit = json.loads((out / "fit" / "summary.json").read_text())
     assert fit["settings"]["max_tree_depth"] == 5 == s["fit_settings"]["max_tree_depth"]  # the demo's shallow trees
+    # drawn to the demo's target ESS, stopped after one block by the time limit, and said so
+    assert fit["target"]["target_ess"] == 200 and fit["target"]["blocks"] == 1 and "time limit" in fit["target"]["stopped"]
+    assert "time limit of 1 s" in (out / "README.md").read_text()
     rep = json.loads((out / "reproduce" / "summary.json").read_text())
     assert set(rep["J"]) == {"model1", "model2", "model3"}
     ev = json.loads((out / "evaluate" / "summary.json").read_text())

@@ -509,7 +509,8 @@ def cmd_demo(args) -> int:
     summary = run_demo(
         args.out, minutes=args.minutes, seed=args.seed, effects=_csv_list(args.effects) if args.effects else (),
         legs=_csv_list(args.legs) if args.legs else None, chains=args.chains, warmup=args.warmup, draws=args.draws,
-        max_tree_depth=args.max_tree_depth, progress=not args.quiet, command=command,
+        max_tree_depth=args.max_tree_depth, target_ess=args.target_ess or None, time_limit_s=args.time_limit,
+        progress=not args.quiet, command=command,
     )
     if not summary.fit_ok:
         print(f"quadshank: warning: the demo's short fit did not pass its checks ({summary.fit_banner}); "
@@ -722,7 +723,11 @@ def build_parser() -> argparse.ArgumentParser:
     sim_options(d, 1.5)
     d.add_argument("--chains", type=int, default=2)
     d.add_argument("--warmup", type=int, default=150)
-    d.add_argument("--draws", type=int, default=150)
+    d.add_argument("--draws", type=int, default=100, help="draws per chain in each block (default 100)")
+    d.add_argument("--target-ess", type=int, default=200, metavar="N",
+                   help="the fit draws blocks until R-hat and ESS N pass (default 200; 0: one block, no target)")
+    d.add_argument("--time-limit", type=float, default=150.0, metavar="SECONDS",
+                   help="begin no block of the fit that would end later than this after its start (default 150)")
     d.add_argument("--max-tree-depth", type=int, default=5,
                    help="NUTS tree depth: at most 2^depth - 1 leapfrog steps a draw (quadshank fit: 8)")
     d.set_defaults(func=cmd_demo)

@@ -11,9 +11,10 @@ Five steps, each in its own folder under ``out``:
    over the five effects of the paper's discussion;
 5. ``report/``: the per-subject credible-parameter pages (``report/index.html``).
 
-The sizes are the demo's (short trials, short chains with trees of at most 31
-leapfrog steps, a screen from one start per extension): small enough for a few
-minutes on a 2-core CPU, too small for the fit to pass its checks — the
+The sizes are the demo's (short trials, trees of at most 31 leapfrog steps, a
+screen from one start per extension): small enough for a few minutes on a 2-core
+CPU.  The fit draws to a target ESS (:attr:`FitSettings.target_ess`) in blocks
+until it passes its checks or its time limit would pass; where it stops short, the
 report says so at the top of every page, as it would for any fit.  ``summary.json``
 (written last) records every step's folder, its seconds and the fit's checks.
 """
@@ -38,7 +39,7 @@ from .fit import run_fit
 from .report import run_report
 from .reproduce import run_reproduce
 
-__all__ = ["Demo", "run_demo", "DEMO_LEGS", "DEMO_EFFECTS"]
+__all__ = ["Demo", "run_demo", "how_drawn", "DEMO_LEGS", "DEMO_EFFECTS"]
 
 
 @dataclasses.dataclass
@@ -72,6 +73,16 @@ DEMO_N_STARTS = 0
 DEMO_EFFECTS = ("torque_angle_peak", "hill_velocity", "angle_delay", "fatigue", "potentiation")
 
 
+def how_drawn(fit, warmup: int) -> str:
+    """How the demo's fit drew, in words: to its target ESS (and how that ended) or a fixed number of draws."""
+    draws = fit.diagnostics["draws"]
+    if fit.target is None:
+        return f"{draws} draws after {warmup} warm-up"
+    t = fit.target
+    return (f"{draws} draws per chain after {warmup} warm-up, drawn in {t['blocks']} block(s) to a target ESS of "
+            f"{t['target_ess']} ({t['stopped']}, {t['seconds']:.0f} s)")
+
+
 def run_demo(
     out: str | Path,
     *,
@@ -81,12 +92,17 @@ def run_demo(
     legs=None,
     chains: int = 2,
     warmup: int = 150,
-    draws: int = 150,
+    draws: int = 100,
     max_tree_depth: int = 5,
+    target_ess: int | None = 200,
+    time_limit_s: float = 150.0,
     progress: bool = False,
     command: str = "",
 ) -> Demo:
-    """Reproduce, fit, evaluate, diagnose, report; returns the summary (also ``out/summary.json``)."""
+    """Reproduce, fit, evaluate, diagnose, report; returns the summary (also ``out/summary.json``).
+
+    ``target_ess``, ``time_limit_s``: the fit draws blocks of ``draws`` per chain to this ESS or
+    until this many seconds from its start (None: exactly ``warmup`` + ``draws``)."""
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -114,7 +130,8 @@ def run_demo(
     data = out / "reproduce" / "data"
     cohort = load_cohort(data)
 
-    settings = FitSettings(chains=chains, warmup=warmup, draws=draws, seed=seed, max_tree_depth=max_tree_depth)
+    settings = FitSettings(chains=chains, warmup=warmup, draws=draws, seed=seed, max_tree_depth=max_tree_depth,
+                           target_ess=target_ess, time_limit_s=time_limit_s)
     say(f"2/5 hierarchical NUTS fit of model3s to trial 1 of {', '.join(fit_legs)} -> {out / 'fit'}")
     fit = run_fit(cohort, out / "fit", "model3s", (), settings, legs=fit_legs, progress=progress,
                   data_source=str(data.resolve()))
@@ -140,7 +157,8 @@ def run_demo(
     summary = Demo(
         command=command, minutes=minutes, seed=seed, effects=list(effects), legs=list(legs), fit_legs=list(fit_legs),
         fit_settings={"model": "model3s", "chains": chains, "warmup": warmup, "draws": draws,
-                      "max_tree_depth": max_tree_depth, "trials": [1]},
+                      "max_tree_depth": max_tree_depth, "trials": [1], "target_ess": target_ess,
+                      "time_limit_s": time_limit_s},
         fit_ok=bool(diagnostics["ok"]), fit_banner=fit.banner, verdict=diag.verdict, recovery_ok=rep.recovery_ok,
         report=str(out / "report" / "index.html"),
         folders={k: str(out / k) for k in ("reproduce", "fit", "evaluate", "diagnose", "report")},
@@ -158,7 +176,7 @@ def run_demo(
         "",
         f"- Reproduction: parameters within tolerance of the truth: {'yes' if rep.recovery_ok else 'NO'} "
         "(`reproduce/report.md`).",
-        f"- Fit: model3s on trial 1 of {', '.join(fit_legs)}, {chains} chains × {draws} draws after {warmup} warm-up "
+        f"- Fit: model3s on trial 1 of {', '.join(fit_legs)}, {chains} chains, {how_drawn(fit, warmup)} "
         f"(tree depth {max_tree_depth}): "
         + ("passed its checks." if diagnostics["ok"] else f"**{fit.banner}** — chains this short are a demo, "
            "not a result; see the advice in `fit/summary.json`."),

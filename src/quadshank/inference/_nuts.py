@@ -466,9 +466,9 @@ def _draw_to_target(mcmc, key, arrays, init_params, model, data, settings, start
         extra.append({k: np.asarray(v) for k, v in mcmc.get_extra_fields(group_by_chain=True).items()})
         return time.perf_counter() - t
 
-    # the first block's seconds hold the warm-up and the compilation: the next block's time is
-    # overestimated until one has been timed alone
-    seconds = draw(init_params=init_params)
+    # the first run's seconds hold the warm-up and the compilation as well: the next block is taken
+    # to cost its share of the iterations (an overestimate) until one has been timed alone
+    seconds = draw(init_params=init_params) * settings.draws / (settings.warmup + settings.draws)
     while True:
         joined = {k: np.concatenate([b[k] for b in samples], axis=1) for k in samples[0]}
         joined_extra = {k: np.concatenate([b[k] for b in extra], axis=1) for k in extra[0]}
