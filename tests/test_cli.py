@@ -91,9 +91,10 @@ def test_demo_small(tmp_path, monkeypatch, capsys):
     assert list(s["seconds"]) == ["reproduce", "fit", "evaluate", "diagnose", "report"]
     fit = json.loads((out / "fit" / "summary.json").read_text())
     assert fit["settings"]["max_tree_depth"] == 5 == s["fit_settings"]["max_tree_depth"]  # the demo's shallow trees
-    # drawn to the demo's target ESS, stopped after one block by the time limit, and said so
-    assert fit["target"]["target_ess"] == 200 and fit["target"]["blocks"] == 1 and "time limit" in fit["target"]["stopped"]
-    assert "time limit of 1 s" in (out / "README.md").read_text()
+    # drawn to the demo's target ESS, stopped short after one block (the time limit, or divergences first), and said so
+    t = fit["target"]
+    assert t["target_ess"] == 200 and t["blocks"] == 1 and not t["met"] and t["stopped"] != "target met"
+    assert t["stopped"] in (out / "README.md").read_text()
     rep = json.loads((out / "reproduce" / "summary.json").read_text())
     assert set(rep["J"]) == {"model1", "model2", "model3"}
     ev = json.loads((out / "evaluate" / "summary.json").read_text())

@@ -208,3 +208,82 @@ def test_delay_angle_figure_has_a_panel_per_leg_and_the_population():
     ]
     line = visible[0].get_lines()[0]
     np.testing.assert_array_equal(line.get_ydata(), step)
+
+
+def test_stride_error_is_the_spread_of_j_over_the_stride_offsets(run):
+    models, trial = _draws(run, 1)
+    k = 7
+    got = pe.stride_error(models, trial, HORIZONS, k)
+    starts, pred = predictions(_draw(models, 0), trial, max(HORIZONS))
+    per_offset = [[np.sqrt(np.mean((trial.angle_deg[starts[starts % k == o] + p]
+                                    - pred[starts % k == o, p - 1]) ** 2)) for p in HORIZONS] for o in range(k)]
+    np.testing.assert_allclose(got, np.std(per_offset, axis=0, ddof=1), rtol=1e-4)
+    assert np.all(got > 0)
+    np.testing.assert_array_equal(pe.stride_error(models, trial, HORIZONS, 1), 0.0)  # every start: no error
+
+
+def test_band_mcse_adds_the_quantile_and_the_stride_errors():
+    rng = np.random.default_rng(0)
+    n, sigma = 400, 0.3
+    draws = {"m": {"A": {"1": 1.0 + sigma * rng.normal(size=(n, 4))}, "B": {"1": 2.0 + sigma * rng.normal(size=(n, 4))}}}
+    zero = {"m": {"A": {"1": np.zeros(4)}, "B": {"1": np.zeros(4)}}}
+    _, legs = pe.band_mcse(draws, zero)
+    # the 5 % quantile of n independent normal draws: sqrt(p(1 - p) / n) / density, arviz's estimate a little above
+    theory = sigma * np.sqrt(0.05 * 0.95 / n) / 0.1031
+    # each estimate is itself noisy (about ±30 %): their mean over the 16 band ends
+    ratio = np.mean([e[end] for leg in ("A", "B") for e in legs["m"][leg]["1"].values() for end in ("lo", "hi")]) / theory
+    assert 0.8 < ratio < 1.6, ratio
+    stride = {"m": {"A": {"1": np.full(4, 0.2)}, "B": {"1": np.zeros(4)}}}
+    cohort_s, legs_s = pe.band_mcse(draws, stride)
+    cohort_0, _ = pe.band_mcse(draws, zero)
+    for h in ("100", "1000"):
+        for end in ("lo", "hi"):
+            assert legs_s["m"]["A"]["1"][h][end] == pytest.approx(np.hypot(legs["m"]["A"]["1"][h][end], 0.2))
+            assert legs_s["m"]["B"]["1"][h][end] == pytest.approx(legs["m"]["B"]["1"][h][end])
+            # the mean over two legs: the stride errors add as errors of a mean, (0.2² + 0²)^½ / 2
+            assert cohort_s["m"]["1"][h][end] == pytest.approx(np.hypot(cohort_0["m"]["1"][h][end], 0.1))
+    assert pe.largest_mcse(cohort_s) == max(e for hv in cohort_s["m"]["1"].values() for e in hv.values())
+
+
+def test_the_stride_error_is_the_scale_of_what_the_stride_changes(run):
+    """J at one start in k against J at every start, draw by draw: their differences, in units of
+    the stride error measured on one draw, have an RMS near 1 (a standard error of the mean over
+    the offsets, k^½ times smaller, or none at all would give far more)."""
+    fits = pe.load_fits([run["fits"][1]])
+    cohort = load_cohort(run["data"])
+    every, _ = pe.posterior_j_and_stride_errors(fits, cohort, n_draws=40, start_stride=1)
+    strided, sd = pe.posterior_j_and_stride_errors(fits, cohort, n_draws=40, start_stride=9)
+    z = [(strided["model3"][leg][tr] - every["model3"][leg][tr]) / sd["model3"][leg][tr]
+         for leg in every["model3"] for tr in every["model3"][leg]]
+    rms = float(np.sqrt(np.mean(np.square(z))))
+    assert 0.3 < rms < 2.0, rms
+
+
+def test_bands_to_an_accuracy_choose_draws_and_stride_and_say_so(run, tmp_path):
+    fits = pe.load_fits([run["fits"][1]])
+    cohort = load_cohort(run["data"])
+    loose = pe.accurate_j(fits, cohort, 10.0, pilot=(20, 10))
+    assert loose.met and len(loose.rounds) == 1 and (loose.n_draws, loose.start_stride) == (20, 10)
+    strict_target = 0.5 * loose.rounds[0]["largest_mcse"]
+    strict = pe.accurate_j(fits, cohort, strict_target, pilot=(20, 10))
+    assert len(strict.rounds) >= 2
+    assert strict.n_draws > 20 or strict.start_stride < 10  # the next round bought accuracy
+    assert strict.n_draws <= 40  # no more draws than the fit holds
+    assert strict.rounds[-1]["largest_mcse"] == pytest.approx(pe.largest_mcse(strict.mcse["cohort"]))
+    assert strict.met == (strict.rounds[-1]["largest_mcse"] <= strict_target)
+
+    out = tmp_path / "acc"
+    assert main(["-q", "evaluate", str(run["data"]), "--fit", str(run["fits"][1]), "--band-mcse", "10",
+                 "--out", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    m = s["band_mcse"]
+    assert m["target"] == 10 and m["met"] and m["largest_cohort"] <= 10 and s["n_draws"] == m["rounds"][-1]["draws"]
+    assert set(m["cohort"]["model3"]["2"]["1000"]) == {"lo", "hi"}
+    assert "largest Monte Carlo standard error of a band end" in (out / "report.md").read_text()
+
+
+def test_every_evaluation_estimates_its_bands_error(summary):
+    m = summary["band_mcse"]
+    assert "target" not in m and m["largest_legs"] > 0 and m["largest_cohort"] > 0
+    for label in ("model1", "model3"):
+        assert set(m["legs"][label]) == {"TN-left", "JM-left"}

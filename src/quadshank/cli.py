@@ -223,7 +223,7 @@ def cmd_evaluate(args) -> int:
             raise ValueError("give --fit (posterior evaluation) or --identified (point estimates), not both")
         summary = run_posterior_evaluate(
             load_cohort(data), args.fit, out, n_draws=args.draws, start_stride=args.start_stride,
-            progress=not args.quiet,
+            progress=not args.quiet, band_accuracy=args.band_mcse,
         )
         for model, info in summary.fits.items():
             if info["banner"]:
@@ -242,6 +242,11 @@ def cmd_evaluate(args) -> int:
             _say(args, "LOO ranking: " + ", ".join(
                 f"{m} (Δelpd {r['elpd_diff']:.1f} ± {r['dse']:.1f}, weight {r['weight']:.2f})" for m, r in ranked
             ))
+        m = summary.band_mcse
+        short = f"; NOT within the {m['target']:g} deg asked for" if "target" in m and not m["met"] else ""
+        _say(args, f"J bands from {summary.n_draws} draws, one start in {summary.start_stride}: the largest Monte Carlo "
+                   f"standard error of a band end {m['largest_cohort']:.3f} deg (mean over legs), "
+                   f"{m['largest_legs']:.3f} deg (one leg){short}")
         _say(args, f"posterior Table V, sign tests, PSIS-LOO, figures and summary.json in {out}")
         return 0
     cohort = load_cohort(data)
@@ -583,6 +588,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fit folder of `quadshank fit` (repeat for several models): evaluate the posterior, "
                         "with 90 %% bands and PSIS-LOO, instead of identifying")
     e.add_argument("--draws", type=int, default=200, help="posterior draws per fit to evaluate (default 200)")
+    e.add_argument("--band-mcse", type=float, default=None, metavar="DEG",
+                   help="choose the draws and the start stride so that the ends of the bands of the mean over legs "
+                        "carry at most this Monte Carlo standard error (e.g. 0.05); --draws and --start-stride are "
+                        "then unused")
     e.add_argument("--start-stride", type=int, default=1, metavar="K",
                    help="posterior J from every K-th start sample (default 1: all, as eq. 12)")
     e.set_defaults(func=cmd_evaluate)

@@ -19,8 +19,11 @@ from ..evaluation._posterior import (
     check_fit_legs,
     figure_window,
     load_fits,
+    accurate_j,
+    band_mcse,
+    largest_mcse,
     loo_report,
-    posterior_j,
+    posterior_j_and_stride_errors,
     posterior_medians,
     summarise_j,
     window_predictions,
@@ -150,6 +153,18 @@ def _residual_section(fits: list[LoadedFit], cohort: Cohort, out: Path, md: list
     return findings
 
 
+def _mcse_sentence(mcse: dict, n_draws: int, start_stride: int) -> str:
+    """The bands' accuracy in words: the draws and stride, and the largest error of a band end."""
+    starts = "every start" if start_stride == 1 else f"one start in {start_stride}"
+    text = (f"The bands come from {n_draws} posterior draws and {starts}; the largest Monte Carlo "
+            f"standard error of a band end is {mcse['largest_cohort']:.3f}° on the mean over legs and "
+            f"{mcse['largest_legs']:.3f}° on one leg's band")
+    if "target" in mcse:
+        text += (f" (asked: {mcse['target']:g}° on the mean over legs, "
+                 + ("met" if mcse["met"] else "NOT met: the fits hold too few draws, or the rounds ran out") + ")")
+    return text + "."
+
+
 def run_posterior_evaluate(
     cohort: Cohort,
     folders,
@@ -160,11 +175,16 @@ def run_posterior_evaluate(
     seed: int = 0,
     progress: bool = False,
     residuals: bool = False,
+    band_accuracy: float | None = None,
 ) -> PosteriorEvaluation:
     """Posterior J (Table V with bands), sign tests, PSIS-LOO, Figs. 5-6 with bands; summary.json last.
 
     ``residuals``: also each fit's residual diagnostics at its posterior medians
     (:mod:`quadshank.loop._diagnose`), side by side, what ``quadshank compare`` shows.
+    ``band_accuracy`` [deg]: choose the draws and the start stride so that the ends of the
+    cohort's bands carry at most this Monte Carlo standard error
+    (:func:`quadshank.evaluation.accurate_j`; ``n_draws`` and ``start_stride`` are then unused).
+    Every band end's error is estimated either way (``band_mcse`` in the summary).
     """
     if n_draws < 1:
         raise ValueError(f"--draws must be at least 1, not {n_draws}")
@@ -176,9 +196,19 @@ def run_posterior_evaluate(
     labels = [f.label for f in fits]
 
     t0 = time.perf_counter()
-    draws = posterior_j(fits, cohort, n_draws=n_draws, start_stride=start_stride, seed=seed, progress=progress)
+    accuracy = {}
+    if band_accuracy is not None:
+        acc = accurate_j(fits, cohort, band_accuracy, seed=seed, progress=progress)
+        draws, stride_sd, n_draws, start_stride = acc.draws, acc.stride_sd, acc.n_draws, acc.start_stride
+        accuracy = {"target": acc.target, "met": acc.met, "rounds": acc.rounds}
+    else:
+        draws, stride_sd = posterior_j_and_stride_errors(fits, cohort, n_draws=n_draws, start_stride=start_stride,
+                                                         seed=seed, progress=progress)
     elapsed = time.perf_counter() - t0
     J, J_legs = summarise_j(draws)
+    mcse_cohort, mcse_legs = band_mcse(draws, stride_sd)
+    mcse = {"largest_cohort": largest_mcse(mcse_cohort), "largest_legs": largest_mcse(mcse_legs), **accuracy,
+            "cohort": mcse_cohort, "legs": mcse_legs}
     tests = sign_tests(posterior_medians(J_legs)) if len(fits) >= 2 else []
     loo = loo_report(fits)
 
@@ -190,6 +220,7 @@ def run_posterior_evaluate(
     md.append("")
     md.append(write_table(_table_v_rows(J, labels), out / "tables", "table5_posterior",
                           "Table V (posterior): J_φ,p of the mean over legs, median and 90 % band [deg]"))
+    md += [_mcse_sentence(mcse, n_draws, start_stride), ""]
     md.append(write_table(_per_leg_rows(J_legs, fits), out / "tables", "j_per_leg_posterior",
                           "J_φ,p per leg and trial, median and 90 % band over draws [deg]"))
     md.append(write_table(sign_test_rows(tests), out / "tables", "sign_tests_posterior",
@@ -235,6 +266,7 @@ def run_posterior_evaluate(
         evaluation_seconds=elapsed,
     )
     result.residual_findings = findings
+    result.band_mcse = mcse
     atomic_write_text(out / "report.md", "\n".join(md))
     result.write(out)
     return result

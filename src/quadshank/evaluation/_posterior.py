@@ -43,6 +43,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
+import time
 import warnings
 from pathlib import Path
 from typing import Any, ClassVar, NamedTuple
@@ -65,7 +66,7 @@ from ..inference._fitio import (
     read_summary,
     sampled_vars,
 )
-from ..inference._summaries import interval
+from ..inference._summaries import INTERVAL, interval
 from ..model._model import Model, measured_angle, predict_ahead, simulate_angles, true_angle
 from ._prediction import horizon_samples, prediction_starts
 
@@ -78,6 +79,12 @@ __all__ = [
     "posterior_predictions",
     "posterior_prediction_errors",
     "posterior_j",
+    "posterior_j_and_stride_errors",
+    "stride_error",
+    "band_mcse",
+    "largest_mcse",
+    "AccurateJ",
+    "accurate_j",
     "interval",
     "summarise_j",
     "psis_loo",
@@ -118,6 +125,10 @@ class PosteriorEvaluation(Result):
     seed: int
     evaluation_seconds: float
     residual_findings: dict | None = None
+    #: Monte Carlo standard errors [deg] of the band ends (band_mcse): "cohort", "legs", their
+    #: largest ("largest_cohort", "largest_legs"), and with a band accuracy asked for, "target",
+    #: "met" and "rounds" (accurate_j)
+    band_mcse: dict | None = None
 
 
 class LoadedFit(NamedTuple):
@@ -283,8 +294,26 @@ def posterior_j(
     Every leg of every fit is evaluated on all of that leg's trials in ``cohort``, each horizon
     [ms] as whole samples of the trial's period (:func:`quadshank.evaluation.horizon_samples`).
     """
+    return posterior_j_and_stride_errors(fits, cohort, horizons_ms=horizons_ms, n_draws=n_draws,
+                                         start_stride=start_stride, seed=seed, progress=progress)[0]
+
+
+def posterior_j_and_stride_errors(
+    fits: list[LoadedFit],
+    cohort: Cohort,
+    *,
+    horizons_ms=HORIZONS_MS,
+    n_draws: int = 200,
+    start_stride: int = 1,
+    seed: int = 0,
+    progress: bool = False,
+) -> tuple[dict, dict]:
+    """:func:`posterior_j`'s draws, and per leg and trial the standard error [deg] that the start
+    stride adds to each draw's J (:func:`stride_error`; zeros at stride 1), array (horizons,),
+    shaped as the draws: ``(J, stride_sd)``."""
     jobs = [(f, leg, t) for f in fits for leg in f.desc["legs"] for t in cohort.trials_of(leg)]
     out: dict = {}
+    sd: dict = {}
     loaded = None
     for f, leg, t in progress_bar(jobs, desc="posterior J", enabled=progress):
         if loaded != (f.label, leg):  # jobs come leg by leg: one leg's draws in memory at a time
@@ -293,7 +322,154 @@ def posterior_j(
         horizons = tuple(horizon_samples(t.sampling_period_s, horizons_ms).values())
         errs = posterior_prediction_errors(models, t, horizons, start_stride)
         out.setdefault(f.label, {}).setdefault(leg, {})[str(t.trial)] = errs
+        # the stride's error, measured on the draw whose J at the longest horizon is the median
+        typical = int(np.argsort(errs[:, -1])[len(errs) // 2])
+        one = jax.tree_util.tree_map(lambda x: x[typical : typical + 1], models)
+        sd.setdefault(f.label, {}).setdefault(leg, {})[str(t.trial)] = stride_error(one, t, horizons, start_stride)
+    return out, sd
+
+
+def stride_error(model: Model, trial: Trial, horizons, stride: int) -> np.ndarray:
+    """The standard error [deg] of J computed from every ``stride``-th start, per horizon: the
+    standard deviation of J over the ``stride`` offsets o (starts o, o + stride, …) for one
+    draw ``model`` (leaves with a draws axis of 1).  Zeros at stride 1, where J uses every start.
+
+    J from one offset (the evaluation uses o = 0) is one of these ``stride`` estimates of the
+    J of every start; their spread is the error the stride adds to each draw's J.  It costs
+    the rollouts of one draw at every start."""
+    if stride <= 1:
+        return np.zeros(len(horizons))
+    starts = prediction_starts(trial, max(horizons), 1)
+    target = trial.angle_deg[starts[:, None] + np.asarray(horizons)[None, :]]  # (S, H)
+    sq = (target - posterior_predictions(model, trial, starts, horizons)[0]) ** 2
+    offsets = starts % stride
+    per_offset = [np.sqrt(sq[offsets == o].mean(axis=0)) for o in range(stride) if np.any(offsets == o)]
+    return np.std(per_offset, axis=0, ddof=1) if len(per_offset) > 1 else np.zeros(len(horizons))
+
+
+def _quantile_mcse(x: np.ndarray, prob: float) -> float:
+    """Monte Carlo standard error of the ``prob`` quantile of draws ``x`` in their posterior order
+    (arviz's, which accounts for the autocorrelation left among the sorted subset of draws)."""
+    if np.ptp(x) == 0:
+        return 0.0
+    return float(az.mcse(np.asarray(x, np.float64)[None, :], method="quantile", prob=prob))
+
+
+def band_mcse(draws: dict, stride_sd: dict, horizons_ms=HORIZONS_MS) -> tuple[dict, dict]:
+    """Monte Carlo standard errors [deg] of the ends of :func:`summarise_j`'s bands, shaped as they
+    are: ``(cohort, legs)``, each end ``{"lo": e, "hi": e}``.
+
+    Each end carries two errors, added in quadrature: the quantile's from the finite number of
+    draws (:func:`_quantile_mcse`), and the start stride's (:func:`stride_error`), which moves
+    every draw's J alike.  For the cohort's band, the mean over legs, the legs' stride errors
+    add as independent errors of a mean.
+    """
+    keys = [str(h) for h in horizons_ms]
+
+    def ends(x: np.ndarray, stride: float) -> dict:
+        return {end: float(np.hypot(_quantile_mcse(x, q), stride)) for end, q in zip(("lo", "hi"), INTERVAL)}
+
+    legs = {
+        label: {leg: {tr: {h: ends(v[:, j], stride_sd[label][leg][tr][j]) for j, h in enumerate(keys)}
+                      for tr, v in trials.items()}
+                for leg, trials in by_leg.items()}
+        for label, by_leg in draws.items()
+    }
+    cohort: dict = {}
+    sd = _cohort_stride_sd(stride_sd)
+    for label, by_leg in draws.items():
+        for tr in sorted({tr for trials in by_leg.values() for tr in trials}, key=int):
+            mean = np.mean([trials[tr] for trials in by_leg.values() if tr in trials], axis=0)  # (draws, H)
+            cohort.setdefault(label, {})[tr] = {h: ends(mean[:, j], sd[label, tr][j]) for j, h in enumerate(keys)}
+    return cohort, legs
+
+
+def _cohort_stride_sd(stride_sd: dict) -> dict:
+    """The stride's error of the mean over legs, per (label, trial): the legs' errors added as
+    independent errors of a mean."""
+    out = {}
+    for label, by_leg in stride_sd.items():
+        for tr in {tr for trials in by_leg.values() for tr in trials}:
+            have = [trials[tr] for trials in by_leg.values() if tr in trials]
+            out[label, tr] = np.sqrt(np.sum(np.square(have), axis=0)) / len(have)
     return out
+
+
+def largest_mcse(mcse: dict) -> float:
+    """The largest band-end error in a :func:`band_mcse` result (either part)."""
+    out = 0.0
+    stack = [mcse]
+    while stack:
+        d = stack.pop()
+        if set(d) == {"lo", "hi"}:
+            out = max(out, d["lo"], d["hi"])
+        else:
+            stack.extend(d.values())
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class AccurateJ:
+    """J over posterior draws with draws and stride chosen for an accuracy (:func:`accurate_j`)."""
+
+    draws: dict  # as posterior_j's
+    stride_sd: dict  # per label, leg, trial: the stride's error of each draw's J, per horizon
+    mcse: dict  # {"cohort": ..., "legs": ...}: band_mcse of the result
+    n_draws: int
+    start_stride: int
+    target: float  # [deg], for the cohort's band ends
+    met: bool
+    rounds: list  # per round: draws, stride, the largest cohort band-end error, seconds
+
+
+def accurate_j(
+    fits: list[LoadedFit],
+    cohort: Cohort,
+    mcse: float = 0.05,
+    *,
+    horizons_ms=HORIZONS_MS,
+    pilot: tuple[int, int] = (50, 10),
+    max_rounds: int = 3,
+    seed: int = 0,
+    progress: bool = False,
+) -> AccurateJ:
+    """J bands whose ends carry a Monte Carlo standard error of at most ``mcse`` [deg]
+    (:func:`band_mcse`) on the cohort's bands, choosing the number of draws and the start stride.
+
+    A pilot of ``pilot`` = (draws, stride) measures both parts of the error. The quantile's part
+    falls as 1/√draws and the stride's grows about as √stride, so the next round takes the
+    largest stride, up to the pilot's, that keeps the stride's part within 0.6 of ``mcse`` and
+    the draws that bring the quantile's part within 0.8 of it (0.6² + 0.8² = 1), capped at the
+    draws the fits hold;
+    rounds repeat, from the last round's measurements, until the error is met or ``max_rounds``
+    have run.  The per-leg bands' errors are reported, not targeted: each is the error of one
+    leg's J, larger than the cohort mean's.
+    """
+    if not mcse > 0:
+        raise ValueError(f"the band accuracy must be positive, not {mcse}")
+    available = min(f.idata.posterior.sizes["chain"] * f.idata.posterior.sizes["draw"] for f in fits)
+    n, k = min(pilot[0], available), max(1, pilot[1])
+    rounds = []
+    while True:
+        t = time.perf_counter()
+        draws, sd = posterior_j_and_stride_errors(fits, cohort, horizons_ms=horizons_ms, n_draws=n, start_stride=k,
+                                                  seed=seed, progress=progress)
+        cohort_mcse, legs_mcse = band_mcse(draws, sd, horizons_ms)
+        worst = largest_mcse(cohort_mcse)
+        rounds.append({"draws": n, "start_stride": k, "largest_mcse": worst, "seconds": time.perf_counter() - t})
+        if worst <= mcse or len(rounds) >= max_rounds:
+            break
+        # each part's worst over the cohort's band ends, then the draws and stride for the next round
+        zero = {label: {leg: {tr: np.zeros_like(v) for tr, v in trials.items()} for leg, trials in by_leg.items()}
+                for label, by_leg in sd.items()}
+        quantile_part = largest_mcse(band_mcse(draws, zero, horizons_ms)[0])
+        stride_part = max(float(np.max(v)) for v in _cohort_stride_sd(sd).values())
+        k_next = k if stride_part == 0 else int(np.clip(k * (0.6 * mcse / stride_part) ** 2, 1, k))
+        n_next = int(np.clip(np.ceil(n * (quantile_part / (0.8 * mcse)) ** 2), n, available))
+        if (n_next, k_next) == (n, k):  # capped: more draws than the fits hold would be needed
+            break
+        n, k = n_next, k_next
+    return AccurateJ(draws, sd, {"cohort": cohort_mcse, "legs": legs_mcse}, n, k, mcse, worst <= mcse, rounds)
 
 
 def summarise_j(draws: dict, horizons_ms=HORIZONS_MS) -> tuple[dict, dict]:
