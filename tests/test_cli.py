@@ -41,6 +41,13 @@ def test_simulate_identify_evaluate(data, tmp_path):
         assert set(hs) == {"100", "250", "500", "1000"}
         assert hs["100"] < hs["1000"]  # errors grow with horizon
     assert (tmp_path / "ev" / "figures" / "fig6_predictions_1s.png").exists()
+    # the black-box yardstick beside them, trained on trial 1, on every trial and horizon
+    bb = ev["blackbox"]
+    assert set(bb["J"]) == {"1", "2", "3"} and set(bb["J"]["2"]) == {"100", "250", "500", "1000"}
+    assert {o["trained_on"] for o in bb["orders"].values()} == {1}
+    for row in bb["better_than"]:
+        assert all(bb["J"][row["trial"]][h] < ev["J"][row["model"]][row["trial"]][h] for h in row["horizons_ms"])
+    assert "A black-box yardstick" in (tmp_path / "ev" / "report.md").read_text()
 
 
 def test_convert_round_trip(data, tmp_path):

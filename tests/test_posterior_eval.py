@@ -282,6 +282,16 @@ def test_bands_to_an_accuracy_choose_draws_and_stride_and_say_so(run, tmp_path):
     assert "largest Monte Carlo standard error of a band end" in (out / "report.md").read_text()
 
 
+def test_the_black_box_is_scored_beside_the_fits(run, summary):
+    bb = summary["blackbox"]
+    assert set(bb["J_per_leg"]) == {"TN-left", "JM-left"} and set(bb["J"]) == {"1", "2"}
+    assert set(bb["J"]["2"]) == HORIZON_KEYS and {o["trained_on"] for o in bb["orders"].values()} == {1}
+    for row in bb["better_than"]:
+        assert all(bb["J"][row["trial"]][h] < summary["J"][row["model"]][row["trial"]][h]["median"]
+                   for h in row["horizons_ms"])
+    assert "A black-box yardstick" in (run["out"] / "report.md").read_text()
+
+
 def test_every_evaluation_estimates_its_bands_error(summary):
     m = summary["band_mcse"]
     assert "target" not in m and m["largest_legs"] > 0 and m["largest_cohort"] > 0

@@ -38,6 +38,7 @@ from ..evaluation._prediction import (
     sign_tests,
     table_v,
 )
+from ..evaluation._blackbox import better_than, blackbox_j
 from ..evaluation._residuals import fit_residuals
 from ..inference._fitio import posterior_models
 from ..inference._summaries import INTERVAL
@@ -153,6 +154,33 @@ def _residual_section(fits: list[LoadedFit], cohort: Cohort, out: Path, md: list
     return findings
 
 
+def _blackbox_section(cohort: Cohort, train: dict, physical: dict, start_stride: int = 1) -> tuple[dict, list[str]]:
+    """The ARX yardstick on ``cohort`` (each leg trained on ``train[leg]``) beside ``physical``
+    (``{model: {trial: {h_ms: J of the mean over legs}}}``): its summary entry and report lines."""
+    try:
+        bb = blackbox_j(cohort, train, start_stride=start_stride)
+    except ValueError as e:  # a trial too short to validate one: the yardstick is left out, and said so
+        return {"skipped": str(e)}, [f"- No black-box yardstick: {e}.", ""]
+    bb["better_than"] = better_than(bb, physical)
+    rows = [{"model": "ARX (black box)", "trial": tr, **{f"J {h} ms": v for h, v in hv.items()}}
+            for tr, hv in bb["J"].items()]
+    rows += [{"model": m, "trial": tr, **{f"J {h} ms": v for h, v in hv.items()}}
+             for m, trials in physical.items() for tr, hv in trials.items()]
+    orders = "; ".join(f"{leg}: {o['output_lags']} output and {o['input_lags']} input lags"
+                       for leg, o in bb["orders"].items())
+    md = [markdown_table(rows, "A black box beside the physical models: J_φ,p of the mean over legs [deg]"),
+          f"The black box is a linear ARX model of the angle fitted to each leg's trial "
+          f"{sorted({o['trained_on'] for o in bb['orders'].values()})[0]}, its orders chosen by validation ({orders}).",
+          ""]
+    if bb["better_than"]:
+        md += [f"- The black box predicts better than {r['model']} on trial {r['trial']} at "
+               f"{', '.join(r['horizons_ms'])} ms: the physical model misses something the data hold there."
+               for r in bb["better_than"]] + [""]
+    else:
+        md += ["- Every physical model predicts better than the black box at every horizon.", ""]
+    return bb, md
+
+
 def _mcse_sentence(mcse: dict, n_draws: int, start_stride: int) -> str:
     """The bands' accuracy in words: the draws and stride, and the largest error of a band end."""
     starts = "every start" if start_stride == 1 else f"one start in {start_stride}"
@@ -239,6 +267,12 @@ def run_posterior_evaluate(
             figures.append(save_figure(fig, out / "figures" / f"delay_angle_{f.label.replace('+', '_')}.png"))
     md += ["## Figures", "", *[f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in figures], ""]
     findings = _residual_section(fits, cohort, out, md) if residuals else None
+    fitted = cohort.select(legs=list(dict.fromkeys(leg for f in fits for leg in f.desc["legs"])))
+    medians = {label: {tr: {h: v["median"] for h, v in hv.items()} for tr, hv in trials.items()}
+               for label, trials in J.items()}
+    blackbox, bb_md = _blackbox_section(fitted, {leg: int(fits[0].desc["trials"][0]) for leg in fitted.legs},
+                                        medians, start_stride)
+    md[md.index("## Figures"):md.index("## Figures")] = ["## A black-box yardstick", "", *bb_md]
 
     result = PosteriorEvaluation(
         method="posterior",
@@ -267,6 +301,7 @@ def run_posterior_evaluate(
     )
     result.residual_findings = findings
     result.band_mcse = mcse
+    result.blackbox = blackbox
     atomic_write_text(out / "report.md", "\n".join(md))
     result.write(out)
     return result
@@ -303,6 +338,11 @@ def run_evaluate(
         md.append(write_table(rows, out / "tables", "free_run", "Pendulum tests: RMS error of the free swing from "
                               "its first measured state [deg]"))
 
+    means = {m: {tr: {str(h): v[0] for h, v in hv.items()} for tr, hv in _by_model(T, m).items()} for m in J}
+    train = {leg: (1 if 1 in [t.trial for t in cohort.trials_of(leg)] else cohort.trials_of(leg)[0].trial)
+             for leg in cohort.legs}
+    blackbox, bb_md = _blackbox_section(cohort, train, means)
+    md += ["## A black-box yardstick", "", *bb_md]
     save_figure(plot_j_vs_horizon(T), out / "figures" / "table5_j_vs_horizon.png")
     leg = _pick("JM-left", cohort.legs)
     trial = figure_trial(cohort, leg)
@@ -321,6 +361,7 @@ def run_evaluate(
         horizons_samples=list(horizon_samples(cohort.sampling_period_s).values()),
         evaluation_seconds=elapsed,
         free_run=free,
+        blackbox=blackbox,
     )
     atomic_write_text(out / "report.md", "\n".join(md))
     result.write(out)

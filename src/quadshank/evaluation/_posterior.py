@@ -129,6 +129,9 @@ class PosteriorEvaluation(Result):
     #: largest ("largest_cohort", "largest_legs"), and with a band accuracy asked for, "target",
     #: "met" and "rounds" (accurate_j)
     band_mcse: dict | None = None
+    #: the ARX yardstick's J (quadshank.evaluation._blackbox.blackbox_j) on the same starts, and where it
+    #: is below a fit's posterior-median J of the mean over legs ("better_than")
+    blackbox: dict | None = None
 
 
 class LoadedFit(NamedTuple):

@@ -205,6 +205,7 @@ class Evaluation(Result):
     horizons_samples: list
     evaluation_seconds: float
     free_run: dict = dataclasses.field(default_factory=dict)  # model -> leg -> trial -> [deg], pendulum tests
+    blackbox: dict | None = None  # the ARX yardstick's J (evaluation._blackbox.blackbox_j) and where it is lower
 
 
 def free_run_errors(cohort: Cohort, models: dict[str, dict[str, Model]]) -> dict:
