@@ -76,3 +76,16 @@ def test_blackbox_j_per_leg_and_trial_and_where_it_predicts_better(cohort):
     better = {"m": {"2": {h: v - 1.0 for h, v in bb["J"]["2"].items()}}}
     assert better_than(bb, worse) == [{"model": "m", "trial": "2", "horizons_ms": ["100", "250", "500", "1000"]}]
     assert better_than(bb, better) == []
+
+
+def test_the_diagnosis_says_where_the_black_box_predicts_better(cohort):
+    from quadshank.commands.diagnose import blackbox_beside
+
+    first = blackbox_beside(cohort, ["TN-left"], [1], {h: {"median": 1e3} for h in ("500", "1000")})
+    J = first["J_ms"]
+    assert set(J) == {"500", "1000"} and first["better_at_ms"] == ["500", "1000"]
+    assert "predicts better than the baseline at 500, 1000 ms" in first["sentence"]
+    half = {"500": {"median": J["500"] + 0.1}, "1000": {"median": J["1000"] - 0.1}}
+    second = blackbox_beside(cohort, ["TN-left"], [1], half)
+    assert second["better_at_ms"] == ["500"] and "at 500 ms (" in second["sentence"]
+    assert "sentence" not in blackbox_beside(cohort, ["TN-left"], [1], {h: {"median": 0.0} for h in J})

@@ -9,11 +9,13 @@ import numpy as np
 from ..common._io import atomic_write_text
 from ..common._progress import progress_bar
 from ..data._cohort import Cohort
+from ..evaluation._blackbox import blackbox_j
 from ..evaluation._posterior import LoadedFit, load_fits, psis_loo
 from ..inference._nuts import FitSettings
 from ..inference._screen import LaplaceFit, paired_difference
 from ..loop._diagnose import (
     J_DRAWS,
+    J_HORIZONS_MS,
     J_START_STRIDE,
     Diagnosis,
     Ranking,
@@ -104,6 +106,28 @@ def confirm_leaders(cohort: Cohort, ranking: Ranking, base_folder, out, *, n_con
     return next((r["effect"] for r in leaders if r["nuts"]["clears_bar"]), "none")
 
 
+def blackbox_beside(cohort: Cohort, legs: list, trials, J_base: dict) -> dict:
+    """The ARX yardstick (:mod:`quadshank.evaluation._blackbox`) on the legs and trials the diagnosis
+    scores the baseline on, at its horizons: J of the mean over legs and trials, the horizons where
+    it predicts better than the baseline's median, and a sentence where it does."""
+    sub = cohort.select(legs=legs, trials=[int(t) for t in trials])
+    try:
+        bb = blackbox_j(sub, {leg: int(trials[0]) for leg in legs}, horizons_ms=J_HORIZONS_MS)
+    except ValueError as e:  # a trial too short to validate one
+        return {"skipped": str(e)}
+    J = {str(h): float(np.mean([v[str(h)] for trials_ in bb["J_per_leg"].values() for v in trials_.values()]))
+         for h in J_HORIZONS_MS}
+    better = [h for h, v in J.items() if v < J_base[h]["median"]]
+    out = {"J_ms": J, "orders": bb["orders"], "better_at_ms": better}
+    if better:
+        out["sentence"] = (
+            f"A black box (a linear ARX model of the angle, orders chosen by validation) predicts better than "
+            f"the baseline at {', '.join(better)} ms ("
+            + ", ".join(f"J {J[h]:.2f}° against {J_base[h]['median']:.2f}°" for h in better)
+            + "): the model misses something the data hold at that horizon.")
+    return out
+
+
 def run_diagnose(
     cohort: Cohort,
     model: Model | str,
@@ -148,6 +172,9 @@ def run_diagnose(
             result.sentence = f"The screen's leader, {screen_verdict}, is not confirmed by NUTS. {said}"
         elif said:
             result.sentence += " " + said
+    result.blackbox = blackbox_beside(cohort, list(ranking.base.legs), trials, ranking.J_base)
+    if result.blackbox.get("sentence"):
+        result.sentence += " " + result.blackbox["sentence"]
     dt = ranking.base.model.sampling_period_s
     if figures:
         paths, result.predictive_checks = predictive_checks(ranking.base, cohort, out, "baseline")

@@ -160,6 +160,8 @@ class Diagnosis(Result):
     residual_findings: dict | None = None
     residual_findings_after: dict | None = None
     figures: list | None = None
+    #: the ARX yardstick's J on the same legs and trials, beside the baseline's (see commands.diagnose)
+    blackbox: dict | None = None
     screened: Ranking | None = dataclasses.field(default=None, repr=False, metadata={"json": False})
 
 
