@@ -17,31 +17,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import shlex
-import subprocess
 import sys
 import tempfile
-from datetime import date
 from pathlib import Path
 
 import numpy as np
 
-from quadshank.common._io import write_json
 from quadshank.data._paper import LEGS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from results_md import write_section  # noqa: E402
+from results_md import publish, run_quadshank  # noqa: E402
 
 SECTION = "bench_jbands"
-
-
-def _quadshank(*args: str) -> None:
-    cli = "import sys; from quadshank.cli import main; sys.exit(main())"
-    proc = subprocess.run([sys.executable, "-c", cli, "-q", *args], capture_output=True, text=True)
-    if proc.returncode not in (0, 3):
-        raise RuntimeError(f"quadshank {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
 
 
 def _row(name: str, folder: Path) -> dict:
@@ -110,24 +98,21 @@ def main(argv=None) -> int:
         tmp = Path(tmp)
         data = Path(args.data) if args.data else tmp / "data"
         if not args.data:
-            _quadshank("simulate", "--out", str(data), "--legs", ",".join(legs), "--minutes", str(args.minutes),
+            run_quadshank("simulate", "--out", str(data), "--legs", ",".join(legs), "--minutes", str(args.minutes),
                        "--trials", "1,2,3", "--effects", "angle_delay")
         fit = Path(args.fit) if args.fit else tmp / "fit"
         if not args.fit:
-            _quadshank("fit", str(data), "--model", "model3", "--add-effect", "angle_delay", "--target-ess", "400",
+            run_quadshank("fit", str(data), "--model", "model3", "--add-effect", "angle_delay", "--target-ess", "400",
                        "--out", str(fit))
-        _quadshank("evaluate", str(data), "--fit", str(fit), "--draws", str(args.draws), "--out", str(tmp / "brute"))
-        _quadshank("evaluate", str(data), "--fit", str(fit), "--band-mcse", str(args.band_mcse), "--out",
+        run_quadshank("evaluate", str(data), "--fit", str(fit), "--draws", str(args.draws), "--out", str(tmp / "brute"))
+        run_quadshank("evaluate", str(data), "--fit", str(fit), "--band-mcse", str(args.band_mcse), "--out",
                    str(tmp / "accurate"))
         rows = [_row(f"{args.draws} draws, every start", tmp / "brute"),
                 _row(f"`--band-mcse {args.band_mcse:g}`", tmp / "accurate")]
     record = {
         "command": command, "legs": len(legs), "minutes": args.minutes, "rows": rows, "apart_se": _apart(*rows),
-        "date": date.today().isoformat(), "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores",
     }
-    write_json(args.record, record)
-    write_section(args.out, SECTION, render(record))
-    print(render(record))
+    publish(record, args.record, args.out, SECTION, render)
     return 0
 
 

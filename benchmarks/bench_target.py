@@ -17,34 +17,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import shlex
-import subprocess
 import sys
 import tempfile
-import time
-from datetime import date
 from pathlib import Path
 
-from quadshank.common._io import write_json
 from quadshank.data._paper import LEGS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from results_md import write_section  # noqa: E402
+from results_md import publish, run_quadshank  # noqa: E402
 
 SECTION = "bench_target"
-
-
-def _quadshank(*args: str) -> float:
-    """Run ``quadshank ARGS`` in a fresh process; its wall time [s]."""
-    t = time.perf_counter()
-    cli = "import sys; from quadshank.cli import main; sys.exit(main())"
-    proc = subprocess.run([sys.executable, "-c", cli, "-q", *args], capture_output=True, text=True)
-    seconds = time.perf_counter() - t
-    if proc.returncode not in (0, 3):  # 3: the fit ran and failed its checks, which the record shows
-        raise RuntimeError(f"quadshank {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
-    return seconds
 
 
 def _row(name: str, folder: Path, seconds: float) -> dict:
@@ -103,24 +86,21 @@ def main(argv=None) -> int:
     legs = [x for x in args.legs.split(",") if x]
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        _quadshank("simulate", "--out", str(tmp / "data"), "--legs", ",".join(legs), "--minutes", str(args.minutes),
+        run_quadshank("simulate", "--out", str(tmp / "data"), "--legs", ",".join(legs), "--minutes", str(args.minutes),
                    "--trials", "1", "--effects", "angle_delay")
         fit = ["fit", str(tmp / "data"), "--model", "model3", "--add-effect", "angle_delay", "--chains", str(args.chains)]
         rows = []
-        seconds = _quadshank(*fit, "--target-ess", str(args.target_ess), "--time-limit", str(args.time_limit),
+        seconds = run_quadshank(*fit, "--target-ess", str(args.target_ess), "--time-limit", str(args.time_limit),
                              "--out", str(tmp / "target"))
         rows.append(_row(f"--target-ess {args.target_ess}", tmp / "target", seconds))
         if args.fixed != "0":
             warmup, draws = (int(x) for x in args.fixed.split(","))
-            seconds = _quadshank(*fit, "--warmup", str(warmup), "--draws", str(draws), "--out", str(tmp / "fixed"))
+            seconds = run_quadshank(*fit, "--warmup", str(warmup), "--draws", str(draws), "--out", str(tmp / "fixed"))
             rows.append(_row(f"--warmup {warmup} --draws {draws}", tmp / "fixed", seconds))
     record = {
         "command": command, "legs": len(legs), "minutes": args.minutes, "chains": args.chains, "rows": rows,
-        "date": date.today().isoformat(), "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores",
     }
-    write_json(args.record, record)
-    write_section(args.out, SECTION, render(record))
-    print(render(record))
+    publish(record, args.record, args.out, SECTION, render)
     return 0
 
 

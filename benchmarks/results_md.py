@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import os
+import platform
+import subprocess
+import sys
+import time
+from datetime import date
 from pathlib import Path
 
-from quadshank.common._io import atomic_write_text
+from quadshank.common._io import atomic_write_text, write_json
 
 HEADER = "# Benchmarks\n\nEach section is written by the command shown in it.\n"
 
@@ -22,3 +28,23 @@ def write_section(path: str | Path, name: str, text: str) -> None:
     else:
         new = old.rstrip() + "\n\n" + block + "\n"
     atomic_write_text(path, new)
+
+
+def run_quadshank(*args: str) -> float:
+    """Run ``quadshank -q ARGS`` in a fresh process, as a user runs it; its wall time [s].  Exit code 3
+    (a fit that ran and failed its checks, which the benchmark's record shows) is not an error."""
+    cli = "import sys; from quadshank.cli import main; sys.exit(main())"
+    t = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-c", cli, "-q", *args], capture_output=True, text=True)
+    seconds = time.perf_counter() - t
+    if proc.returncode not in (0, 3):
+        raise RuntimeError(f"quadshank {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
+    return seconds
+
+
+def publish(record: dict, record_path: str | Path, md_path: str | Path, name: str, render) -> None:
+    """Date and machine into ``record``, written as JSON, and its section ``render(record)`` into ``md_path``."""
+    record.update(date=date.today().isoformat(), machine=f"{platform.machine()}, {os.cpu_count()} CPU cores")
+    write_json(record_path, record)
+    write_section(md_path, name, render(record))
+    print(render(record))
