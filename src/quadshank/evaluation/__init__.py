@@ -6,8 +6,15 @@ Numbers only: nothing here plots or writes files (:mod:`quadshank.outputs` does)
 from ._checks import elpd_in_time, loo_pit
 from ._classical_recovery import TOLERANCES, recovery
 from ._parameters import leg_parameters, population_spreads
+from ._blackbox import ARX, arx_errors, better_than, blackbox_j, fit_arx
 from ._posterior import (
+    AccurateJ,
     LoadedFit,
+    accurate_j,
+    band_mcse,
+    largest_mcse,
+    posterior_j_and_stride_errors,
+    stride_error,
     PosteriorEvaluation,
     check_fit_data,
     check_fit_legs,
@@ -56,6 +63,8 @@ from ._residuals import (
 )
 
 __all__ = [
+    "ARX", "fit_arx", "arx_errors", "blackbox_j", "better_than",
+    "AccurateJ", "accurate_j", "band_mcse", "largest_mcse", "posterior_j_and_stride_errors", "stride_error",
     "free_run_error", "free_run_errors", "free_runs", "prediction_errors", "prediction_starts", "predictions", "evaluate_cohort", "sign_tests", "table_v", "horizon_samples",
     "figure_trial", "Evaluation",
     "LoadedFit", "PosteriorEvaluation", "load_fits", "posterior_predictions", "posterior_prediction_errors", "posterior_j", "summarise_j",

@@ -34,7 +34,7 @@ from ._identify import (
     models_from_summary,
     passive_model,
 )
-from ._nuts import FitRun, FitSettings, fit, fit_screen, run_nuts
+from ._nuts import BlockDraws, FitRun, FitSettings, convergence_status, fit, fit_screen, run_nuts
 from ._priors import build_model, delay_prior_from, model_params
 from ._screen import (
     DelayModes,
@@ -51,7 +51,7 @@ __all__ = [
     "IdentificationError", "LegIdentification", "PassiveIdentification", "identify_cohort", "identify_leg", "identify_passive",
     "identify_passive_free_run", "passive_model",
     "Identification", "models_from_summary", "load_identification",
-    "FitSettings", "fit", "run_nuts", "FitRun", "FitResult", "fit_screen", "build_model", "model_params", "delay_prior_from", "numpyro_model",
+    "FitSettings", "fit", "run_nuts", "BlockDraws", "convergence_status", "FitRun", "FitResult", "fit_screen", "build_model", "model_params", "delay_prior_from", "numpyro_model",
     "LaplaceFit", "laplace_fit", "leg_draw_models", "delay_evidence", "delay_modes", "DelayModes", "delta_elpd",
     "to_inference_data", "save_fit", "load_fit", "read_summary", "fit_summary", "diagnose_sampling", "sampled_vars",
     "posterior_models", "leg_models", "FitFolderError", "THRESHOLDS", "check_fit_files",

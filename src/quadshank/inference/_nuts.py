@@ -483,7 +483,7 @@ def _draw_to_target(mcmc, key, arrays, init_params, model, data, settings, start
             stopped = f"time limit of {settings.time_limit_s:.0f} s: another block would end past it"
         else:
             if progress:
-                print(f"fit: {status['draws_per_chain']} draws per chain (last block {seconds:.0f} s): "
+                print(f"fit: {status['draws_per_chain']} draws per chain (a block takes about {seconds:.0f} s): "
                       f"bulk ESS {status['ess_bulk_min']:.0f}, tail ESS {status['ess_tail_min']:.0f}, R-hat {status['rhat_max']:.3f} "
                       f"(needed: ESS {status['ess_needed']}, R-hat < {THRESHOLDS['rhat_max']}; furthest: "
                       f"{status['lagging']}); "
