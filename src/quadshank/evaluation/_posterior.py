@@ -297,8 +297,7 @@ def posterior_j(
     Every leg of every fit is evaluated on all of that leg's trials in ``cohort``, each horizon
     [ms] as whole samples of the trial's period (:func:`quadshank.evaluation.horizon_samples`).
     """
-    return posterior_j_and_stride_errors(fits, cohort, horizons_ms=horizons_ms, n_draws=n_draws,
-                                         start_stride=start_stride, seed=seed, progress=progress)[0]
+    return _posterior_j(fits, cohort, horizons_ms, n_draws, start_stride, seed, progress, stride_errors=False)[0]
 
 
 def posterior_j_and_stride_errors(
@@ -314,6 +313,10 @@ def posterior_j_and_stride_errors(
     """:func:`posterior_j`'s draws, and per leg and trial the standard error [deg] that the start
     stride adds to each draw's J (:func:`stride_error`; zeros at stride 1), array (horizons,),
     shaped as the draws: ``(J, stride_sd)``."""
+    return _posterior_j(fits, cohort, horizons_ms, n_draws, start_stride, seed, progress, stride_errors=True)
+
+
+def _posterior_j(fits, cohort, horizons_ms, n_draws, start_stride, seed, progress, *, stride_errors: bool):
     jobs = [(f, leg, t) for f in fits for leg in f.desc["legs"] for t in cohort.trials_of(leg)]
     out: dict = {}
     sd: dict = {}
@@ -325,6 +328,8 @@ def posterior_j_and_stride_errors(
         horizons = tuple(horizon_samples(t.sampling_period_s, horizons_ms).values())
         errs = posterior_prediction_errors(models, t, horizons, start_stride)
         out.setdefault(f.label, {}).setdefault(leg, {})[str(t.trial)] = errs
+        if not stride_errors:
+            continue
         # the stride's error, measured on the draw whose J at the longest horizon is the median
         typical = int(np.argsort(errs[:, -1])[len(errs) // 2])
         one = jax.tree_util.tree_map(lambda x: x[typical : typical + 1], models)
