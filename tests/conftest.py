@@ -32,6 +32,21 @@ def scratch_registry(monkeypatch):
     monkeypatch.setattr(_effects, "_REGISTRY", dict(_effects._REGISTRY))
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drop JAX's compiled programs after each test file.  Every program XLA compiles for the CPU
+    holds a few memory mappings until it is dropped: one file of fits leaves about 10 000, and a
+    worker that runs many such files reaches the kernel's limit on a process's mappings
+    (vm.max_map_count, 65 530 by default), where the next compilation crashes the worker."""
+    yield
+    import gc
+
+    import jax
+
+    jax.clear_caches()
+    gc.collect()
+
+
 #: Test files by their time in a profile of the suite (``pytest --durations``), longest first.
 #: ``--dist loadfile`` hands whole files to the two workers in collection order, so the
 #: long ones start at once and the short ones fill in behind them.
