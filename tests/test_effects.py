@@ -107,6 +107,75 @@ def test_likelihood_output_equals_the_rollout(cohort, name):
     np.testing.assert_allclose(sparse, stepped, atol=2e-3 * np.abs(stepped).max())
 
 
+def _kind_pairs():
+    """Two candidates for every pair of effect kinds, a kind with itself included where it has two:
+    the candidates of each kind taken in turn, so that the pairs between them cover every
+    candidate; the pair the accelerometer's response once kept apart (an output effect read
+    through it) explicitly."""
+    by_kind = {}
+    in_base = {e.name for e in paper_model("3s").effects}  # candidates of the smaller models only
+    for name in (n for n in CANDIDATES if n not in in_base):
+        by_kind.setdefault(registered_effects()[name].kind, []).append(name)
+    kinds = sorted(by_kind)
+    pairs, turn = set(), 0
+    for i, a in enumerate(kinds):
+        for b in kinds[i:]:
+            if a == b and len(by_kind[a]) < 2:
+                continue
+            first = by_kind[a][turn % len(by_kind[a])]
+            second = [n for n in by_kind[b] if n != first][turn % (len(by_kind[b]) - (a == b))]
+            pairs.add(tuple(sorted((first, second))))
+            turn += 1
+    with_response = [n for n in CANDIDATES if registered_effects()[n].acceleration_response is not Effect.acceleration_response]
+    pairs |= {tuple(sorted((m, o))) for m in with_response for o in by_kind.get("output", [])}
+    return sorted(pairs)
+
+
+KIND_PAIRS = _kind_pairs()
+
+
+def test_the_pairs_cover_every_pair_of_kinds():
+    in_base = {e.name for e in paper_model("3s").effects}
+    kinds = {registered_effects()[n].kind for n in CANDIDATES if n not in in_base}
+    covered = {frozenset(registered_effects()[n].kind for n in pair) for pair in KIND_PAIRS}
+    assert {frozenset((a, b)) for a in kinds for b in kinds if a != b} <= covered
+    assert ("accel_resonance", "activation_damping") in KIND_PAIRS
+
+
+@pytest.mark.parametrize("pair", KIND_PAIRS, ids="+".join)
+def test_every_pair_of_kinds_in_one_likelihood(cohort, pair):
+    """Any two candidates the registry lets a model hold together: the likelihood's M̂ equals
+    stepping the model (read through the accelerometer's response, if it has one), and its
+    gradient in both effects' parameters is finite."""
+    base = paper_model("3s")
+    try:
+        model = base.add(pair[0]).add(pair[1])
+    except ValueError as err:  # a rule of the registry (one delay effect, say), stated as such
+        assert "twice" in str(err) or "more than one" in str(err) or "declared by two" in str(err), err
+        return
+    values = {**_off_default(model.effect(pair[0])), **_off_default(model.effect(pair[1]))}
+    model = model.with_params(values, delay=4)
+    if model.delay_effect is not None:
+        model = model.with_delay_shift(1)
+    data, x = _leg_x(cohort, model)
+    t = cohort.get("JM-left", 1)
+    stepped = np.asarray(measured_acceleration(model, active_output(model, t.angle_deg, t.velocity_deg_s, t.stimulation)))
+    R, K = data.response_length, data.max_shift
+    sparse = np.asarray(L.leg_active_output(model, x, 4, R, K, 1 if K else 0))[: t.n_samples]
+    assert np.abs(stepped).max() > 100.0
+    np.testing.assert_allclose(sparse, stepped, atol=2e-3 * np.abs(stepped).max())
+
+    def loglik(vals):
+        return jax.scipy.special.logsumexp(L.leg_loglik_by_delay(model.with_params(vals), NOISE, x, R, K)[:, : K + 1])
+
+    grads = {k: np.asarray(g) for k, g in jax.grad(loglik)(values).items()}
+    assert all(np.all(np.isfinite(g)) for g in grads.values()), (pair, grads)
+    for name in pair:  # the data depend on each effect (a step's threshold is summed out, not differentiated)
+        eff = model.effect(name)
+        free = [p.name for p in eff.declared_params() if p.name != getattr(eff, "step_param", None)]
+        assert not free or any(np.any(grads[n] != 0) for n in free), (pair, name)
+
+
 @pytest.mark.parametrize("name", CANDIDATES)
 def test_gradient_finite_and_jit_vmap_agree(cohort, name):
     model = _extended(name)

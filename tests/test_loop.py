@@ -78,3 +78,23 @@ def test_a_hidden_end_of_range_in_extension_is_found_and_located():
     at_full_extension = truth["torque_deg_s2"] * math.exp((90.0 - truth["phi_limit_deg"]) / truth["width_deg"])
     assert found["limit_stiffness"] == pytest.approx(at_full_extension, rel=0.15)
     assert found["limit_width"] == pytest.approx(truth["width_deg"], rel=0.1)
+
+
+def test_output_candidates_are_screened_beside_an_accelerometer_response():
+    """With ``accel_resonance`` in the model, an output effect is screened like any other: ranked,
+    not left out as a candidate that failed."""
+    import warnings
+
+    from quadshank.data._simulate import simulate_cohort
+    from quadshank.loop._diagnose import rank_effects
+
+    cohort, _ = simulate_cohort(legs=["JM-left"], minutes=0.3, seed=5, trials=(1,), effects=("accel_resonance",))
+    model = build_model("model3s", ["accel_resonance"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # a failed screen warns
+        ranking = rank_effects(cohort, model, effects=["activation_damping"], n_draws=50, n_j_draws=10,
+                               start_stride=20, n_starts=0)
+    assert ranking.failed == {}
+    [row] = ranking.rows
+    assert row["effect"] == "activation_damping" and math.isfinite(row["delta_elpd"])
+    assert not row["clears_bar"]  # the data hold no such effect

@@ -281,14 +281,7 @@ def response_length(model: Model) -> int:
     lengthened by an accelerometer response."""
     R = int(getattr(model.activation, "response_length", 40))
     g = acceleration_response(model)
-    if g is None:
-        return R
-    if model.outputs:
-        raise LikelihoodError(
-            f"model {model.name!r}: output effects ({', '.join(e.name for e in model.outputs)}) "
-            "and an accelerometer response cannot be combined in this likelihood"
-        )
-    return R + int(g.shape[0]) - 1
+    return R if g is None else R + int(g.shape[0]) - 1
 
 
 def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodData:
@@ -746,11 +739,33 @@ def output_factors(model: Model, angle, velocity, stimulation):
     return G
 
 
-def _padded_response(model: Model, R: int, K: int):
+def _padded_response(model: Model, R: int, K: int, G=None):
     """The model's response to a unit pulse, R samples, with K zeros on either side: the slice
-    of R + K from ``shift`` is the response on the extended lags −K … R − 1 at delay d − shift."""
-    h = model_response(model, R)
+    of R + K from ``shift`` is the response on the extended lags −K … R − 1 at delay d − shift.
+    With output factors ``G`` and an accelerometer response, the activation's own response: the
+    factors act on the muscle's output before the accelerometer reads it (:func:`_outputs`)."""
+    h = impulse_response(model.activation, R) if _outputs_before_sensor(model, G) else model_response(model, R)
     return jnp.concatenate([jnp.zeros(K, h.dtype), h, jnp.zeros(K, h.dtype)])
+
+
+def _outputs_before_sensor(model: Model, G) -> bool:
+    return G is not None and acceleration_response(model) is not None
+
+
+def _outputs(model: Model, x: dict, amp, d, K: int, G, samples):
+    """Each (pulse, extended lag)'s output ``amp`` (P, R + K), flattened, times the output factors
+    ``G`` at the sample it reaches.  With an accelerometer response ``amp`` is the muscle's own
+    output (:func:`_padded_response`): the factors scale it at every sample it reaches, and each
+    pulse's row then passes through the response, as the simulator measures M·G + passive."""
+    if G is None:
+        return amp.reshape(-1)
+    if not _outputs_before_sensor(model, G):
+        return amp.reshape(-1) * G[samples]
+    # the samples the lags reach, excluded ones included: their output still reaches the
+    # accelerometer's later samples (``samples`` names sample 0 where a lag is not compared)
+    reach = x["pulse_sample"][:, None] + d - K + jnp.arange(amp.shape[-1])[None, :]
+    G_reach = G[jnp.clip(reach, 0, G.shape[-1] - 1)]
+    return causal_fir(amp * G_reach, acceleration_response(model)).reshape(-1)
 
 
 def _contributions(model: Model, x: dict, R: int, K: int, shift, d, F, uq, valid, samples, G=None):
@@ -762,7 +777,7 @@ def _contributions(model: Model, x: dict, R: int, K: int, shift, d, F, uq, valid
     factors at its own onset, and the whole by the output factors ``G`` at the
     sample it reaches (``samples``).  ``shift`` and ``d`` may be traced.
     """
-    h_pad = _padded_response(model, R, K)
+    h_pad = _padded_response(model, R, K, G)
     long = h_pad[None, : R + K]
     p = x["pulse_sample"]
     last = F.shape[-1] - 1
@@ -774,10 +789,7 @@ def _contributions(model: Model, x: dict, R: int, K: int, shift, d, F, uq, valid
         short = jax.lax.dynamic_slice_in_dim(h_pad, shift, R + K)[None, :]
         F_short = F[jnp.clip(p + d - shift, 0, last)][:, None]
         amp = uq[:, None] * ((1.0 - w) * F_long * long + w * F_short * short)
-    amp = amp.reshape(-1)
-    if G is not None:
-        amp = amp * G[samples]
-    return jnp.where(valid, amp, 0.0)
+    return jnp.where(valid, _outputs(model, x, amp, d, K, G, samples), 0.0)
 
 
 def _leg_terms(model: Model, noise: dict, x: dict):
@@ -868,7 +880,7 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
     U = x["touch_window"].shape[-1]
     Q = x["step_pair_mask"].shape[-1]
     P = x["pulse_sample"].shape[-1]
-    h_pad = _padded_response(model, R, K)
+    h_pad = _padded_response(model, R, K, G)
     p = x["pulse_sample"]
     last = F.shape[-1] - 1
 
@@ -876,8 +888,7 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
         def amplitudes(shift):
             resp = jax.lax.dynamic_slice_in_dim(h_pad, shift, R + K)[None, :]
             amp = (uq * F[jnp.clip(p + d - shift, 0, last)])[:, None] * resp
-            amp = amp.reshape(-1) if G is None else amp.reshape(-1) * G[samples]
-            return jnp.where(valid, amp, 0.0)
+            return jnp.where(valid, _outputs(model, x, amp, d, K, G, samples), 0.0)
 
         a_long = amplitudes(0)
         M = jax.ops.segment_sum(a_long, pos, num_segments=U)
