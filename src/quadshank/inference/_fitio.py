@@ -14,9 +14,10 @@ so a folder whose fit was interrupted never looks complete.
 from __future__ import annotations
 
 import dataclasses
-import json
 import hashlib
+import json
 import os
+import warnings
 from pathlib import Path
 from typing import ClassVar
 
@@ -533,9 +534,16 @@ def describe_fit(model: Model, data: LikelihoodData, settings: FitSettings) -> d
         "trials": list(data.trials),
         "resolution": data.resolution,
         "settings": dataclasses.asdict(settings),
-        "chain_method": chain_method(settings, data),
+        "chain_method": _chain_method_quietly(settings, data),
         "sampling_period_s": model.sampling_period_s,
     }
+
+
+def _chain_method_quietly(settings: FitSettings, data) -> str:
+    """The chain method that ran, without the fallback's warning a second time (the fit gave it)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return chain_method(settings, data)
 
 
 def model_from_description(desc: dict) -> Model:

@@ -20,6 +20,7 @@ import io
 import math
 import sys
 import time
+import warnings
 
 import arviz as az
 import jax
@@ -74,9 +75,11 @@ class FitSettings:
     dense_mass: bool = True
     trials: tuple[int, ...] = (1,)
     #: numpyro's ``chain_method``: "vectorized" (all chains in one batched program),
-    #: "sequential" (one after another), "parallel" (one device per chain), or "auto":
+    #: "sequential" (one after another), "parallel" (each chain on its own JAX device), or
+    #: "auto": parallel where there are at least as many devices as chains (several GPUs, or
+    #: CPU devices made with ``XLA_FLAGS=--xla_force_host_platform_device_count=N``), else
     #: sequential from :data:`SEQUENTIAL_FROM_SAMPLES` compared samples on, else vectorized
-    #: (:func:`chain_method`).  The draws are the same; the time is not.  On the 2-core CPU,
+    #: (:func:`chain_method`).  The posterior is the same; the time is not.  On the 2-core CPU,
     #: model3s on 2 legs × 1.5 min (18 000 samples; the demo's fit, 2 chains × 150 + 150)
     #: took 32 s vectorized against 50 s sequential; model 3 + angle_delay on 5 legs × 5 min
     #: (150 000 samples; 4 chains × 100 + 100 from the screen) 116 s against 83 s.  Batched
@@ -125,10 +128,21 @@ class FitSettings:
 
 def chain_method(settings: FitSettings, data: LikelihoodData) -> str:
     """numpyro's chain method for a fit of ``data``: the settings' own, or for "auto",
-    "sequential" from :data:`SEQUENTIAL_FROM_SAMPLES` compared samples on, else "vectorized"."""
-    if settings.chain_method != "auto":
-        return settings.chain_method
-    return "sequential" if int(np.sum(data.sample_mask)) >= SEQUENTIAL_FROM_SAMPLES else "vectorized"
+    "parallel" where JAX has a device for every chain, else "sequential" from
+    :data:`SEQUENTIAL_FROM_SAMPLES` compared samples on, else "vectorized".  "parallel" asked
+    for with fewer devices than chains runs "sequential" (numpyro's own fallback), with a warning."""
+    devices = jax.local_device_count()
+    method = settings.chain_method
+    if method == "auto":
+        if settings.chains > 1 and devices >= settings.chains:
+            return "parallel"
+        return "sequential" if int(np.sum(data.sample_mask)) >= SEQUENTIAL_FROM_SAMPLES else "vectorized"
+    if method == "parallel" and devices < settings.chains:
+        warnings.warn(f"chain_method 'parallel' needs a JAX device per chain: {settings.chains} chains, "
+                      f"{devices} device{'s' if devices != 1 else ''}; the chains run one after another",
+                      stacklevel=2)
+        return "sequential"
+    return method
 
 
 def uses_screen(model: Model, settings: FitSettings) -> bool:
@@ -354,15 +368,18 @@ def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen, start
         inverse_mass_matrix=imm,
         adapt_mass_matrix=settings.adapt_metric or imm is None,
     )
+    method = chain_method(settings, data)
     mcmc = MCMC(
         kernel,
         num_warmup=settings.warmup,
         num_samples=settings.draws,
         num_chains=settings.chains,
-        chain_method=chain_method(settings, data),
+        chain_method=method,
         # numpyro's stepping loop with a progress bar calls one jitted step, which later blocks of the
-        # same size reuse; its loop without the bar is compiled whole, again for every block
-        progress_bar=progress or settings.target_ess is not None,
+        # same size reuse; its loop without the bar is compiled whole, again for every block.  Parallel
+        # chains compile their loop again for every run either way, and their bar (a callback inside
+        # the loop) fails where double precision is switched on for the fit alone: no bar for them.
+        progress_bar=(progress or settings.target_ess is not None) and method != "parallel",
         # the data are arguments of the jitted sampler, not constants folded into it:
         # the chains (and later fits of the same shapes) compile it once
         jit_model_args=True,
