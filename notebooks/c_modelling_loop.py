@@ -22,7 +22,7 @@
 # 1. fit the baseline `model3s` (model 3's gain factors on model 2's DARMA
 #    twitch) and look at its residuals: where does it fail?
 # 2. add every candidate effect in turn and rank the extensions by ΔELPD
-#    (PSIS-LOO over 1-s segments) and by ΔJ_φ,p at 0.5 and 1 s, with bands;
+#    (PSIS-LOO over 1-s segments) and by ΔJ_φ,p where each acts, with bands;
 # 3. add the leader, and check that the residual pattern and the prediction
 #    error go away;
 # 4. ask again. When nothing clears the bar, the loop stops.
@@ -165,7 +165,8 @@ fig = plot_posterior_predictions(trial, {baseline.model.name: predicted_1s(basel
 # - **ΔJ_φ,p** at 0.5 and 1 s, as 90 % bands over the draws of each model.
 #
 # An effect *clears the bar* when ΔELPD exceeds 2 standard errors and J falls
-# beyond the bands at both horizons. The Pareto k and the importance ESS say how
+# beyond the bands where it acts (a change of gain, as here, at 0.5 and 1 s; a
+# delay at 100 and 250 ms). The Pareto k and the importance ESS say how
 # well the Laplace Gaussian stands for each posterior. An angle threshold is a
 # step, for instance, and a Gaussian describes it poorly.
 

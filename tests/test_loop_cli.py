@@ -117,7 +117,7 @@ def test_diagnose_a_saved_fit(discovered, tmp_path, scratch_registry):
     assert [f["effect"] for f in s["failed"]] == ["broken_gain"] and "finite" in s["failed"][0]["error"]
     assert "Candidates that could not be screened" in (diag / "report.md").read_text()
     bb = s["blackbox"]  # the yardstick beside the baseline, on its legs, trials and horizons
-    assert set(bb["J_ms"]) == {"500", "1000"} and set(bb["orders"]) == set(s["legs"])
+    assert set(bb["J_ms"]) == {"100", "250", "500", "1000"} and set(bb["orders"]) == set(s["legs"])
     assert bb["better_at_ms"] == [h for h, v in bb["J_ms"].items() if v < s["J_ms"][h]["median"]]
     assert ("A black box" in s["sentence"]) == bool(bb["better_at_ms"])
 

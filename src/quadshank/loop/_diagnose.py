@@ -7,21 +7,26 @@ with the model on the same data by
 
 - ΔELPD: PSIS-LOO over the likelihood's 1-s segments, paired segment by
   segment, with its standard error (the screen of :mod:`quadshank.inference._screen`);
-- ΔJ_φ,p: the k-step-ahead angle error (eq. 12) at 500 and 1000 ms on the
-  evaluation trials, as bands over the posterior draws of each model;
+- ΔJ_φ,p: the k-step-ahead angle error (eq. 12) at 100, 250, 500 and 1000 ms
+  on the evaluation trials, as bands over the posterior draws of each model;
 - the residual signature: the trend of the model's one-step residual over
   the feature where the effect's absence shows (its ``signature``: knee
   angle, velocity, pulse count, preceding interpulse interval, ...).
 
-An effect *clears the bar* when its ΔELPD exceeds ``ELPD_SE_BAR`` standard
-errors and it lowers J at 500 and 1000 ms beyond the bands (the extension's
-upper 90 % limit below the model's lower one); an effect on what the
-accelerometer reads alone (``predicts_angle = False``: a skin-motion
-resonance) cannot change an angle prediction, and its bar is ΔELPD alone.
-The verdict is the highest-
-ranked effect that clears the bar, or ``none``: a misfit that some effect
-absorbs a little of (ΔELPD of a few units, within noise on J) is not called a
-missing effect.
+An effect is *supported by the evidence* when its ΔELPD exceeds
+``ELPD_SE_BAR`` standard errors.  It *clears the bar* when it is supported and
+lowers J beyond the bands (the extension's upper 90 % limit below the model's
+lower one) at every horizon where it acts (the effect's ``acts_at_ms``: a
+delay at 100 and 250 ms, where a prediction feels it; the others at 500 and
+1000 ms); an effect on what the accelerometer reads alone (``predicts_angle =
+False``: a skin-motion resonance) cannot change an angle prediction, and its
+bar is ΔELPD alone.  The candidates are ranked by the evidence among those
+that clear the bar, then the rest; the verdict is the first, or ``none``: a
+misfit that some effect absorbs a little of (ΔELPD of a few units, within
+noise on J) is not called a missing effect.  The verdict's sentence says when
+the evidence leads elsewhere: a candidate with more evidence that changes J
+little where it acts, and a candidate that lowers J without being the best
+explanation of the data.
 
 The ranking screens (per-leg MAP and Laplace draws); the leaders that clear
 the bar are then confirmed with hierarchical NUTS (:func:`confirm_leaders`):
@@ -40,6 +45,7 @@ import numpy as np
 from ..common._progress import progress_bar
 from ..common._results import Result
 from ..data._cohort import Cohort
+from ..data._paper import HORIZONS_MS
 from ..evaluation._posterior import posterior_prediction_errors
 from ..inference._fitio import posterior_models
 from ..inference._priors import build_model
@@ -48,12 +54,12 @@ from ..inference._summaries import interval
 from ..model._effects import registered_effects
 from ..model._model import Model
 
-__all__ = ["candidates", "rank_effects", "Ranking", "Diagnosis", "Discovery", "ELPD_SE_BAR", "J_HORIZONS_MS"]
+__all__ = ["candidates", "rank_effects", "Ranking", "Diagnosis", "Discovery", "ELPD_SE_BAR", "J_HORIZONS_MS", "evidence_notes"]
 
 #: ΔELPD must exceed this many standard errors.
 ELPD_SE_BAR = 2.0
-#: Horizons [ms] at which the extension must lower J beyond the bands.
-J_HORIZONS_MS = (500, 1000)
+#: Horizons [ms] at which J bands are drawn; each candidate is judged at its own (``Effect.acts_at_ms``).
+J_HORIZONS_MS = HORIZONS_MS
 #: Posterior draws, and the stride between prediction starts, of the J bands behind the bar.
 J_DRAWS, J_START_STRIDE = 40, 5
 
@@ -130,7 +136,7 @@ class Ranking:
             "ranking": self.rows,
             "failed": [{"effect": k, "error": v} for k, v in self.failed.items()],
             "verdict": self.verdict,
-            "bar": {"elpd_se": ELPD_SE_BAR, "J_horizons_ms": list(J_HORIZONS_MS)},
+            "bar": {"elpd_se": ELPD_SE_BAR, "J_horizons_ms": list(J_HORIZONS_MS), "J_judged_at": "acts_at_ms"},
         }
 
 
@@ -240,7 +246,7 @@ def rank_effects(
         fits[name] = ext
         row = {
             "effect": name,
-            **evidence_bar(d, se, J0, J1, known[name].predicts_angle),
+            **evidence_bar(d, se, J0, J1, known[name].predicts_angle, known[name].acts_at_ms),
             "pareto_k_max": float(np.nanmax(ext.pareto_k)),
             # how well the Laplace Gaussian stands for the posterior (n_draws: exactly)
             "importance_ess_min": float(np.min(ext.weights_ess)),
@@ -257,46 +263,99 @@ def rank_effects(
     return Ranking(base=base, fits=fits, rows=rows, verdict=verdict, J_base=J_base, failed=failed)
 
 
-def evidence_bar(d: float, se: float, J0: np.ndarray, J1: np.ndarray, predicts_angle: bool) -> dict:
-    """The evidence for one extension against its model, and whether it clears the bar (module docs):
-    ΔELPD ± SE, J at J_HORIZONS_MS before and after (from per-draw J, (draws, horizons))."""
+def evidence_bar(d: float, se: float, J0: np.ndarray, J1: np.ndarray, predicts_angle: bool,
+                 acts_at_ms=(500, 1000)) -> dict:
+    """Whether an extension is supported by the evidence and clears the bar (module docs):
+    ΔELPD ± SE, J at J_HORIZONS_MS before and after (from per-draw J, (draws, horizons)), judged
+    at the horizons ``acts_at_ms`` where the effect acts."""
     out = {"delta_elpd": d, "delta_elpd_se": se}
     lowered = []
     for j, h in enumerate(J_HORIZONS_MS):
         b, x = interval(J0[:, j]), interval(J1[:, j])
         out[f"J_{h}ms"] = {"before": b, "after": x, "change": x["median"] - b["median"]}
-        lowered.append(x["hi"] < b["lo"])
-    out["J_lowered_beyond_bands"] = bool(all(lowered))
+        if x["hi"] < b["lo"]:
+            lowered.append(h)
+    judged = [int(h) for h in acts_at_ms]
+    out["judged_at_ms"] = judged
+    out["J_lowered_at_ms"] = lowered
+    out["J_lowered_beyond_bands"] = all(h in lowered for h in judged)
     out["predicts_angle"] = bool(predicts_angle)
-    out["clears_bar"] = bool(d > ELPD_SE_BAR * se and (all(lowered) or not predicts_angle))
+    out["supported"] = bool(d > ELPD_SE_BAR * se)
+    out["clears_bar"] = bool(out["supported"] and (out["J_lowered_beyond_bands"] or not predicts_angle))
     return out
+
+
+def _j_change(r: dict, horizons) -> str:
+    """J before → after at ``horizons`` of a ranking row, in words."""
+    parts = []
+    for h in horizons:
+        j = r[f"J_{h}ms"]
+        parts.append(f"{j['before']['median']:.2f}° → {j['after']['median']:.2f}° at {h} ms")
+    return ", ".join(parts)
+
+
+def _judged(r: dict) -> list:
+    return r.get("judged_at_ms", list(J_HORIZONS_MS[-2:]))
+
+
+def evidence_notes(ranking: Ranking) -> str:
+    """What the verdict alone does not say: a candidate with more evidence than the verdict that
+    changes J little where it acts, and candidates that lower J there without being the best
+    explanation (less evidence than the verdict, or than a candidate the evidence prefers)."""
+    rows = ranking.rows
+    if not rows:
+        return ""
+    lead = max(rows, key=lambda r: r["delta_elpd"])
+    chosen = next((r for r in rows if r["effect"] == ranking.verdict), None)
+    notes = []
+    if lead.get("supported", lead["delta_elpd"] > ELPD_SE_BAR * lead["delta_elpd_se"]) and not lead["clears_bar"]:
+        notes.append(
+            f"{lead['effect']} has the most evidence (ΔELPD {lead['delta_elpd']:.0f} ± {lead['delta_elpd_se']:.0f}) "
+            f"but changes J little where it acts ({_j_change(lead, _judged(lead))}; the bands overlap), so it is "
+            "not called missing; more data, or a look at its residual signature, can settle it."
+        )
+    best = chosen if chosen is not None else lead
+    others = [r for r in rows if r is not best and r.get("predicts_angle", True) and r["J_lowered_beyond_bands"]
+              and r.get("supported", True) and r["delta_elpd"] < best["delta_elpd"]]
+    for r in others[:2]:
+        notes.append(
+            f"{r['effect']} also lowers J ({_j_change(r, _judged(r))}) but is not the best explanation: "
+            f"ΔELPD {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f} against {best['effect']}'s "
+            f"{best['delta_elpd']:.0f} ± {best['delta_elpd_se']:.0f}."
+        )
+    return " ".join(notes)
 
 
 def verdict_sentence(ranking: Ranking) -> str:
     """The verdict in words, with the numbers behind it."""
+    notes = evidence_notes(ranking)
+    tail = f" {notes}" if notes else ""
     if ranking.verdict == "none":
         best = ranking.rows[0] if ranking.rows else None
         if best is None:
             return "No candidate effect was screened."
         return (
             f"Nothing is missing that the candidates describe: the best, {best['effect']}, changes ELPD by "
-            f"{best['delta_elpd']:.1f} ± {best['delta_elpd_se']:.1f} and J at 1 s from "
-            f"{best['J_1000ms']['before']['median']:.2f}° to {best['J_1000ms']['after']['median']:.2f}°, "
-            f"short of the bar (ΔELPD > {ELPD_SE_BAR:g} SE and J lowered beyond the 90 % bands at 500 and 1000 ms)."
+            f"{best['delta_elpd']:.1f} ± {best['delta_elpd_se']:.1f} and J {_j_change(best, _judged(best))}, "
+            f"short of the bar (ΔELPD > {ELPD_SE_BAR:g} SE and J lowered beyond the 90 % bands where the effect "
+            f"acts).{tail}"
         )
     r = next(r for r in ranking.rows if r["effect"] == ranking.verdict)
-    j5, j10 = r["J_500ms"], r["J_1000ms"]
     if not r.get("predicts_angle", True):
+        j10 = r["J_1000ms"]
         return (
             f"Adding {r['effect']} improves ELPD by {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f}; it changes what the "
             f"accelerometer reads, not the angle, so J at 1 s stays near {j10['before']['median']:.2f}° "
-            f"({j10['after']['median']:.2f}° with it)."
+            f"({j10['after']['median']:.2f}° with it).{tail}"
         )
+    parts = []
+    for h in _judged(r):
+        j = r[f"J_{h}ms"]
+        parts.append(f"at {h} ms from {j['before']['median']:.2f}° [{j['before']['lo']:.2f}, {j['before']['hi']:.2f}] "
+                     f"to {j['after']['median']:.2f}° [{j['after']['lo']:.2f}, {j['after']['hi']:.2f}]")
     return (
-        f"Adding {r['effect']} improves ELPD by {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f} and lowers J at 0.5 s "
-        f"from {j5['before']['median']:.2f}° [{j5['before']['lo']:.2f}, {j5['before']['hi']:.2f}] to "
-        f"{j5['after']['median']:.2f}° [{j5['after']['lo']:.2f}, {j5['after']['hi']:.2f}] and at 1 s from "
-        f"{j10['before']['median']:.2f}° to {j10['after']['median']:.2f}°."
+        f"Adding {r['effect']} improves ELPD by {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f} and lowers J "
+        f"{' and '.join(parts)}.{tail}"
     )
 
 

@@ -52,6 +52,9 @@ a maximum replaces the linear one when it is added to a model), and
 ``velocity``, ``ipi``, ``pulse_count``, ``time``, ``onset``, ``u``,
 ``frequency``).  ``predicts_angle = False`` marks an effect that changes only
 what the accelerometer reads, so it cannot change an angle prediction.
+``acts_at_ms`` names the prediction horizons at which the loop judges the
+effect's change of J_φ,p: where it acts (a delay within the first 100–250 ms
+of a prediction; a change of gain or of the passive system over a second).
 
 Writing a new effect is a few lines::
 
@@ -80,6 +83,8 @@ from typing import Any, ClassVar, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from ..data._paper import HORIZONS_MS
 
 __all__ = [
     "prior_arrays",
@@ -227,6 +232,8 @@ class Effect:
     candidate: ClassVar[bool] = True
     #: False for an effect on the acceleration channel only: it cannot change an angle prediction.
     predicts_angle: ClassVar[bool] = True
+    #: Prediction horizons [ms] at which the modelling loop judges the effect's change of J: where it acts.
+    acts_at_ms: ClassVar[tuple[int, ...]] = (500, 1000)
     #: Activation effects only: "sample" when the effect describes the twitch's
     #: shape, "twitch" when only its integral (see :mod:`quadshank.model._likelihood`).
     resolution: ClassVar[str] = "sample"
@@ -290,6 +297,9 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
     missing = [n for n in param_names if n not in fields]
     if missing:
         raise TypeError(f"{cls.__name__}: declared parameters {missing} are not dataclass fields")
+    if not cls.acts_at_ms or not set(cls.acts_at_ms) <= set(HORIZONS_MS):
+        raise TypeError(f"{cls.__name__}.acts_at_ms must name some of the horizons {HORIZONS_MS} [ms], "
+                        f"not {cls.acts_at_ms!r}")
     discrete = list(getattr(cls, "discrete", ()))
     meta = [n for n in fields if n not in param_names and n not in discrete]
     register_pytree(cls, param_names + discrete, meta)
@@ -598,9 +608,12 @@ class ExponentialElasticity(Effect):
 
 class TwoPathDelay(Effect):
     """A delay effect under which a share ``pulse_weight(angle)`` of each pulse takes
-    delay d − shift and the rest delay d (``shift`` discrete, summed out by the fit)."""
+    delay d − shift and the rest delay d (``shift`` discrete, summed out by the fit).
+    A change of delay moves a prediction's first few hundred milliseconds, and the loop
+    judges it there."""
 
     kind = "delay"
+    acts_at_ms = (100, 250)
 
     def pulse_weight(self, angle):  # pragma: no cover - abstract
         raise NotImplementedError

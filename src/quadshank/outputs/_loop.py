@@ -12,7 +12,7 @@ from ..evaluation._posterior import FIGURE_WINDOW_S, figure_window, window_predi
 from ..evaluation._prediction import horizon_samples
 from ..evaluation._residuals import leg_residuals
 from ..inference._screen import LaplaceFit, leg_draw_models
-from ..loop._diagnose import ELPD_SE_BAR, J_DRAWS, Diagnosis, Discovery
+from ..loop._diagnose import ELPD_SE_BAR, J_DRAWS, J_HORIZONS_MS, Diagnosis, Discovery
 from . import _residual_figures as F
 from ._figures import plot_posterior_predictions
 from ._tables import markdown_table
@@ -81,12 +81,15 @@ def predictive_checks(fit: LaplaceFit, cohort: Cohort, out, label: str) -> tuple
 
 
 def _j_cells(row: dict) -> dict[str, str]:
-    """J before → after [90 % band after] at 500 and 1000 ms, as table cells."""
+    """J before → after [90 % band after] at every horizon of the bands, as table cells; * marks
+    the horizons where the effect is judged (its ``acts_at_ms``)."""
     cells = {}
-    for h in (500, 1000):
-        j = row[f"J_{h}ms"]
-        cells[f"J {h} ms before → after [deg]"] = (
-            f"{j['before']['median']:.3f} → {j['after']['median']:.3f} [{j['after']['lo']:.3f}, {j['after']['hi']:.3f}]")
+    judged = row.get("judged_at_ms", [500, 1000])
+    for h in J_HORIZONS_MS:
+        j = row.get(f"J_{h}ms")
+        cells[f"J {h} ms before → after [deg]"] = "—" if j is None else (
+            f"{j['before']['median']:.3f} → {j['after']['median']:.3f} [{j['after']['lo']:.3f}, {j['after']['hi']:.3f}]"
+            + (" *" if h in judged else ""))
     return cells
 
 
@@ -106,7 +109,8 @@ def ranking_markdown(summary: Diagnosis, command: str | None = None) -> str:
     md += [
         "",
         f"The bar: ΔELPD above {ELPD_SE_BAR:g} standard errors (PSIS-LOO over 1-s segments, paired) and J lowered "
-        "beyond the 90 % bands at 500 and 1000 ms.  ELPD and bands come from the screen (per-leg MAP, Laplace draws "
+        "beyond the 90 % bands at every horizon where the effect acts (marked *: a delay at 100 and 250 ms, the "
+        "others at 500 and 1000 ms).  ELPD and bands come from the screen (per-leg MAP, Laplace draws "
         "importance-weighted towards the posterior); a Pareto k above 0.7 or a small importance ESS says the Gaussian "
         "stands poorly for that posterior, and NUTS is the confirmation (`quadshank diagnose FITDIR --confirm`).",
     ]

@@ -1,0 +1,91 @@
+"""The loop's bar and verdict sentence on J bands and evidence given by hand (no fits)."""
+
+import numpy as np
+
+from quadshank.loop._diagnose import J_HORIZONS_MS, Ranking, evidence_bar, verdict_sentence
+from quadshank.model._effects import registered_effects
+
+RNG = np.random.default_rng(0)
+
+
+def _draws(medians, spread=0.05, n=200):
+    """J draws (n, horizons) around ``medians`` [deg] per horizon of J_HORIZONS_MS."""
+    return np.asarray(medians)[None, :] + spread * RNG.standard_normal((n, len(J_HORIZONS_MS)))
+
+
+BEFORE = _draws([1.0, 2.0, 4.0, 6.0])
+#: a delay change: predictions better over the first 250 ms, no different at 0.5 and 1 s
+DELAY_LIKE = _draws([0.6, 1.5, 4.0, 6.0])
+#: a change of gain: better at 0.5 and 1 s
+GAIN_LIKE = _draws([1.0, 2.0, 3.0, 4.5])
+
+
+def test_a_delay_is_judged_where_a_delay_acts():
+    acts = registered_effects()["angle_delay"].acts_at_ms
+    assert tuple(acts) == (100, 250)
+    row = evidence_bar(300.0, 50.0, BEFORE, DELAY_LIKE, True, acts)
+    assert row["supported"] and row["clears_bar"] and row["J_lowered_at_ms"] == [100, 250]
+    # at the horizons of a change of gain the same J bands would not clear it: its 1-s J effect is small
+    assert not evidence_bar(300.0, 50.0, BEFORE, DELAY_LIKE, True, (500, 1000))["clears_bar"]
+    assert not evidence_bar(60.0, 50.0, BEFORE, DELAY_LIKE, True, acts)["clears_bar"]  # not supported
+    assert registered_effects()["fatigue"].acts_at_ms == (500, 1000)
+
+
+def _ranking(rows, verdict):
+    return Ranking(base=None, fits={}, rows=rows, verdict=verdict, J_base={})
+
+
+def _row(effect, d, se, after, acts):
+    return {"effect": effect, **evidence_bar(d, se, BEFORE, after, True, acts)}
+
+
+def test_the_sentence_names_evidence_that_does_not_lower_j_and_j_that_is_not_the_best_explanation():
+    lead = _row("angle_delay", 1490.0, 339.0, _draws([1.0, 2.0, 4.0, 6.0]), (100, 250))  # evidence, no J change
+    stand_in = _row("potentiation", 1180.0, 104.0, GAIN_LIKE, (500, 1000))  # lowers J, less evidence
+    assert lead["supported"] and not lead["clears_bar"] and stand_in["clears_bar"]
+    text = verdict_sentence(_ranking([stand_in, lead], "potentiation"))
+    assert text.startswith("Adding potentiation improves ELPD by 1180 ± 104 and lowers J at 500 ms")
+    assert "angle_delay has the most evidence (ΔELPD 1490 ± 339) but changes J little where it acts" in text
+    note = text.split("angle_delay has the most evidence")[1]
+    assert "at 100 ms" in note and "at 250 ms" in note and "at 1000 ms" not in note  # where a delay acts
+
+    found = _row("angle_delay", 1490.0, 339.0, DELAY_LIKE, (100, 250))
+    text = verdict_sentence(_ranking([found, stand_in], "angle_delay"))
+    assert text.startswith("Adding angle_delay improves ELPD by 1490 ± 339 and lowers J at 100 ms")
+    assert "potentiation also lowers J" in text and "is not the best explanation" in text
+    assert "has the most evidence" not in text
+
+    alone = verdict_sentence(_ranking([found], "angle_delay"))
+    assert "not the best explanation" not in alone and "most evidence" not in alone
+
+    weak = _row("fatigue", 8.6, 13.6, _draws([1.0, 2.0, 4.0, 6.0]), (500, 1000))
+    text = verdict_sentence(_ranking([weak], "none"))
+    assert text.startswith("Nothing is missing that the candidates describe: the best, fatigue, changes ELPD by 8.6 ± 13.6")
+    assert "most evidence" not in text  # not supported: nothing to add
+
+
+def test_a_candidate_that_lowers_j_without_evidence_is_not_called_an_explanation():
+    best = _row("torque_angle_peak", 500.0, 50.0, GAIN_LIKE, (500, 1000))
+    lucky = _row("fatigue", 3.0, 5.0, GAIN_LIKE, (500, 1000))  # lowers J, no evidence
+    assert lucky["J_lowered_beyond_bands"] and not lucky["supported"]
+    assert "fatigue" not in verdict_sentence(_ranking([best, lucky], "torque_angle_peak"))
+
+
+def test_an_effect_names_horizons_the_bands_are_drawn_at(scratch_registry):
+    import dataclasses
+
+    import pytest
+
+    from quadshank import Effect, register_effect
+
+    @dataclasses.dataclass(frozen=True)
+    class SlowGain(Effect):
+        kind = "gain"
+        name = "slow_gain"
+        acts_at_ms = (2000,)
+
+        def factor(self, ctx):
+            return 1.0
+
+    with pytest.raises(TypeError, match=r"acts_at_ms must name some of the horizons \(100, 250, 500, 1000\)"):
+        register_effect(SlowGain)
