@@ -108,6 +108,12 @@ def test_demo_small(tmp_path, monkeypatch, capsys):
     assert set(ev["J_legs"]["model3s"]) == {"TN-left", "OT-left"}
     diag = json.loads((out / "diagnose" / "summary.json").read_text())
     assert [r["effect"] for r in diag["ranking"]] == ["potentiation"] and diag["verdict"] == s["verdict"]
+    # the loop is shown on legs simulated again with potentiation hidden; the reproduction stays the paper's
+    assert s["hidden"] == ["potentiation"] and s["found"] == (s["verdict"] == "potentiation")
+    assert json.loads((out / "loop-data" / "truth.json").read_text())["effects"] == ["potentiation"]
+    assert json.loads((out / "reproduce" / "data" / "truth.json").read_text())["effects"] == []
+    assert fit["data"] == str((out / "loop-data").resolve())
+    assert "potentiation hidden in the legs fitted" in (out / "README.md").read_text()
     index = (out / "report" / "index.html").read_text()
     assert "TN-left" in index and "OT-left" in index and "potentiation" in index
     assert 'id="fit-warning"' in index  # the failed checks at the top of the page

@@ -513,6 +513,7 @@ def cmd_demo(args) -> int:
     t0 = time.perf_counter()
     summary = run_demo(
         args.out, minutes=args.minutes, seed=args.seed, effects=_csv_list(args.effects) if args.effects else (),
+        hidden=() if args.hide == "none" else _csv_list(args.hide),
         legs=_csv_list(args.legs) if args.legs else None, chains=args.chains, warmup=args.warmup, draws=args.draws,
         max_tree_depth=args.max_tree_depth, target_ess=args.target_ess or None, time_limit_s=args.time_limit,
         progress=not args.quiet, command=command,
@@ -522,7 +523,9 @@ def cmd_demo(args) -> int:
               "its report says so on every page", file=sys.stderr)
     _say(
         args,
-        f"diagnosis verdict: {summary.verdict}",
+        f"diagnosis verdict: {summary.verdict}"
+        + (f" ({', '.join(summary.hidden)} was hidden: {'found' if summary.found else 'not found'})"
+           if summary.hidden else ""),
         f"done in {time.perf_counter() - t0:.0f} s; open the report: {summary.report}",
     )
     return 0
@@ -732,6 +735,9 @@ def build_parser() -> argparse.ArgumentParser:
                                     "diagnose, report (writes results/demo)")
     d.add_argument("--out", default="results/demo")
     sim_options(d, 1.5)
+    d.add_argument("--hide", default="potentiation", metavar="EFFECT[,EFFECT]",
+                   help="effects hidden in the legs the loop is shown on, which the diagnosis should find "
+                        "(default potentiation; none: nothing hidden)")
     d.add_argument("--chains", type=int, default=2)
     d.add_argument("--warmup", type=int, default=150)
     d.add_argument("--draws", type=int, default=100, help="draws per chain in each block (default 100)")

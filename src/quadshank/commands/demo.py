@@ -5,10 +5,13 @@ Five steps, each in its own folder under ``out``:
 1. ``reproduce/``: the paper's section 7 (simulate the cohort, classical
    identification, Table V) — :func:`quadshank.commands.reproduce.run_reproduce`;
 2. ``fit/``: a hierarchical NUTS fit of the loop's baseline ``model3s`` to trial 1
-   of two legs of two subjects (so the report can show shrinkage);
+   of two legs of two subjects (so the report can show shrinkage), simulated again
+   with one effect hidden (``hidden``, potentiation by default; ``loop-data/``) that
+   ``model3s`` lacks;
 3. ``evaluate/``: J_φ,p over posterior draws, trials 1–3, with PSIS-LOO;
 4. ``diagnose/``: the modelling loop's question, which effect is missing, screened
-   over the five effects of the paper's discussion;
+   over the five effects of the paper's discussion: it should name the hidden
+   effect, and its sentence says how far adding it lowers J;
 5. ``report/``: the per-subject credible-parameter pages (``report/index.html``).
 
 The sizes are the demo's (short trials, trees of at most 31 leapfrog steps, a
@@ -28,8 +31,9 @@ from typing import ClassVar
 
 from ..common._io import atomic_write_text
 from ..common._results import Result
-from ..data._interchange import load_cohort
+from ..data._interchange import load_cohort, write_interchange
 from ..data._paper import LEGS
+from ..data._simulate import simulate_cohort, write_truth
 from ..inference._nuts import FitSettings
 from ..inference._priors import build_model
 from ..outputs._tables import markdown_table
@@ -52,6 +56,8 @@ class Demo(Result):
     minutes: float
     seed: int
     effects: list  # hidden in the simulated cohort
+    hidden: list  # hidden besides in the legs the loop is shown on (fit, evaluate, diagnose)
+    found: bool | None  # the diagnosis named the hidden effect (None: nothing hidden)
     legs: list
     fit_legs: list
     fit_settings: dict
@@ -89,6 +95,7 @@ def run_demo(
     minutes: float = 1.5,
     seed: int = 0,
     effects=(),
+    hidden=("potentiation",),
     legs=None,
     chains: int = 2,
     warmup: int = 150,
@@ -101,6 +108,8 @@ def run_demo(
 ) -> Demo:
     """Reproduce, fit, evaluate, diagnose, report; returns the summary (also ``out/summary.json``).
 
+    ``effects``: hidden in the whole simulated cohort; ``hidden``: hidden besides in the legs the
+    loop is shown on, which are simulated again with them (the reproduction stays the paper's).
     ``target_ess``, ``time_limit_s``: the fit draws blocks of ``draws`` per chain to this ESS or
     until this many seconds from its start (None: exactly ``warmup`` + ``draws``)."""
 
@@ -128,6 +137,12 @@ def run_demo(
     step("reproduce")
 
     data = out / "reproduce" / "data"
+    hidden = tuple(h for h in hidden if h not in effects)
+    if hidden:
+        say(f"   the loop's legs {', '.join(fit_legs)} simulated again with {', '.join(hidden)} hidden -> {out / 'loop-data'}")
+        loop_cohort, truth = simulate_cohort(legs=fit_legs, minutes=minutes, seed=seed, effects=(*effects, *hidden))
+        data = write_interchange(loop_cohort, out / "loop-data", overwrite=True)
+        write_truth(truth, data / "truth.json")
     cohort = load_cohort(data)
 
     settings = FitSettings(chains=chains, warmup=warmup, draws=draws, seed=seed, max_tree_depth=max_tree_depth,
@@ -143,7 +158,8 @@ def run_demo(
                            progress=progress)
     step("evaluate")
 
-    say(f"4/5 which effect is missing: {', '.join(DEMO_EFFECTS)} screened -> {out / 'diagnose'}")
+    say(f"4/5 which effect is missing: {', '.join(DEMO_EFFECTS)} screened"
+        + (f" ({', '.join(hidden)} is hidden)" if hidden else "") + f" -> {out / 'diagnose'}")
     diag = run_diagnose(fit_cohort, build_model("model3s", sampling_period_s=fit_cohort.sampling_period_s), out / "diagnose", legs=fit_legs, effects=DEMO_EFFECTS,
                         command=command, progress=progress, seed=seed, n_starts=DEMO_N_STARTS)
     step("diagnose")
@@ -155,7 +171,8 @@ def run_demo(
 
     diagnostics = fit.diagnostics
     summary = Demo(
-        command=command, minutes=minutes, seed=seed, effects=list(effects), legs=list(legs), fit_legs=list(fit_legs),
+        command=command, minutes=minutes, seed=seed, effects=list(effects), hidden=list(hidden),
+        found=(diag.verdict in hidden) if hidden else None, legs=list(legs), fit_legs=list(fit_legs),
         fit_settings={"model": "model3s", "chains": chains, "warmup": warmup, "draws": draws,
                       "max_tree_depth": max_tree_depth, "trials": [1], "target_ess": target_ess,
                       "time_limit_s": time_limit_s},
@@ -170,7 +187,7 @@ def run_demo(
         f"Made by: `{command}`" if command else "",
         "",
         f"The built-in simulated cohort ({len(legs)} legs, {minutes:g} min per trial, seed {seed}, "
-        f"hidden effects: {', '.join(effects) or 'none'}).",
+        f"effects hidden in every leg: {', '.join(effects) or 'none'}).",
         "",
         *markdown_table([{"step": k, "folder": f"`{k}/`", "seconds": f"{v:.0f}"} for k, v in seconds.items()]).splitlines(),
         "",
@@ -180,6 +197,9 @@ def run_demo(
         f"(tree depth {max_tree_depth}): "
         + ("passed its checks." if diagnostics["ok"] else f"**{fit.banner}** — chains this short are a demo, "
            "not a result; see the advice in `fit/summary.json`."),
+        (f"- The loop: {', '.join(hidden)} hidden in the legs fitted (`loop-data/`); the diagnosis "
+         + ("found it" if diag.verdict in hidden else "did **not** find it") + "." if hidden else
+         "- The loop: nothing hidden in the legs fitted."),
         f"- Diagnosis: verdict `{diag.verdict}`. {diag.sentence}",
         "- Report: `report/index.html`.",
         "",
