@@ -29,6 +29,7 @@ SCRIPT = textwrap.dedent(
     assert jax.local_device_count() == 2, jax.devices()
     data = SimpleNamespace(sample_mask=np.ones((1, 100), bool))
     methods = [chain_method(FitSettings(chains=c), data) for c in (2, 4)]
+    methods.append(chain_method(FitSettings(chains=2, target_ess=200), data))  # blocks: one compilation
 
     cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.3, seed=2, trials=(1,))
     model = build_model("model1")
@@ -63,8 +64,9 @@ def test_parallel_chains_on_two_devices_draw_what_one_device_draws(tmp_path):
                          timeout=900)
     assert run.returncode == 0, run.stderr[-3000:]
     got = np.load(result)
-    # auto: a device per chain runs the chains in parallel; four chains on two devices do not
-    assert list(got["methods"]) == ["parallel", "vectorized"]
+    # auto: a device per chain runs the chains in parallel; four chains on two devices do not, nor
+    # a fit drawn to a target ESS in blocks (parallel chains would compile once per block)
+    assert list(got["methods"]) == ["parallel", "vectorized", "vectorized"]
     seq, par = got["sequential"], got["parallel"]
     assert par.shape[:2] == (2, 10)
     assert not np.allclose(par[0], par[1])  # each device ran its own chain, not one chain twice

@@ -632,7 +632,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run the chains as one batched program (faster on small data), one after another "
                         "(faster on large data: 1.4x at 5 legs x 5 min), or each on its own JAX device (several "
                         "GPUs, or CPU devices from XLA_FLAGS=--xla_force_host_platform_device_count=N); auto "
-                        f"(default): parallel where there is a device per chain, else sequential from "
+                        f"(default): parallel where there is a device per chain and no --target-ess, else sequential from "
                         f"{SEQUENTIAL_FROM_SAMPLES} compared samples on; the posterior is the same")
     f.add_argument("--out", required=True)
     f.set_defaults(func=cmd_fit)

@@ -77,7 +77,8 @@ class FitSettings:
     #: numpyro's ``chain_method``: "vectorized" (all chains in one batched program),
     #: "sequential" (one after another), "parallel" (each chain on its own JAX device), or
     #: "auto": parallel where there are at least as many devices as chains (several GPUs, or
-    #: CPU devices made with ``XLA_FLAGS=--xla_force_host_platform_device_count=N``), else
+    #: CPU devices made with ``XLA_FLAGS=--xla_force_host_platform_device_count=N``) and no
+    #: ``target_ess``, else
     #: sequential from :data:`SEQUENTIAL_FROM_SAMPLES` compared samples on, else vectorized
     #: (:func:`chain_method`).  The posterior is the same; the time is not.  On the 2-core CPU,
     #: model3s on 2 legs × 1.5 min (18 000 samples; the demo's fit, 2 chains × 150 + 150)
@@ -128,13 +129,14 @@ class FitSettings:
 
 def chain_method(settings: FitSettings, data: LikelihoodData) -> str:
     """numpyro's chain method for a fit of ``data``: the settings' own, or for "auto",
-    "parallel" where JAX has a device for every chain, else "sequential" from
-    :data:`SEQUENTIAL_FROM_SAMPLES` compared samples on, else "vectorized".  "parallel" asked
+    "parallel" where JAX has a device for every chain (and the fit draws a fixed number: parallel
+    chains compile their sampler again for every block of a fit to a target ESS), else "sequential"
+    from :data:`SEQUENTIAL_FROM_SAMPLES` compared samples on, else "vectorized".  "parallel" asked
     for with fewer devices than chains runs "sequential" (numpyro's own fallback), with a warning."""
     devices = jax.local_device_count()
     method = settings.chain_method
     if method == "auto":
-        if settings.chains > 1 and devices >= settings.chains:
+        if settings.chains > 1 and devices >= settings.chains and settings.target_ess is None:
             return "parallel"
         return "sequential" if int(np.sum(data.sample_mask)) >= SEQUENTIAL_FROM_SAMPLES else "vectorized"
     if method == "parallel" and devices < settings.chains:
