@@ -81,11 +81,14 @@ def test_blackbox_j_per_leg_and_trial_and_where_it_predicts_better(cohort):
 def test_the_diagnosis_says_where_the_black_box_predicts_better(cohort):
     from quadshank.commands.diagnose import blackbox_beside
 
-    first = blackbox_beside(cohort, ["TN-left"], [1], {h: {"median": 1e3} for h in ("500", "1000")})
+    from quadshank.loop._diagnose import J_HORIZONS_MS
+
+    horizons = [str(h) for h in J_HORIZONS_MS]  # the diagnosis's horizons: 100, 250, 500 and 1000 ms
+    first = blackbox_beside(cohort, ["TN-left"], [1], {h: {"median": 1e3} for h in horizons})
     J = first["J_ms"]
-    assert set(J) == {"500", "1000"} and first["better_at_ms"] == ["500", "1000"]
-    assert "predicts better than the baseline at 500, 1000 ms" in first["sentence"]
-    half = {"500": {"median": J["500"] + 0.1}, "1000": {"median": J["1000"] - 0.1}}
+    assert list(J) == horizons and first["better_at_ms"] == horizons
+    assert f"predicts better than the baseline at {', '.join(horizons)} ms" in first["sentence"]
+    half = {h: {"median": J[h] + (0.1 if h == "500" else -0.1)} for h in horizons}
     second = blackbox_beside(cohort, ["TN-left"], [1], half)
     assert second["better_at_ms"] == ["500"] and "at 500 ms (" in second["sentence"]
     assert "sentence" not in blackbox_beside(cohort, ["TN-left"], [1], {h: {"median": 0.0} for h in J})
