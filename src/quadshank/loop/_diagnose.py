@@ -294,10 +294,6 @@ def _j_change(r: dict, horizons) -> str:
     return ", ".join(parts)
 
 
-def _judged(r: dict) -> list:
-    return r.get("judged_at_ms", list(J_HORIZONS_MS[-2:]))
-
-
 def evidence_notes(ranking: Ranking) -> str:
     """What the verdict alone does not say: a candidate with more evidence than the verdict that
     changes J little where it acts, and candidates that lower J there without being the best
@@ -308,18 +304,18 @@ def evidence_notes(ranking: Ranking) -> str:
     lead = max(rows, key=lambda r: r["delta_elpd"])
     chosen = next((r for r in rows if r["effect"] == ranking.verdict), None)
     notes = []
-    if lead.get("supported", lead["delta_elpd"] > ELPD_SE_BAR * lead["delta_elpd_se"]) and not lead["clears_bar"]:
+    if lead["supported"] and not lead["clears_bar"]:
         notes.append(
             f"{lead['effect']} has the most evidence (ΔELPD {lead['delta_elpd']:.0f} ± {lead['delta_elpd_se']:.0f}) "
-            f"but changes J little where it acts ({_j_change(lead, _judged(lead))}; the bands overlap), so it is "
+            f"but changes J little where it acts ({_j_change(lead, lead['judged_at_ms'])}; the bands overlap), so it is "
             "not called missing; more data, or a look at its residual signature, can settle it."
         )
     best = chosen if chosen is not None else lead
     others = [r for r in rows if r is not best and r.get("predicts_angle", True) and r["J_lowered_beyond_bands"]
-              and r.get("supported", True) and r["delta_elpd"] < best["delta_elpd"]]
+              and r["supported"] and r["delta_elpd"] < best["delta_elpd"]]
     for r in others[:2]:
         notes.append(
-            f"{r['effect']} also lowers J ({_j_change(r, _judged(r))}) but is not the best explanation: "
+            f"{r['effect']} also lowers J ({_j_change(r, r['judged_at_ms'])}) but is not the best explanation: "
             f"ΔELPD {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f} against {best['effect']}'s "
             f"{best['delta_elpd']:.0f} ± {best['delta_elpd_se']:.0f}."
         )
@@ -336,7 +332,7 @@ def verdict_sentence(ranking: Ranking) -> str:
             return "No candidate effect was screened."
         return (
             f"Nothing is missing that the candidates describe: the best, {best['effect']}, changes ELPD by "
-            f"{best['delta_elpd']:.1f} ± {best['delta_elpd_se']:.1f} and J {_j_change(best, _judged(best))}, "
+            f"{best['delta_elpd']:.1f} ± {best['delta_elpd_se']:.1f} and J {_j_change(best, best['judged_at_ms'])}, "
             f"short of the bar (ΔELPD > {ELPD_SE_BAR:g} SE and J lowered beyond the 90 % bands where the effect "
             f"acts).{tail}"
         )
@@ -349,7 +345,7 @@ def verdict_sentence(ranking: Ranking) -> str:
             f"({j10['after']['median']:.2f}° with it).{tail}"
         )
     parts = []
-    for h in _judged(r):
+    for h in r["judged_at_ms"]:
         j = r[f"J_{h}ms"]
         parts.append(f"at {h} ms from {j['before']['median']:.2f}° [{j['before']['lo']:.2f}, {j['before']['hi']:.2f}] "
                      f"to {j['after']['median']:.2f}° [{j['after']['lo']:.2f}, {j['after']['hi']:.2f}]")
