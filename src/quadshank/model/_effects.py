@@ -35,6 +35,11 @@ depends on its *kind*:
     which the accelerometer sees the shank's angular acceleration (a
     skin-motion resonance).  The model's dynamics run on the true angle;
     predictions are compared with measurements through these.
+``noise``
+    no dynamics: a parameter of the likelihood's noise model that the
+    hierarchical fit pools like any other (``twitch_variability``: a random
+    gain per pulse).  The likelihood reads it (:mod:`quadshank.model._likelihood`);
+    predictions do not.
 ``delay``
     ``select(d, u_hist, angle_hist) -> u``: how the pulses delivered up to ``d``
     samples ago reach the muscle (default: exactly ``d`` samples; at most one
@@ -116,10 +121,11 @@ __all__ = [
     "ActivationDamping",
     "GoniometerOffset",
     "AccelResonance",
+    "TwitchVariability",
 ]
 
 LEVELS = ("population", "subject", "leg")
-KINDS = ("activation", "gain", "pulse", "passive", "delay", "output", "measurement")
+KINDS = ("activation", "gain", "pulse", "passive", "delay", "output", "measurement", "noise")
 SUPPORTS = ("real", "positive", "negative", "unit_interval")
 
 
@@ -279,6 +285,10 @@ class Effect:
     def acceleration_response(self, dt: float):
         """Impulse response of the accelerometer chain (unit sum), or None for a perfect accelerometer."""
         return None
+
+    def pulse_variance(self):  # pragma: no cover - abstract for noise effects
+        """Noise effects: the variance of a pulse's random gain relative to its mean (CV²)."""
+        raise NotImplementedError(f"noise effect {self.name!r} must define pulse_variance()")
 
 
 _REGISTRY: dict[str, type[Effect]] = {}
@@ -1052,3 +1062,33 @@ class AccelResonance(Effect):
         z = jnp.zeros((), x.dtype)
         _, g = jax.lax.scan(body, (z, z, z, z), x)
         return g / jnp.sum(g)
+
+
+# ========================================================================== noise
+
+
+@register_effect
+@dataclasses.dataclass(frozen=True)
+class TwitchVariability(Effect):
+    """Twitches vary from pulse to pulse: each pulse's twitch is scaled by its own random gain.
+
+    The gain is log-normal with mean 1 and coefficient of variation ``twitch_cv``
+    (the paper's Table IV: 12–29 % for the integrated twitch), independent
+    between pulses.  It is noise, not dynamics: the model's prediction is the
+    mean twitch, and the likelihood adds each pulse's variance,
+    twitch_cv² × (its modelled output)², to the noise of the samples or
+    windows it reaches (:mod:`quadshank.model._likelihood`), so that a large
+    twitch that misses its prediction by a fifth is not evidence for an effect.
+    """
+
+    kind = "noise"
+    name = "twitch_variability"
+    signature = "onset"
+    params = (
+        Param("twitch_cv", "1", support="positive", prior=("lognormal", math.log(0.15), 0.75),
+              doc="pulse-to-pulse coefficient of variation of the twitch's size"),
+    )
+    twitch_cv: Any = 0.15
+
+    def pulse_variance(self):
+        return self.twitch_cv**2

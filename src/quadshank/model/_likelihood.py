@@ -598,6 +598,39 @@ def _t_norm(nu, scale):
     return gammaln(0.5 * (nu + 1.0)) - gammaln(0.5 * nu) - 0.5 * jnp.log(nu * math.pi) - jnp.log(scale)
 
 
+def _pulse_variance(model: Model):
+    """Σ of the noise effects' pulse variances (a pulse's random gain's variance relative to its
+    mean, CV²); None for a model without noise effects."""
+    if not model.noises:
+        return None
+    return sum(e.pulse_variance() for e in model.noises)
+
+
+def _widened(scale, c2, V):
+    """The scale of a window whose pulses' random gains add ``c2 · V`` to its squared scale
+    (``V``: Σ over the window's pulses of their modelled output's square), and the change this
+    makes to the log density's normalising term, log(scale) − log(widened scale)."""
+    wide = jnp.sqrt(scale * scale + c2 * V)
+    return wide, jnp.log(scale) - jnp.log(wide)
+
+
+def _square_sums(model: Model, c, key, RK: int, n: int):
+    """Σ over each window's pulses of (the pulse's output in that window)², by window ``key`` (n,):
+    per unit CV², the variance the pulses' random gains add to the window.  ``c`` and ``key`` are
+    flat over (pulse, extended lag), RK lags per pulse.  Every lag reaches its own sample, so on
+    one-sample windows (``resolution = "sample"``) that is Σ c²; on twitch windows a pulse's lags
+    in one window form one run of equal keys, summed before squaring."""
+    if model.activation.resolution == "sample":
+        return jax.ops.segment_sum(c * c, key, num_segments=n)
+    k = key.reshape(-1, RK)
+    start = jnp.concatenate([jnp.ones((k.shape[0], 1), bool), k[:, 1:] != k[:, :-1]], axis=1).reshape(-1)
+    run = jnp.cumsum(start) - 1
+    m = c.shape[-1]
+    run_sum = jax.ops.segment_sum(c, run, num_segments=m)
+    run_key = jnp.clip(jax.ops.segment_max(key, run, num_segments=m), 0, n - 1)  # unused runs hold 0
+    return jax.ops.segment_sum(run_sum * run_sum, run_key, num_segments=n)
+
+
 def _sensed(model: Model, x: dict) -> dict:
     """The leg's arrays with the goniometer's reading replaced by the true angle."""
     return dict(x, angle=true_angle(model, x["angle"])) if model.measurements else x
@@ -812,6 +845,7 @@ def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
     if "pulse_slot" in x:
         return _by_delay_pulses(model, noise, x, R, K)
     x, E, table, base, k0, F, G, uq = _leg_terms(model, noise, x)
+    c2 = _pulse_variance(model)
     U = x["touch_window"].shape[-1]
     delays = jnp.arange(x["touch_sample"].shape[0])
     out = []
@@ -821,7 +855,11 @@ def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
             c = _contributions(model, x, R, K, shift, d, F, uq, valid, samples, G)
             M = jax.ops.segment_sum(c, pos, num_segments=U)
             s, n = _noise_at(noise, table, x, tw)
-            lp = _t_kernel(E[tw] - M, n, s) - k0[tw]
+            if c2 is None:
+                lp = _t_kernel(E[tw] - M, n, s) - k0[tw]
+            else:
+                wide, dnorm = _widened(s, c2, _square_sums(model, c, pos, R + K, U))
+                lp = _t_kernel(E[tw] - M, n, wide) + dnorm - k0[tw]
             return jnp.sum(jnp.where(tm, lp, 0.0))
 
         out.append(jax.vmap(one)(delays, x["touch_valid"], x["touch_sample"], x["touch_pos"], x["touch_window"], x["touch_mask"]))
@@ -847,16 +885,30 @@ def _cumsum(x, block: int = 32):
     return (within + before[..., None]).reshape(*x.shape[:-1], m * block)[..., :n]
 
 
-def _pair_deltas(b, first, r, s, keep, nu):
+def _running(b, first):
+    """Along the last axis, the running sum of ``b`` within each window's pairs: including
+    this pair, and excluding it (``first``: the position of the window's first pair)."""
+    cs = _cumsum(b)
+    incl = cs - (jnp.take(cs, first, axis=-1) - jnp.take(b, first, axis=-1))  # this pair and the window's earlier ones
+    return incl, incl - b
+
+
+def _pair_deltas(b, first, r, s, keep, nu, noise_terms=None):
     """Along the last axis, (window, pulse) pairs in window order and, within a window, in angle
     order: the change of each pair's window log density when its pulse takes the shorter delay
     after the window's pulses before it have.  ``b`` is each pair's change of the window's model
     sum, ``first`` the position of its window's first pair, ``r``, ``s`` and ``nu`` the window's
-    residual (every pulse at the long delay), scale and degrees of freedom; 0 where ``keep`` is False."""
-    cs = _cumsum(b)
-    incl = cs - (jnp.take(cs, first, axis=-1) - jnp.take(b, first, axis=-1))  # this pair and the window's earlier ones
-    excl = incl - b
-    return jnp.where(keep, _t_kernel(r - incl, nu, s) - _t_kernel(r - excl, nu, s), 0.0)
+    residual (every pulse at the long delay), scale and degrees of freedom; 0 where ``keep`` is False.
+    With random pulse gains, ``noise_terms`` = (bv, v0, c2): each pair's change of the window's
+    Σ output², the window's Σ output² with every pulse at the long delay, and CV² (:func:`_widened`)."""
+    incl, excl = _running(b, first)
+    if noise_terms is None:
+        return jnp.where(keep, _t_kernel(r - incl, nu, s) - _t_kernel(r - excl, nu, s), 0.0)
+    bv, v0, c2 = noise_terms
+    v_incl, v_excl = _running(bv, first)
+    s_incl, n_incl = _widened(s, c2, v0 + v_incl)
+    s_excl, n_excl = _widened(s, c2, v0 + v_excl)
+    return jnp.where(keep, _t_kernel(r - incl, nu, s_incl) + n_incl - _t_kernel(r - excl, nu, s_excl) - n_excl, 0.0)
 
 
 def _state_rows(ell_long, steps):
@@ -877,6 +929,7 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
     if "pulse_slot" in x:
         return _by_threshold_pulses(model, noise, x, R, K)
     x, E, table, base, k0, F, G, uq = _leg_terms(model, noise, x)
+    c2 = _pulse_variance(model)
     U = x["touch_window"].shape[-1]
     Q = x["step_pair_mask"].shape[-1]
     P = x["pulse_sample"].shape[-1]
@@ -894,7 +947,13 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
         M = jax.ops.segment_sum(a_long, pos, num_segments=U)
         r0 = E[tw] - M
         s, n = _noise_at(noise, table, x, tw)
-        lp_long = jnp.where(tm, _t_kernel(r0, n, s) - k0[tw], 0.0)
+        if c2 is None:
+            s_long, dnorm = s, 0.0
+        else:  # each pulse's random gain scales its whole output in a window: (window, pulse) sums
+            p_long = jax.ops.segment_sum(a_long, entry_pair, num_segments=Q)
+            v_long = jax.ops.segment_sum(p_long * p_long, pair_window, num_segments=U)
+            s_long, dnorm = _widened(s, c2, v_long)
+        lp_long = jnp.where(tm, _t_kernel(r0, n, s_long) + dnorm - k0[tw], 0.0)
         ell_long = base + jnp.sum(lp_long)
         rows = [jnp.full((P + 1,), ell_long)]
         r_pair = r0[pair_window]
@@ -903,7 +962,8 @@ def leg_loglik_by_threshold(model: Model, noise: dict, x: dict, R: int, K: int):
         keep = pair_mask & tm[pair_window]
         for shift in range(1, K + 1):
             b = jax.ops.segment_sum(amplitudes(shift) - a_long, entry_pair, num_segments=Q)  # per (window, pulse)
-            delta = _pair_deltas(b, pair_first, r_pair, s_pair, keep, nu_pair)
+            terms = None if c2 is None else ((p_long + b) ** 2 - p_long**2, v_long[pair_window], c2)
+            delta = _pair_deltas(b, pair_first, r_pair, s_pair, keep, nu_pair, terms)
             per_pulse = jax.ops.segment_sum(delta, pair_pulse, num_segments=P)
             steps = jnp.where(x["step_pulse_valid"], per_pulse[x["step_order"]], 0.0)
             rows.append(_state_rows(ell_long, steps))
@@ -952,8 +1012,14 @@ def _by_delay_pulses(model: Model, noise: dict, x: dict, R: int, K: int):
     if K:
         w = model.delay_effect.pulse_weight(x["angle"][x["pulse_sample"]])
         amp = (1.0 - w) * amp[:1] + w * amp  # shift 0 is the plain response
-    M = _slot_sums(jnp.moveaxis(amp, 0, 1), x["pulse_slot"], x["slot_window"].shape[-1])  # (D, K + 1, V)
-    lp = _t_kernel(Es - M, nu, ss) - k0
+    V = x["slot_window"].shape[-1]
+    M = _slot_sums(jnp.moveaxis(amp, 0, 1), x["pulse_slot"], V)  # (D, K + 1, V)
+    c2 = _pulse_variance(model)
+    if c2 is None:
+        lp = _t_kernel(Es - M, nu, ss) - k0
+    else:
+        wide, dnorm = _widened(ss, c2, _slot_sums(jnp.moveaxis(amp * amp, 0, 1), x["pulse_slot"], V))
+        lp = _t_kernel(Es - M, nu, wide) + dnorm - k0
     return base + jnp.sum(jnp.where(keep, lp, 0.0), axis=-1)
 
 
@@ -963,14 +1029,21 @@ def _by_threshold_pulses(model: Model, noise: dict, x: dict, R: int, K: int):
     V = x["slot_window"].shape[-1]
     P = x["pulse_sample"].shape[-1]
     r0 = Es - _slot_sums(amp[0], x["pulse_slot"], V)  # (D, V): every pulse at its long delay
-    ell_long = base + jnp.sum(jnp.where(keep, _t_kernel(r0, nu, ss) - k0, 0.0), axis=-1)
+    c2 = _pulse_variance(model)
+    if c2 is None:
+        s_long, dnorm = ss, 0.0
+    else:
+        v_long = _slot_sums(amp[0] * amp[0], x["pulse_slot"], V)
+        s_long, dnorm = _widened(ss, c2, v_long)
+    ell_long = base + jnp.sum(jnp.where(keep, _t_kernel(r0, nu, s_long) + dnorm - k0, 0.0), axis=-1)
     order, first = x["step_slot_order"], x["step_slot_first"]
     slot = x["pulse_slot"][order]
     r_pair, s_pair, nu_pair, keep_pair = r0[:, slot], _at(ss, slot), _at(nu, slot), keep[slot]
     rows = [jnp.broadcast_to(ell_long[:, None], (N_DELAYS, P + 1))]
     for shift in range(1, K + 1):
         b = (amp[shift] - amp[0])[:, order]  # (D, P) by slot, then angle
-        delta = _pair_deltas(b, first, r_pair, s_pair, keep_pair, nu_pair)
+        terms = None if c2 is None else ((amp[shift] ** 2 - amp[0] ** 2)[:, order], v_long[:, slot], c2)
+        delta = _pair_deltas(b, first, r_pair, s_pair, keep_pair, nu_pair, terms)
         steps = jnp.where(x["step_pulse_valid"], delta[:, x["step_rank_pos"]], 0.0)  # by angle
         rows.append(_state_rows(ell_long, steps))
     return jnp.stack(rows, axis=1)  # (D, K + 1, P + 1)
@@ -1003,12 +1076,30 @@ def leg_active_output(model: Model, x: dict, d_index, R: int, K: int = 0, shift=
 
 
 def _active_output(model: Model, x: dict, d_index, R: int, K: int, shift):
-    N = x["angle"].shape[-1]
+    samples, c = _active_entries(model, x, d_index, R, K, shift)
+    return jax.ops.segment_sum(c, samples, num_segments=x["angle"].shape[-1])
+
+
+def _active_entries(model: Model, x: dict, d_index, R: int, K: int, shift):
+    """The sample each (pulse, extended lag) reaches and its M̂, flat (0 where it reaches none)."""
     F = gain_factors(model, x["angle"], x["velocity"], x["stimulation"])
     G = output_factors(model, x["angle"], x["velocity"], x["stimulation"])
     samples = x["touch_sample"][d_index]
     c = _contributions(model, x, R, K, shift, d_index, F, _pulse_q(model, x), x["touch_valid"][d_index], samples, G)
-    return jax.ops.segment_sum(c, samples, num_segments=N)
+    return samples, c
+
+
+def _active_windows(model: Model, x: dict, d_index, R: int, K: int, shift, scale):
+    """M̂ summed over each likelihood window, and each window's scale: ``scale`` widened by the
+    pulses' random gains (:func:`_widened`), with the change of the normalising term (0 without)."""
+    samples, c = _active_entries(model, x, d_index, R, K, shift)
+    W = x["window_mask"].shape[-1]
+    win = x["window"][samples]
+    M = jax.ops.segment_sum(c, win, num_segments=W)
+    c2 = _pulse_variance(model)
+    if c2 is None:
+        return M, scale, 0.0
+    return (M, *_widened(scale, c2, _square_sums(model, c, win, R + K, W)))
 
 
 def student_t_cdf(z, nu):
@@ -1022,7 +1113,7 @@ def leg_window_cdf(model: Model, noise: dict, x: dict, d_index, R: int, K: int =
     (θ, d, shift): P(E_rep ≤ E | θ) under the Student-t noise model (the LOO-PIT's ingredient)."""
     x = _sensed(model, x)
     E, scale, nu, _ = _all_windows(model, noise, x)
-    M = jax.ops.segment_sum(_active_output(model, x, d_index, R, K, shift), x["window"], num_segments=E.shape[-1])
+    M, scale, _ = _active_windows(model, x, d_index, R, K, shift, scale)
     return student_t_cdf((E - M) / scale, nu)
 
 
@@ -1030,9 +1121,7 @@ def leg_pointwise(model: Model, noise: dict, x: dict, d_index, R: int, n_segment
     """log p(y_segment | θ, d, shift) per PSIS-LOO segment of one leg."""
     x = _sensed(model, x)
     E, scale, nu, norm = _all_windows(model, noise, x)
-    W = E.shape[-1]
-    M_sample = _active_output(model, x, d_index, R, K, shift)
-    M = jax.ops.segment_sum(M_sample, x["window"], num_segments=W)
-    lp = jnp.where(x["window_mask"], norm + _t_kernel(E - M, nu, scale), 0.0)
+    M, scale, dnorm = _active_windows(model, x, d_index, R, K, shift, scale)
+    lp = jnp.where(x["window_mask"], norm + dnorm + _t_kernel(E - M, nu, scale), 0.0)
     seg = jnp.where(x["window_mask"], x["window_segment"], n_segments)
     return jax.ops.segment_sum(lp, seg, num_segments=n_segments + 1)[:n_segments]

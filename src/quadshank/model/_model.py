@@ -132,6 +132,10 @@ class Model:
         return tuple(e for e in self.effects if e.kind == "measurement")
 
     @property
+    def noises(self) -> tuple[Effect, ...]:
+        return tuple(e for e in self.effects if e.kind == "noise")
+
+    @property
     def delay_effect(self) -> Effect | None:
         return next((e for e in self.effects if e.kind == "delay"), None)
 
