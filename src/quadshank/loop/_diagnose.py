@@ -339,6 +339,14 @@ def verdict_sentence(ranking: Ranking) -> str:
     r = next(r for r in ranking.rows if r["effect"] == ranking.verdict)
     if not r.get("predicts_angle", True):
         j10 = r["J_1000ms"]
+        cls = registered_effects().get(r["effect"])
+        if cls is not None and cls.kind == "noise":
+            return (
+                f"Adding {r['effect']} improves ELPD by {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f}; it describes how "
+                f"the measurements scatter about the model, not its dynamics, so J at 1 s stays near "
+                f"{j10['before']['median']:.2f}° ({j10['after']['median']:.2f}° with it). Keep it in the model: with it, "
+                f"the next candidates are judged against that scatter, not taken for it.{tail}"
+            )
         return (
             f"Adding {r['effect']} improves ELPD by {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f}; it changes what the "
             f"accelerometer reads, not the angle, so J at 1 s stays near {j10['before']['median']:.2f}° "

@@ -1084,6 +1084,7 @@ class TwitchVariability(Effect):
     kind = "noise"
     name = "twitch_variability"
     signature = "onset"
+    predicts_angle = False  # noise: the mean prediction, and so J, is the model's without it
     params = (
         Param("twitch_cv", "1", support="positive", prior=("lognormal", math.log(0.15), 0.75),
               doc="pulse-to-pulse coefficient of variation of the twitch's size"),
