@@ -7,6 +7,7 @@ it is noise, and nothing else is called missing."""
 import warnings
 
 import pytest
+from loop_cases import HIDDEN, check_hidden_first
 
 from quadshank.loop._diagnose import rank_effects, verdict_sentence
 from quadshank.model._model import paper_model
@@ -46,3 +47,15 @@ def test_with_the_noise_term_nothing_else_is_called_missing(varying):
     assert r.verdict == "none", [(x["effect"], round(x["delta_elpd"], 1), round(x["delta_elpd_se"], 1)) for x in r.rows]
     resonance = next(x for x in r.rows if x["effect"] == "accel_resonance")
     assert not resonance["supported"], resonance["delta_elpd"]
+
+
+@pytest.mark.parametrize("hidden", ["torque_angle_peak", "hill_velocity"])
+def test_a_hidden_effect_is_found_among_varying_twitches(hidden):
+    """With ``twitch_variability`` in the baseline, an effect hidden in twitch-varying data is
+    ranked first and clears the bar (ΔELPD > 2 SE, J lowered beyond the bands where it acts)."""
+    cohort, _ = simulate_cohort(legs=[LEG], minutes=1.0, seed=1, trials=(1,), effects=["twitch_variability", hidden])
+    base = paper_model("3s").add("twitch_variability", name="model3s+twitch_variability")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = rank_effects(cohort, base, effects=HIDDEN, **SCREEN)
+    check_hidden_first(r, hidden)
