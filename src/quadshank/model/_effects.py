@@ -56,7 +56,8 @@ a maximum replaces the linear one when it is added to a model), and
 ``signature`` names the residual feature where its absence shows (``angle``,
 ``velocity``, ``ipi``, ``pulse_count``, ``time``, ``onset``, ``u``,
 ``frequency``).  ``predicts_angle = False`` marks an effect that changes only
-what the accelerometer reads, so it cannot change an angle prediction.
+what the accelerometer reads, or only the noise, so it cannot change an
+angle prediction.
 ``acts_at_ms`` names the prediction horizons at which the loop judges the
 effect's change of J_φ,p: where it acts (a delay within the first 100–250 ms
 of a prediction; a change of gain or of the passive system over a second).

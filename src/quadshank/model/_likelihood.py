@@ -43,7 +43,11 @@ Noise
     tails; the paper's answer, a whitening filter estimated jointly with the
     input dynamics (eq. 10), it found "troublesome" when the disturbance
     correlates with the input.  ν is fitted, so clean data give a large ν
-    (close to Gaussian).
+    (close to Gaussian).  A noise effect (``twitch_variability``: a random
+    gain per pulse with coefficient of variation CV) widens each window it
+    reaches: its squared scale grows by CV² × Σ over the window's pulses of
+    (the pulse's output summed over the window)², the exact variance of a
+    twitch window's sum, and of each one sample (:func:`_widened`).
 
 The delay
     d ∈ {0 … MAX_DELAY} per leg is summed out exactly:
