@@ -628,7 +628,7 @@ def _square_sums(model: Model, c, key, RK: int, n: int):
         return jax.ops.segment_sum(c * c, key, num_segments=n)
     k = key.reshape(-1, RK)
     start = jnp.concatenate([jnp.ones((k.shape[0], 1), bool), k[:, 1:] != k[:, :-1]], axis=1).reshape(-1)
-    run = jnp.cumsum(start) - 1
+    run = jnp.round(_cumsum(start.astype(c.dtype)[None, :])[0]).astype(key.dtype) - 1  # see _cumsum: not jnp.cumsum
     m = c.shape[-1]
     run_sum = jax.ops.segment_sum(c, run, num_segments=m)
     run_key = jnp.clip(jax.ops.segment_max(key, run, num_segments=m), 0, n - 1)  # unused runs hold 0
