@@ -246,7 +246,7 @@ def _model_cohort(model, minutes, seed=3):
     level in the simulation, log-normal with mean 1, and the data record the planned level."""
     from quadshank.data._cohort import Cohort, Trial
     from quadshank.model._model import measure
-    from quadshank.data._simulate import plan_leg
+    from quadshank.data._simulate import plan_leg, twitch_variability
 
     n = int(minutes * 6000)
     plans = plan_leg("JM-left", n, seed, ())
@@ -256,10 +256,9 @@ def _model_cohort(model, minutes, seed=3):
         stim = np.zeros(n, np.float32)
         stim[plans[trial]["pulses"]] = plans[trial]["u"]
         delivered = stim.copy()
-        for e in model.noises:
-            s2 = np.log1p(float(e.pulse_variance()))
+        for e in model.noises:  # the simulator's own log-normal draw, at the effect's CV
             p = plans[trial]["pulses"]
-            delivered[p] *= np.exp(np.sqrt(s2) * rng.standard_normal(p.size) - 0.5 * s2).astype(np.float32)
+            delivered[p] *= twitch_variability(rng, p.size, float(np.sqrt(e.pulse_variance()))).astype(np.float32)
         angle, velocity, m = simulate_angles(model, jnp.asarray(delivered))
         seen_angle, seen_acc = (np.asarray(v, np.float64) for v in measure(model, angle, velocity, m))
         acc = seen_acc + NOISE["sigma"] * rng.standard_normal(n)

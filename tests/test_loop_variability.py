@@ -15,6 +15,8 @@ from quadshank.data._simulate import EFFECT_PARAMETERS, simulate_cohort
 
 LEG = "JM-left"
 SCREEN = dict(n_draws=150, n_j_draws=30, n_starts=0)
+#: The loop's baseline with the noise term for varying twitches.
+NOISY_BASE = paper_model("3s").add("twitch_variability", name="model3s+twitch_variability")
 
 
 @pytest.fixture(scope="module")
@@ -40,10 +42,9 @@ def test_varying_twitches_are_found_as_noise(varying):
 def test_with_the_noise_term_nothing_else_is_called_missing(varying):
     """With ``twitch_variability`` in the baseline, no candidate clears the bar on data where
     nothing else is hidden; without the term in the likelihood the resonance did."""
-    base = paper_model("3s").add("twitch_variability", name="model3s+twitch_variability")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        r = rank_effects(varying, base, effects=("accel_resonance", "angle_delay", "potentiation"), **SCREEN)
+        r = rank_effects(varying, NOISY_BASE, effects=("accel_resonance", "angle_delay", "potentiation"), **SCREEN)
     assert r.verdict == "none", [(x["effect"], round(x["delta_elpd"], 1), round(x["delta_elpd_se"], 1)) for x in r.rows]
     resonance = next(x for x in r.rows if x["effect"] == "accel_resonance")
     assert not resonance["supported"], resonance["delta_elpd"]
@@ -54,8 +55,7 @@ def test_a_hidden_effect_is_found_among_varying_twitches(hidden):
     """With ``twitch_variability`` in the baseline, an effect hidden in twitch-varying data is
     ranked first and clears the bar (ΔELPD > 2 SE, J lowered beyond the bands where it acts)."""
     cohort, _ = simulate_cohort(legs=[LEG], minutes=1.0, seed=1, trials=(1,), effects=["twitch_variability", hidden])
-    base = paper_model("3s").add("twitch_variability", name="model3s+twitch_variability")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        r = rank_effects(cohort, base, effects=HIDDEN, **SCREEN)
+        r = rank_effects(cohort, NOISY_BASE, effects=HIDDEN, **SCREEN)
     check_hidden_first(r, hidden)
