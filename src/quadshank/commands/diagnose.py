@@ -11,6 +11,7 @@ from ..common._progress import progress_bar
 from ..data._cohort import Cohort
 from ..evaluation._blackbox import blackbox_j
 from ..evaluation._posterior import LoadedFit, load_fits, psis_loo
+from ..evaluation._structure import residual_structure, structure_sentence
 from ..inference._nuts import FitSettings
 from ..inference._screen import LaplaceFit, paired_difference
 from ..loop._diagnose import (
@@ -34,6 +35,7 @@ from ..outputs._loop import (
     residual_figures,
     screen_residuals,
 )
+from ..outputs._residual_figures import plot_structure
 from .fit import run_fit
 
 
@@ -129,6 +131,11 @@ def blackbox_beside(cohort: Cohort, legs: list, trials, J_base: dict) -> dict:
     return out
 
 
+#: What the verdict ``none`` adds when the residuals carry no structure either.
+NOTHING_LEFT = ("Nor do the residuals change with the knee angle, velocity, time in trial, interpulse interval, pulse "
+                "count or recruitment level beyond chance.")
+
+
 def run_diagnose(
     cohort: Cohort,
     model: Model | str,
@@ -177,10 +184,17 @@ def run_diagnose(
     if result.blackbox.get("sentence"):
         result.sentence += " " + result.blackbox["sentence"]
     dt = ranking.base.model.sampling_period_s
+    residuals = screen_residuals(ranking.base)
+    result.unexplained = residual_structure(residuals, dt, ranking.base.data.response_length)
+    left = structure_sentence(result.unexplained)
+    if ranking.verdict == "none":
+        result.sentence += " " + (left or NOTHING_LEFT)
     if figures:
         paths, result.predictive_checks = predictive_checks(ranking.base, cohort, out, "baseline")
-        more, result.residual_findings = residual_figures(screen_residuals(ranking.base), out, "baseline", dt)
+        more, result.residual_findings = residual_figures(residuals, out, "baseline", dt)
         paths += more
+        if result.unexplained["found"]:
+            paths.append(plot_structure(result.unexplained, out / "unexplained_structure.png", notes=[left]))
         if ranking.verdict != "none":
             more, result.residual_findings_after = residual_figures(
                 screen_residuals(ranking.fits[ranking.verdict]), out, "with_" + ranking.verdict, dt)

@@ -3,29 +3,29 @@
 Numbers only: nothing here plots or writes files (:mod:`quadshank.outputs` does).
 """
 
+from ._blackbox import ARX, arx_errors, better_than, blackbox_j, fit_arx
 from ._checks import elpd_in_time, loo_pit
 from ._classical_recovery import TOLERANCES, recovery
 from ._parameters import leg_parameters, population_spreads
-from ._blackbox import ARX, arx_errors, better_than, blackbox_j, fit_arx
 from ._posterior import (
     AccurateJ,
     LoadedFit,
+    PosteriorEvaluation,
     accurate_j,
     band_mcse,
-    largest_mcse,
-    posterior_j_and_stride_errors,
-    stride_error,
-    PosteriorEvaluation,
     check_fit_data,
     check_fit_legs,
     figure_window,
-    plan_predictions,
+    largest_mcse,
     load_fits,
     loo_report,
+    plan_predictions,
     posterior_j,
+    posterior_j_and_stride_errors,
     posterior_prediction_errors,
     posterior_predictions,
     psis_loo,
+    stride_error,
     summarise_j,
     window_predictions,
 )
@@ -33,10 +33,10 @@ from ._prediction import (
     Evaluation,
     evaluate_cohort,
     figure_trial,
-    horizon_samples,
     free_run_error,
     free_run_errors,
     free_runs,
+    horizon_samples,
     prediction_errors,
     prediction_starts,
     predictions,
@@ -61,6 +61,7 @@ from ._residuals import (
     spectrum,
     twitch_triggered_average,
 )
+from ._structure import residual_structure, structure_sentence
 
 __all__ = [
     "ARX", "fit_arx", "arx_errors", "blackbox_j", "better_than",
@@ -72,5 +73,6 @@ __all__ = [
     "leg_parameters", "population_spreads",
     "features", "binned_trend", "acf", "ccf", "twitch_triggered_average", "spectrum", "findings",
     "point_residuals", "fit_residuals", "leg_residuals", "loo_pit", "elpd_in_time",
+    "residual_structure", "structure_sentence",
     "recovery", "TOLERANCES", "matching_values", "simulate_matching", "coverage_rows", "likelihood_calibration",
 ]  # fmt: skip

@@ -168,6 +168,8 @@ class Diagnosis(Result):
     figures: list | None = None
     #: the ARX yardstick's J on the same legs and trials, beside the baseline's (see commands.diagnose)
     blackbox: dict | None = None
+    #: structure left in the baseline's residuals (:func:`quadshank.evaluation._structure.residual_structure`)
+    unexplained: dict | None = None
     screened: Ranking | None = dataclasses.field(default=None, repr=False, metadata={"json": False})
 
 

@@ -137,6 +137,21 @@ def ranking_markdown(summary: Diagnosis, command: str | None = None) -> str:
     if checks:
         md += ["", "## Predictive checks of the baseline (LOO-PIT, pointwise ELPD in time)", ""]
         md += [f"- {n}" for n in checks["notes"]]
+    left = summary.unexplained
+    if left and left.get("screened"):
+        md += ["", "## What the residuals still carry (trend against each feature, legs combined)", ""]
+        named = {f["feature"]: i for i, f in enumerate(left["found"], 1)}
+        md += markdown_table([
+            {"feature": R.FEATURE_WORDS.get(k, (k,))[0], "share of residual variance": f"{100 * v['share']:.2f} %",
+             "χ² / bins": f"{v['chi2']:.0f} / {v['dof']}", "p": f"{v['p_value']:.1e}",
+             "legs significant": f"{len(v['legs_significant'])} of {v['n_legs']}",
+             "named": f"{named[k]}. ({next(f['side'] for f in left['found'] if f['feature'] == k)})" if k in named else "—"}
+            for k, v in left["screened"].items()
+        ]).splitlines()
+        md += ["", f"A feature is named when its combined p-value is below {left['alpha']:g} divided by the number of "
+               f"features and its bin means carry at least {100 * left['min_share']:g} % of the residual's variance. "
+               "The table measures each feature on the residual as it is; each named trend is taken out before the "
+               "next is looked for, and the verdict's sentence gives a later one's numbers after that." + (" See unexplained_structure.png." if left["found"] else "")]
     findings = summary.residual_findings
     if findings:
         md += ["", "## Where the model fails (residuals of the baseline)", ""]

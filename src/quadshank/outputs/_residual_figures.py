@@ -16,7 +16,10 @@ from matplotlib.figure import Figure
 from ..common._io import save_figure
 from ..evaluation._residuals import FEATURE_LABELS, FEATURE_WORDS, format_p
 
-__all__ = ["plot_trends", "plot_correlations", "plot_twitch_average", "plot_spectrum", "plot_loo_pit", "plot_elpd_in_time"]
+__all__ = [
+    "plot_trends", "plot_correlations", "plot_twitch_average", "plot_spectrum", "plot_loo_pit", "plot_elpd_in_time",
+    "plot_structure",
+]  # fmt: skip
 
 
 def _note_lines(notes, width_in: float) -> list[str]:
@@ -148,3 +151,24 @@ def plot_elpd_in_time(segments: dict, path, notes: list[str] | None = None, n_wo
     return _save(fig, path, notes)
 
 
+def plot_structure(structure: dict, path, notes: list[str] | None = None):
+    """One panel per named feature: the binned mean residual ± 2 se against it, legs pooled,
+    quiet samples and samples during twitches side by side; None when nothing was named."""
+    found = structure["found"]
+    if not found:
+        return None
+    fig, axes = _figure(1, len(found), max(4.6, 8.0 / len(found)), 3.4, notes)
+    for ax, f in zip(axes[0], found):
+        ax.axhline(0.0, color="k", lw=0.8)
+        for side, colour in (("quiet", "0.4"), ("during twitches", "tab:blue")):
+            t = f["pooled"].get(side)
+            if t is None:
+                continue
+            ax.errorbar(t["centre"], t["mean"], yerr=2 * np.asarray(t["se"]), fmt="o-", ms=4, capsize=3,
+                        color=colour, label=side)
+        ax.set_xlabel(FEATURE_LABELS.get(f["feature"], f["feature"]))
+        ax.set_ylabel("mean residual ± 2 se [deg/s²]")
+        ax.set_title(f"{FEATURE_WORDS[f['feature']][0]}: {100 * f['share']:.1f} % of variance, {f['side']}",
+                     fontsize=10)
+        ax.legend(fontsize=8)
+    return _save(fig, path, notes)

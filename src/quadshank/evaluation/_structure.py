@@ -1,0 +1,265 @@
+"""What the residuals still hold: structure that no candidate effect took up, and what kind of effect would.
+
+When the modelling loop's verdict is ``none``, the model may still fail in a way
+no registered candidate describes.  :func:`residual_structure` looks for it in the
+one-step residuals of every leg (:func:`quadshank.evaluation._residuals.point_residuals`):
+
+1. For each feature of :func:`quadshank.evaluation._residuals.features` (knee
+   angle, velocity, time in trial, preceding interpulse interval, pulse count,
+   recruitment level), the binned trend of the residual
+   (:func:`~quadshank.evaluation._residuals.binned_trend`) per leg; the legs'
+   χ² add up, and so do their degrees of freedom.  How strong: the share of the
+   residual's sum of squares that the bin means carry (Σ n_b·mean_b² / Σ r²) and
+   the range of the bin means; how sure: the combined p-value and the legs whose
+   own trend is significant.
+2. The feature with the largest share among the significant ones (p below
+   ``alpha`` divided by the number of features, a Bonferroni bound) is named; its
+   bin means are taken out of the residual and the search repeats (at most
+   ``max_steps`` features), so that a trend that only mirrors a named one (the
+   angle of a swing seen through its velocity) is not named twice.
+3. For a named feature, the trend is measured again on the *quiet* samples (no
+   pulse within the model's twitch response before them) and on the samples
+   *during twitches*.  Structure as strong between twitches as during them is
+   passive (the knee's own torque, or the sensors), structure during twitches only
+   is active (the twitch's gain or its pulses); the feature then says which kind
+   of effect would describe it (:data:`KIND_HINTS`).
+
+The twitch-locked part (the residual's cross-correlation with the stimulation,
+:func:`~quadshank.evaluation._residuals.ccf`) is judged per leg as the residual
+findings judge it, and named when it stands out in most legs.
+
+Everything here is NumPy; :func:`quadshank.outputs._residual_figures.plot_structure` draws the
+named trends, quiet and during twitches side by side.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+from . import _residuals as R
+
+__all__ = ["residual_structure", "structure_sentence", "KIND_HINTS"]
+
+#: Feature -> (where the structure shows) -> the kind of effect that would describe it, in words.
+#: "passive": as strong between twitches as during them; "active": during twitches only.
+KIND_HINTS = {
+    "angle": {
+        "passive": "a passive torque that depends on the knee angle (stiffness, a rest angle, the end of the range): "
+                   "an effect of kind 'passive'",
+        "active": "a twitch whose size depends on the knee angle: an effect of kind 'gain' (a torque–angle factor)",
+    },
+    "velocity": {
+        "passive": "a passive torque that depends on the angular velocity (friction, non-linear damping): "
+                   "an effect of kind 'passive'",
+        "active": "a twitch whose size depends on the angular velocity: an effect of kind 'gain' "
+                  "(a torque–velocity factor) or 'output'",
+    },
+    "time": {
+        "passive": "a slow drift not tied to the twitches (a sensor's drift, a passive property that changes over "
+                   "the trial): an effect of kind 'measurement' or 'passive'",
+        "active": "twitches that change over the trial: an effect of kind 'pulse' with a state (as fatigue and "
+                  "potentiation are)",
+    },
+    "pulse_count": {
+        "passive": "a slow drift not tied to the twitches (a sensor's drift, a passive property that changes over "
+                   "the trial): an effect of kind 'measurement' or 'passive'",
+        "active": "twitches that change with the pulses delivered: an effect of kind 'pulse' with a state "
+                  "(as fatigue and potentiation are)",
+    },
+    "ipi": {
+        "passive": "a state that follows the stimulation's rhythm beyond the twitch: an effect of kind 'pulse'",
+        "active": "twitches that depend on the interval since the previous pulse: an effect of kind 'pulse'",
+    },
+    "u": {
+        "passive": "a state that follows the stimulation's level beyond the twitch: an effect of kind 'pulse'",
+        "active": "twitches that do not scale with the recruitment level as modelled: an effect of kind 'pulse' "
+                  "(a recruitment curve)",
+    },
+}
+TWITCH_LOCKED_HINT = "the twitch's shape or timing: an effect of kind 'activation' or 'delay'"
+
+#: Fewer masked-in samples than this on one side (quiet, during twitches) and the side is not judged.
+MIN_SIDE_SAMPLES = 200
+#: Structure between twitches at least this fraction of its size during them is called passive.
+PASSIVE_RATIO = 0.5
+
+
+def _during_twitch(stimulation, trial_start, response_samples: int) -> np.ndarray:
+    """True where a pulse of the same trial came at most ``response_samples`` samples before."""
+    u = np.nan_to_num(np.asarray(stimulation, float))
+    k = np.arange(u.size)
+    last = np.maximum.accumulate(np.where(u > 0, k, -1))
+    return (last >= np.asarray(trial_start, int)) & (k - last <= response_samples)
+
+
+def _trend(residual, feature, mask) -> dict | None:
+    """:func:`binned_trend` on ``mask`` with its sum of squared bin means; None without data."""
+    if int(np.sum(mask & np.isfinite(feature) & np.isfinite(residual))) < 20:
+        return None
+    try:
+        t = R.binned_trend(residual, feature, mask)
+    except ValueError:
+        return None
+    t["ss_means"] = float(np.sum(t["count"] * t["mean"] ** 2))
+    t["ss"] = float(np.nansum(np.where(mask, residual, np.nan) ** 2))
+    t["amplitude"] = float(np.sqrt(t["ss_means"] / max(int(np.sum(t["count"])), 1)))  # RMS of the bin means
+    return t
+
+
+def _subtract_bins(residual, feature, mask, t) -> np.ndarray:
+    """The residual less the bin means of ``t`` (bins split halfway between the bin centres)."""
+    f = np.asarray(feature, float)
+    centre = np.asarray(t["centre"])
+    idx = np.clip(np.searchsorted((centre[1:] + centre[:-1]) / 2, f, side="right"), 0, len(centre) - 1)
+    use = mask & np.isfinite(f)
+    return np.where(use, residual - np.asarray(t["mean"])[idx], residual)
+
+
+def _side(legs: dict, key: str, side_mask: dict) -> dict:
+    """The trend of ``key`` pooled over legs on one side (quiet / during twitches)."""
+    trends = [_trend(L["residual"], L["features"][key], L["mask"] & side_mask[leg]) for leg, L in legs.items()]
+    trends = [t for t in trends if t is not None]
+    n = int(sum(np.sum(t["count"]) for t in trends))
+    if not trends or n < MIN_SIDE_SAMPLES:
+        return {"judged": False, "n": n}
+    chi2 = float(sum(t["chi2"] for t in trends))
+    dof = int(sum(len(t["mean"]) for t in trends))
+    return {
+        "judged": True, "n": n, "chi2": chi2, "dof": dof, "p_value": float(stats.chi2.sf(chi2, dof)),
+        "amplitude": float(np.sqrt(sum(t["ss_means"] for t in trends) / n)),
+    }  # fmt: skip
+
+
+def residual_structure(residuals: dict[str, dict], dt: float, response_samples: int, *, alpha: float = 0.01,
+                       min_share: float = 0.01, max_steps: int = 3) -> dict:
+    """Structure left in the residuals of every leg (module docs); JSON-able.
+
+    ``residuals``: leg -> :func:`~quadshank.evaluation._residuals.point_residuals`;
+    ``response_samples``: the model's twitch response [samples], which separates the
+    samples during twitches from the quiet ones.  A feature is named when its combined
+    p-value is below ``alpha / n_features`` and its bin means carry at least
+    ``min_share`` of the residual's sum of squares.  Returns ``found`` (the named
+    features in order, each with its strength, certainty, side and hint), ``screened``
+    (every feature's first-pass numbers) and ``twitch_locked`` (legs whose residual
+    correlates with the stimulation beyond chance).
+    """
+    legs = {}
+    for leg, r in residuals.items():
+        mask = R._valid(r["residual"], r["sample_mask"])
+        feats = R.features(r["angle"], r["velocity"], r["stimulation"], r["sample_mask"], r["trial_start"], dt)
+        legs[leg] = {"residual": np.where(mask, np.asarray(r["residual"], float), np.nan), "mask": mask,
+                     "features": feats, "twitch": _during_twitch(r["stimulation"], r["trial_start"], response_samples)}
+    keys = list(R.FEATURE_LABELS)
+    bound = alpha / len(keys)
+    found, screened = [], {}
+    remaining = list(keys)
+    for step in range(max_steps):
+        rows = {}
+        for key in remaining:
+            trends = {leg: _trend(L["residual"], L["features"][key], L["mask"]) for leg, L in legs.items()}
+            trends = {leg: t for leg, t in trends.items() if t is not None}
+            if not trends:
+                continue
+            chi2 = float(sum(t["chi2"] for t in trends.values()))
+            dof = int(sum(len(t["mean"]) for t in trends.values()))
+            ss = sum(t["ss"] for t in trends.values())
+            rows[key] = {
+                "chi2": chi2, "dof": dof, "p_value": float(stats.chi2.sf(chi2, dof)),
+                "share": float(sum(t["ss_means"] for t in trends.values()) / ss) if ss > 0 else 0.0,
+                "legs_significant": sorted(leg for leg, t in trends.items() if t["p_value"] < alpha),
+                "n_legs": len(trends),
+                "range": [float(min(t["mean"].min() for t in trends.values())),
+                          float(max(t["mean"].max() for t in trends.values()))],
+                "trends": trends,
+            }  # fmt: skip
+        if step == 0:
+            screened = {k: {n: v for n, v in row.items() if n != "trends"} for k, row in rows.items()}
+        named = [k for k, row in rows.items() if row["p_value"] < bound and row["share"] >= min_share]
+        if not named:
+            break
+        key = max(named, key=lambda k: rows[k]["share"])
+        row = rows.pop(key)
+        quiet = _side(legs, key, {leg: ~L["twitch"] for leg, L in legs.items()})
+        during = _side(legs, key, {leg: L["twitch"] for leg, L in legs.items()})
+        side = _which_side(quiet, during, bound)
+        hint = KIND_HINTS[key].get(side) if side in ("passive", "active") else None
+        found.append({
+            "feature": key, **{n: v for n, v in row.items() if n != "trends"},
+            "quiet": quiet, "during_twitches": during, "side": side, "hint": hint,
+            "pooled": _pooled(legs, key),
+        })  # fmt: skip
+        for leg, t in row["trends"].items():  # take the named trend out before looking further
+            L = legs[leg]
+            L["residual"] = _subtract_bins(L["residual"], L["features"][key], L["mask"], t)
+        remaining.remove(key)
+    locked = []
+    for leg, r in residuals.items():
+        cc = R.ccf(r["residual"], r["stimulation"], r["sample_mask"])
+        if R._significant_lags(cc, alpha)[0]:
+            locked.append(leg)
+    return {
+        "found": found, "screened": screened, "alpha": alpha, "min_share": min_share,
+        "twitch_locked": {"legs": locked, "n_legs": len(residuals),
+                          "flagged": len(locked) > len(residuals) / 2, "hint": TWITCH_LOCKED_HINT},
+        "response_samples": int(response_samples),
+    }  # fmt: skip
+
+
+def _which_side(quiet: dict, during: dict, bound: float) -> str:
+    """'passive', 'active', or 'unknown' (a side with too few samples) of a named feature."""
+    if not quiet["judged"] and during["judged"]:
+        return "unknown"  # no quiet samples (stimulation throughout)
+    if quiet["judged"] and not during["judged"]:
+        return "passive"  # no twitches at all: it can only be passive
+    if not quiet["judged"]:
+        return "unknown"
+    if quiet["p_value"] < bound and quiet["amplitude"] >= PASSIVE_RATIO * during["amplitude"]:
+        return "passive"
+    if during["p_value"] < bound:
+        return "active"
+    return "unknown"
+
+
+def _pooled(legs: dict, key: str) -> dict:
+    """Bin means ± se of the current residual against ``key``, legs pooled, quiet and during twitches
+    (for :func:`plot_structure`)."""
+    out = {}
+    for side, pick in (("quiet", lambda L: ~L["twitch"]), ("during twitches", lambda L: L["twitch"])):
+        r = np.concatenate([L["residual"] for L in legs.values()])
+        f = np.concatenate([L["features"][key] for L in legs.values()])
+        m = np.concatenate([L["mask"] & pick(L) for L in legs.values()])
+        t = _trend(r, f, m)
+        if t is not None and int(np.sum(t["count"])) >= MIN_SIDE_SAMPLES:
+            out[side] = {"centre": t["centre"].tolist(), "mean": t["mean"].tolist(), "se": t["se"].tolist()}
+    return out
+
+
+def _fmt_p(p: float) -> str:
+    return f"p = {p:.1e}" if p < 0.001 else f"p = {p:.3f}"
+
+
+def structure_sentence(structure: dict) -> str:
+    """What :func:`residual_structure` found, in words; empty when nothing stands out."""
+    parts = []
+    for f in structure["found"]:
+        words, unit = R.FEATURE_WORDS.get(f["feature"], (f["feature"], ""))
+        lo, hi = f["range"]
+        where = {"passive": "as much between twitches as during them",
+                 "active": "during twitches, not between them",
+                 "unknown": "(quiet and twitch samples could not be told apart)"}[f["side"]]
+        text = (f"with the {words} ({100 * f['share']:.1f} % of the residual's variance; bin means from "
+                f"{R._fmt_num(lo)} to {R._fmt_num(hi)} deg/s²; χ² = {f['chi2']:.0f} on {f['dof']} bins, {_fmt_p(f['p_value'])}, "
+                f"significant in {len(f['legs_significant'])} of {f['n_legs']} legs), {where}")
+        if f["hint"]:
+            text += f": {f['hint']}"
+        parts.append(text)
+    locked = structure["twitch_locked"]
+    if locked["flagged"]:
+        parts.append(f"with the stimulation at fixed lags in {len(locked['legs'])} of {locked['n_legs']} legs: "
+                     f"{locked['hint']}")
+    if not parts:
+        return ""
+    return ("The residuals still carry structure that no candidate describes: they change "
+            + "; and ".join(parts) + ". Such an effect can be written and added (docs/models.md, "
+            "'Writing an effect'), then screened as a candidate.")
