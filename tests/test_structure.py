@@ -112,6 +112,17 @@ def test_without_quiet_samples_the_side_is_not_guessed():
     assert "could not be told apart" in structure_sentence(residual_structure(legs, DT, RESPONSE))
 
 
+def test_a_pendulum_test_without_pulses_is_read_as_passive():
+    legs = _legs()
+    for r in legs.values():
+        r["stimulation"][:] = 0.0
+        r["residual"] = r["residual"] - 25.0 * np.tanh(r["velocity"] / 5.0)
+    s = residual_structure(legs, DT, RESPONSE)
+    (f,) = s["found"]
+    assert f["feature"] == "velocity" and f["side"] == "passive" and not f["during_twitches"]["judged"]
+    assert s["twitch_locked"]["legs"] == [] and "no twitches to compare with" in structure_sentence(s)
+
+
 # ============================================================================ a mechanism no candidate describes
 
 

@@ -195,6 +195,8 @@ def residual_structure(residuals: dict[str, dict], dt: float, response_samples: 
         remaining.remove(key)
     locked = []
     for leg, r in residuals.items():
+        if not np.any(np.nan_to_num(np.asarray(r["stimulation"], float)) > 0):
+            continue  # a pendulum test: nothing to correlate with
         cc = R.ccf(r["residual"], r["stimulation"], r["sample_mask"])
         if R._significant_lags(cc, alpha)[0]:
             locked.append(leg)
@@ -236,6 +238,8 @@ def _pooled(legs: dict, key: str) -> dict:
 
 
 def _fmt_p(p: float) -> str:
+    if p < 1e-300:  # below what a double's χ² tail resolves
+        return "p < 1e-300"
     return f"p = {p:.1e}" if p < 0.001 else f"p = {p:.3f}"
 
 
@@ -248,6 +252,8 @@ def structure_sentence(structure: dict) -> str:
         where = {"passive": "as much between twitches as during them",
                  "active": "during twitches, not between them",
                  "unknown": "(quiet and twitch samples could not be told apart)"}[f["side"]]
+        if not f["during_twitches"]["judged"] and f["quiet"]["judged"]:
+            where = "without stimulation (there are no twitches to compare with)"
         text = (f"with the {words} ({100 * f['share']:.1f} % of the residual's variance; bin means from "
                 f"{R._fmt_num(lo)} to {R._fmt_num(hi)} deg/s²; χ² = {f['chi2']:.0f} on {f['dof']} bins, {_fmt_p(f['p_value'])}, "
                 f"significant in {len(f['legs_significant'])} of {f['n_legs']} legs), {where}")
