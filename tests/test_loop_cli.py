@@ -150,6 +150,9 @@ def test_compare_before_and_after(discovered, tmp_path):
     before = s["residual_findings"]["model3s"][LEG]
     assert any("interpulse" in line for line in before), before  # the signature of the missing effect
     assert set(s["residual_findings"]["model3s+potentiation"]) == {LEG}
+    left = s["unexplained"]  # the trend over the interpulse interval falls once potentiation is in
+    assert set(left["model3s"]["screened"]) == set(left["model3s+potentiation"]["screened"]) >= {"ipi", "angle"}
+    assert left["model3s+potentiation"]["screened"]["ipi"]["chi2"] < left["model3s"]["screened"]["ipi"]["chi2"]
     report = (cmp / "report.md").read_text()
     for label in ("model3s", "model3s_potentiation"):
         for kind in ("residual_trends", "residual_correlation", "twitch_average"):

@@ -11,7 +11,7 @@ from ..common._progress import progress_bar
 from ..data._cohort import Cohort
 from ..evaluation._blackbox import blackbox_j
 from ..evaluation._posterior import LoadedFit, load_fits, psis_loo
-from ..evaluation._structure import residual_structure, structure_sentence
+from ..evaluation._structure import NOTHING_FOUND, residual_structure, structure_sentence
 from ..inference._nuts import FitSettings
 from ..inference._screen import LaplaceFit, paired_difference
 from ..loop._diagnose import (
@@ -131,11 +131,6 @@ def blackbox_beside(cohort: Cohort, legs: list, trials, J_base: dict) -> dict:
     return out
 
 
-#: What the verdict ``none`` adds when the residuals carry no structure either.
-NOTHING_LEFT = ("Nor do the residuals change with the knee angle, velocity, time in trial, interpulse interval, pulse "
-                "count or recruitment level beyond chance.")
-
-
 def run_diagnose(
     cohort: Cohort,
     model: Model | str,
@@ -188,7 +183,7 @@ def run_diagnose(
     result.unexplained = residual_structure(residuals, dt, ranking.base.data.response_length)
     left = structure_sentence(result.unexplained)
     if ranking.verdict == "none":
-        result.sentence += " " + (left or NOTHING_LEFT)
+        result.sentence += " " + (left or NOTHING_FOUND)
     if figures:
         paths, result.predictive_checks = predictive_checks(ranking.base, cohort, out, "baseline")
         more, result.residual_findings = residual_figures(residuals, out, "baseline", dt)

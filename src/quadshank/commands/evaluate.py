@@ -11,17 +11,18 @@ from pathlib import Path
 from ..common._io import atomic_write_text, save_figure
 from ..data._cohort import Cohort, Trial
 from ..data._paper import HORIZONS_MS, TABLE_V
+from ..evaluation._blackbox import better_than, blackbox_j
 from ..evaluation._posterior import (
     FIGURE_WINDOW_S,
     PARETO_K_BAD,
     LoadedFit,
     PosteriorEvaluation,
-    check_fit_legs,
-    figure_window,
-    load_fits,
     accurate_j,
     band_mcse,
+    check_fit_legs,
+    figure_window,
     largest_mcse,
+    load_fits,
     loo_report,
     posterior_j_and_stride_errors,
     posterior_medians,
@@ -38,8 +39,8 @@ from ..evaluation._prediction import (
     sign_tests,
     table_v,
 )
-from ..evaluation._blackbox import better_than, blackbox_j
 from ..evaluation._residuals import fit_residuals
+from ..evaluation._structure import NOTHING_FOUND, residual_structure, structure_sentence
 from ..inference._fitio import posterior_models
 from ..inference._summaries import INTERVAL
 from ..model._likelihood import prepare
@@ -52,6 +53,7 @@ from ..outputs._figures import (
     plot_predictions,
 )
 from ..outputs._loop import residual_figures
+from ..outputs._residual_figures import plot_structure
 from ..outputs._tables import markdown_table, sign_test_rows, table_v_rows, write_table
 from .identify import _pick
 
@@ -136,22 +138,30 @@ def _prediction_figures(fits, cohort, J_legs, out: Path, *, n_draws: int, seed: 
     return paths
 
 
-def _residual_section(fits: list[LoadedFit], cohort: Cohort, out: Path, md: list) -> dict:
-    """Residual figures of every fit on its identification trials; appends a report section."""
+def _residual_section(fits: list[LoadedFit], cohort: Cohort, out: Path, md: list) -> tuple[dict, dict]:
+    """Residual figures of every fit on its identification trials, and the structure its residuals
+    still carry (:func:`quadshank.evaluation._structure.residual_structure`); appends a report
+    section.  Returns (findings in words, structure) per fit."""
 
     md += ["## Residuals of each fit (posterior medians, modal delay)", ""]
-    findings = {}
+    findings, structure = {}, {}
     for f in fits:
         data = prepare(cohort, f.model, tuple(f.desc["trials"]), f.desc["legs"])
         res = {leg: fit_residuals(f.idata, f.model, data, leg) for leg in f.desc["legs"]}
-        paths, notes = residual_figures(res, out / "figures", f.label.replace("+", "_"), f.model.sampling_period_s)
+        stem = f.label.replace("+", "_")
+        paths, notes = residual_figures(res, out / "figures", stem, f.model.sampling_period_s)
         findings[f.label] = notes
+        left = structure[f.label] = residual_structure(res, f.model.sampling_period_s, data.response_length)
+        words = structure_sentence(left)
+        if left["found"]:
+            paths.append(plot_structure(left, out / "figures" / f"unexplained_structure_{stem}.png", notes=[words]))
         md.append(f"### {f.label}")
         md.append("")
         for leg, lines in notes.items():
             md.append(f"- {leg}: " + (" ".join(lines) if lines else "nothing stands out."))
+        md.append("- " + (words or NOTHING_FOUND))
         md += ["", *[f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in paths], ""]
-    return findings
+    return findings, structure
 
 
 def _blackbox_section(cohort: Cohort, train: dict, physical: dict, start_stride: int = 1) -> tuple[dict, list[str]]:
@@ -266,7 +276,7 @@ def run_posterior_evaluate(
             fig = plot_delay_angle(f.summary.legs, f.label, f.summary.delay_angle_population)
             figures.append(save_figure(fig, out / "figures" / f"delay_angle_{f.label.replace('+', '_')}.png"))
     md += ["## Figures", "", *[f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in figures], ""]
-    findings = _residual_section(fits, cohort, out, md) if residuals else None
+    findings, structure = _residual_section(fits, cohort, out, md) if residuals else (None, None)
     fitted = cohort.select(legs=list(dict.fromkeys(leg for f in fits for leg in f.desc["legs"])))
     medians = {label: {tr: {h: v["median"] for h, v in hv.items()} for tr, hv in trials.items()}
                for label, trials in J.items()}
@@ -300,6 +310,7 @@ def run_posterior_evaluate(
         evaluation_seconds=elapsed,
     )
     result.residual_findings = findings
+    result.unexplained = structure
     result.band_mcse = mcse
     result.blackbox = blackbox
     atomic_write_text(out / "report.md", "\n".join(md))

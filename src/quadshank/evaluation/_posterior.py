@@ -125,6 +125,8 @@ class PosteriorEvaluation(Result):
     seed: int
     evaluation_seconds: float
     residual_findings: dict | None = None
+    #: per fit, the structure its residuals still carry (quadshank.evaluation._structure.residual_structure)
+    unexplained: dict | None = None
     #: Monte Carlo standard errors [deg] of the band ends (band_mcse): "cohort", "legs", their
     #: largest ("largest_cohort", "largest_legs"), and with a band accuracy asked for, "target",
     #: "met" and "rounds" (accurate_j)

@@ -39,7 +39,7 @@ from scipy import stats
 
 from . import _residuals as R
 
-__all__ = ["residual_structure", "structure_sentence", "KIND_HINTS"]
+__all__ = ["residual_structure", "structure_sentence", "KIND_HINTS", "NOTHING_FOUND"]
 
 #: Feature -> (where the structure shows) -> the kind of effect that would describe it, in words.
 #: "passive": as strong between twitches as during them; "active": during twitches only.
@@ -77,6 +77,9 @@ KIND_HINTS = {
                   "(a recruitment curve)",
     },
 }
+#: What is said when no feature is named and the residual is not locked to the stimulation.
+NOTHING_FOUND = ("The residuals change with none of knee angle, velocity, time in trial, interpulse interval, pulse "
+                 "count and recruitment level beyond chance.")
 TWITCH_LOCKED_HINT = "the twitch's shape or timing: an effect of kind 'activation' or 'delay'"
 
 #: Fewer masked-in samples than this on one side (quiet, during twitches) and the side is not judged.
