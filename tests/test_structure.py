@@ -58,7 +58,7 @@ def _during(r):
 
 def test_white_residuals_carry_no_structure():
     s = residual_structure(_legs(), DT, RESPONSE)
-    assert s["found"] == [] and not s["twitch_locked"]["flagged"]
+    assert s["found"] == [] and not s["twitch_locked"]["flagged"] and not s["offset"]["found"]
     assert structure_sentence(s) == ""
     assert set(s["screened"]) == {"angle", "velocity", "time", "ipi", "pulse_count", "u"}
     assert all(v["share"] < 0.01 for v in s["screened"].values())
@@ -99,6 +99,32 @@ def test_twitches_that_shrink_with_the_pulses_delivered_ask_for_a_pulse_effect()
     assert "kind 'pulse'" in found[0]["hint"]
     # time and pulse count say the same here: once one is taken out the other is not named
     assert len({f["feature"] for f in found} & {"pulse_count", "time"}) == 1
+
+
+def test_an_offset_is_not_a_trend_and_one_recruitment_level_has_none():
+    """Every pulse at u = 1 and the residual offset by +15 after the first pulse: u has one bin, and
+    every feature's bins carry the same offset, which is named as an offset, not as a trend."""
+    legs = _legs()
+    for r in legs.values():
+        r["stimulation"] = np.where(r["stimulation"] > 0, 1.0, 0.0)
+        first = np.flatnonzero(r["stimulation"])[0]
+        r["residual"][first:] += 15.0
+    s = residual_structure(legs, DT, RESPONSE)
+    assert "u" not in s["screened"] and s["found"] == []  # an offset is no trend, against u or anything else
+    assert residual_structure(legs, DT, RESPONSE, features=["u"])["found"] == []  # even where u is all there is
+    off = s["offset"]
+    assert off["found"] and off["side"] == "passive" and "'passive' or 'measurement'" in off["hint"]
+    assert np.allclose(off["means"], 15.0, atol=3.0)
+    assert "off zero by a constant (mean +15 deg/s²" in structure_sentence(s)
+
+
+def test_twitches_too_large_on_average_are_an_offset_during_twitches():
+    legs = _legs()
+    for r in legs.values():
+        r["residual"] = r["residual"] + np.where(_during(r), 20.0, 0.0)
+    s = residual_structure(legs, DT, RESPONSE)
+    assert s["offset"]["found"] and s["offset"]["side"] == "active" and "kind 'gain'" in s["offset"]["hint"]
+    assert s["offset"]["quiet"]["p_value"] > 1e-3 and s["offset"]["during_twitches"]["p_value"] < 1e-10
 
 
 def test_without_quiet_samples_the_side_is_not_guessed():

@@ -152,7 +152,7 @@ def _residual_section(fits: list[LoadedFit], cohort: Cohort, out: Path, md: list
         paths, notes = residual_figures(res, out / "figures", stem, f.model.sampling_period_s)
         findings[f.label] = notes
         left = structure[f.label] = residual_structure(res, f.model.sampling_period_s, data.response_length)
-        words = structure_sentence(left)
+        words = structure_sentence(left, lead="The residuals still carry structure")
         if left["found"]:
             paths.append(plot_structure(left, out / "figures" / f"unexplained_structure_{stem}.png", notes=[words]))
         md.append(f"### {f.label}")

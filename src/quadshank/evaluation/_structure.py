@@ -11,7 +11,8 @@ one-step residuals of every leg (:func:`quadshank.evaluation._residuals.point_re
    χ² add up, and so do their degrees of freedom.  How strong: the share of the
    residual's sum of squares that the bin means carry (Σ n_b·mean_b² / Σ r²) and
    the range of the bin means; how sure: the combined p-value and the legs whose
-   own trend is significant.
+   own trend is significant.  A feature needs at least :data:`MIN_BINS` distinct bins
+   in every leg to be named (a single recruitment level has no trend).
 2. The feature with the largest share among the significant ones (p below
    ``alpha`` divided by the number of features, a Bonferroni bound) is named; its
    bin means are taken out of the residual and the search repeats (at most
@@ -23,6 +24,11 @@ one-step residuals of every leg (:func:`quadshank.evaluation._residuals.point_re
    passive (the knee's own torque, or the sensors), structure during twitches only
    is active (the twitch's gain or its pulses); the feature then says which kind
    of effect would describe it (:data:`KIND_HINTS`).
+
+A trend is measured about the residual's own offset: a constant is not a change with a
+feature.  The offset itself (the residual's mean per leg against its standard error) is
+judged apart, with the same bound, quiet and during twitches: a constant torque the model
+lacks, or twitches too large or too small on average.
 
 The twitch-locked part (the residual's cross-correlation with the stimulation,
 :func:`~quadshank.evaluation._residuals.ccf`) is judged per leg as the residual
@@ -77,6 +83,13 @@ KIND_HINTS = {
                   "(a recruitment curve)",
     },
 }
+#: Where a constant offset of the residual shows -> what it asks for.
+OFFSET_HINTS = {
+    "passive": "a constant torque the model lacks (a rest angle off the gravity vertical, an offset of the "
+               "goniometer): an effect of kind 'passive' or 'measurement'",
+    "active": "twitches too large or too small on average: the twitch's gain or its shape (kind 'gain' or "
+              "'activation')",
+}
 #: What is said when no feature is named and the residual is not locked to the stimulation.
 NOTHING_FOUND = ("The residuals change with none of knee angle, velocity, time in trial, interpulse interval, pulse "
                  "count and recruitment level beyond chance.")
@@ -84,6 +97,9 @@ TWITCH_LOCKED_HINT = "the twitch's shape or timing: an effect of kind 'activatio
 
 #: Fewer masked-in samples than this on one side (quiet, during twitches) and the side is not judged.
 MIN_SIDE_SAMPLES = 200
+#: A feature with fewer distinct bins than this in some leg (one recruitment level throughout) has
+#: no trend to name: its single bin's mean is the residual's offset, not a change with the feature.
+MIN_BINS = 3
 #: Structure between twitches at least this fraction of its size during them is called passive.
 PASSIVE_RATIO = 0.5
 
@@ -104,19 +120,26 @@ def _trend(residual, feature, mask) -> dict | None:
         t = R.binned_trend(residual, feature, mask)
     except ValueError:
         return None
-    t["ss_means"] = float(np.sum(t["count"] * t["mean"] ** 2))
+    # the trend about the residual's own offset there: a constant is not a change with the feature
+    w = 1.0 / t["se"] ** 2
+    t["offset"] = float(np.sum(w * t["mean"]) / np.sum(w))
+    dev = t["mean"] - t["offset"]
+    t["chi2"] = float(np.sum((dev / t["se"]) ** 2))
+    t["dof"] = len(dev) - 1
+    t["p_value"] = float(stats.chi2.sf(t["chi2"], t["dof"])) if t["dof"] > 0 else 1.0
+    t["ss_means"] = float(np.sum(t["count"] * dev**2))
     t["ss"] = float(np.nansum(np.where(mask, residual, np.nan) ** 2))
     t["amplitude"] = float(np.sqrt(t["ss_means"] / max(int(np.sum(t["count"])), 1)))  # RMS of the bin means
     return t
 
 
 def _subtract_bins(residual, feature, mask, t) -> np.ndarray:
-    """The residual less the bin means of ``t`` (bins split halfway between the bin centres)."""
+    """The residual less the trend of ``t`` about its offset (bins split halfway between the bin centres)."""
     f = np.asarray(feature, float)
     centre = np.asarray(t["centre"])
     idx = np.clip(np.searchsorted((centre[1:] + centre[:-1]) / 2, f, side="right"), 0, len(centre) - 1)
     use = mask & np.isfinite(f)
-    return np.where(use, residual - np.asarray(t["mean"])[idx], residual)
+    return np.where(use, residual - (np.asarray(t["mean"]) - t["offset"])[idx], residual)
 
 
 def _side(legs: dict, key: str, side_mask: dict) -> dict:
@@ -127,7 +150,9 @@ def _side(legs: dict, key: str, side_mask: dict) -> dict:
     if not trends or n < MIN_SIDE_SAMPLES:
         return {"judged": False, "n": n}
     chi2 = float(sum(t["chi2"] for t in trends))
-    dof = int(sum(len(t["mean"]) for t in trends))
+    dof = int(sum(t["dof"] for t in trends))
+    if dof == 0:
+        return {"judged": False, "n": n}
     return {
         "judged": True, "n": n, "chi2": chi2, "dof": dof, "p_value": float(stats.chi2.sf(chi2, dof)),
         "amplitude": float(np.sqrt(sum(t["ss_means"] for t in trends) / n)),
@@ -135,13 +160,14 @@ def _side(legs: dict, key: str, side_mask: dict) -> dict:
 
 
 def residual_structure(residuals: dict[str, dict], dt: float, response_samples: int, *, alpha: float = 0.01,
-                       min_share: float = 0.01, max_steps: int = 3) -> dict:
+                       min_share: float = 0.01, max_steps: int = 3, features=None) -> dict:
     """Structure left in the residuals of every leg (module docs); JSON-able.
 
     ``residuals``: leg -> :func:`~quadshank.evaluation._residuals.point_residuals`;
     ``response_samples``: the model's twitch response [samples], which separates the
     samples during twitches from the quiet ones.  A feature is named when its combined
-    p-value is below ``alpha / n_features`` and its bin means carry at least
+    p-value is below ``alpha / n_features`` (``features``: the names of
+    :data:`~quadshank.evaluation._residuals.FEATURE_LABELS` to look at, default all) and its bin means carry at least
     ``min_share`` of the residual's sum of squares.  Returns ``found`` (the named
     features in order, each with its strength, certainty, side and hint), ``screened``
     (every feature's first-pass numbers) and ``twitch_locked`` (legs whose residual
@@ -153,8 +179,9 @@ def residual_structure(residuals: dict[str, dict], dt: float, response_samples: 
         feats = R.features(r["angle"], r["velocity"], r["stimulation"], r["sample_mask"], r["trial_start"], dt)
         legs[leg] = {"residual": np.where(mask, np.asarray(r["residual"], float), np.nan), "mask": mask,
                      "features": feats, "twitch": _during_twitch(r["stimulation"], r["trial_start"], response_samples)}
-    keys = list(R.FEATURE_LABELS)
+    keys = list(R.FEATURE_LABELS) if features is None else [k for k in R.FEATURE_LABELS if k in set(features)]
     bound = alpha / len(keys)
+    offset = _offset(legs, bound, min_share)  # on the residual as it is, before any trend is taken out
     found, screened = [], {}
     remaining = list(keys)
     for step in range(max_steps):
@@ -165,20 +192,24 @@ def residual_structure(residuals: dict[str, dict], dt: float, response_samples: 
             if not trends:
                 continue
             chi2 = float(sum(t["chi2"] for t in trends.values()))
-            dof = int(sum(len(t["mean"]) for t in trends.values()))
+            dof = int(sum(t["dof"] for t in trends.values()))
+            if dof == 0:
+                continue
             ss = sum(t["ss"] for t in trends.values())
             rows[key] = {
                 "chi2": chi2, "dof": dof, "p_value": float(stats.chi2.sf(chi2, dof)),
                 "share": float(sum(t["ss_means"] for t in trends.values()) / ss) if ss > 0 else 0.0,
                 "legs_significant": sorted(leg for leg, t in trends.items() if t["p_value"] < alpha),
                 "n_legs": len(trends),
+                "min_bins": int(min(len(t["mean"]) for t in trends.values())),
                 "range": [float(min(t["mean"].min() for t in trends.values())),
                           float(max(t["mean"].max() for t in trends.values()))],
                 "trends": trends,
             }  # fmt: skip
         if step == 0:
             screened = {k: {n: v for n, v in row.items() if n != "trends"} for k, row in rows.items()}
-        named = [k for k, row in rows.items() if row["p_value"] < bound and row["share"] >= min_share]
+        named = [k for k, row in rows.items()
+                 if row["p_value"] < bound and row["share"] >= min_share and row["min_bins"] >= MIN_BINS]
         if not named:
             break
         key = max(named, key=lambda k: rows[k]["share"])
@@ -204,11 +235,48 @@ def residual_structure(residuals: dict[str, dict], dt: float, response_samples: 
         if R._significant_lags(cc, alpha)[0]:
             locked.append(leg)
     return {
-        "found": found, "screened": screened, "alpha": alpha, "min_share": min_share,
+        "found": found, "screened": screened, "offset": offset, "alpha": alpha, "min_share": min_share,
         "twitch_locked": {"legs": locked, "n_legs": len(residuals),
                           "flagged": len(locked) > len(residuals) / 2, "hint": TWITCH_LOCKED_HINT},
         "response_samples": int(response_samples),
     }  # fmt: skip
+
+
+def _offsets(legs: dict, pick) -> dict:
+    """The residual's mean per leg on the samples ``pick(L)``, combined: χ² = Σ (mean/se)² on as many
+    degrees of freedom as legs (se allowing for the autocorrelation, as in :func:`binned_trend`)."""
+    means, chi2, dof, n, ss = [], 0.0, 0, 0, 0.0
+    for L in legs.values():
+        m = L["mask"] & pick(L)
+        if int(m.sum()) < MIN_SIDE_SAMPLES:
+            continue
+        t = R.binned_trend(L["residual"], np.zeros(L["residual"].size), m)  # one bin: the mean and its se
+        means.append(float(t["mean"][0]))
+        chi2 += float((t["mean"][0] / t["se"][0]) ** 2)
+        dof += 1
+        n += int(t["count"][0])
+        ss += float(t["count"][0] * t["mean"][0] ** 2)
+    if not dof:
+        return {"judged": False, "n": n}
+    return {"judged": True, "n": n, "chi2": chi2, "dof": dof, "p_value": float(stats.chi2.sf(chi2, dof)),
+            "amplitude": float(np.sqrt(ss / n)), "means": means}
+
+
+def _offset(legs: dict, bound: float, min_share: float) -> dict:
+    """Whether the residual's mean is off zero (a constant the model lacks), and where: between
+    twitches as during them (passive, or the sensors) or during twitches only (the twitch's size)."""
+    all_ = _offsets(legs, lambda L: np.ones_like(L["mask"]))
+    if not all_["judged"]:
+        return {"found": False}
+    ss = sum(float(np.nansum(np.where(L["mask"], L["residual"], np.nan) ** 2)) for L in legs.values())
+    share = all_["amplitude"] ** 2 * all_["n"] / ss if ss > 0 else 0.0
+    quiet = _offsets(legs, lambda L: ~L["twitch"])
+    during = _offsets(legs, lambda L: L["twitch"])
+    side = _which_side(quiet, during, bound)
+    hint = OFFSET_HINTS.get(side)
+    return {"found": bool(all_["p_value"] < bound and share >= min_share), "share": float(share),
+            "chi2": all_["chi2"], "dof": all_["dof"], "p_value": all_["p_value"], "means": all_["means"],
+            "quiet": quiet, "during_twitches": during, "side": side, "hint": hint}
 
 
 def _which_side(quiet: dict, during: dict, bound: float) -> str:
@@ -246,29 +314,32 @@ def _fmt_p(p: float) -> str:
     return f"p = {p:.1e}" if p < 0.001 else f"p = {p:.3f}"
 
 
-def structure_sentence(structure: dict) -> str:
-    """What :func:`residual_structure` found, in words; empty when nothing stands out."""
+def structure_sentence(structure: dict, lead: str = "The residuals still carry structure that no candidate describes") -> str:
+    """What :func:`residual_structure` found, in words, after ``lead``; empty when nothing stands out."""
+    sides = {"passive": "as much between twitches as during them", "active": "during twitches, not between them",
+             "unknown": "(quiet and twitch samples could not be told apart)"}
     parts = []
     for f in structure["found"]:
-        words, unit = R.FEATURE_WORDS.get(f["feature"], (f["feature"], ""))
+        words = R.FEATURE_WORDS.get(f["feature"], (f["feature"], ""))[0]
         lo, hi = f["range"]
-        where = {"passive": "as much between twitches as during them",
-                 "active": "during twitches, not between them",
-                 "unknown": "(quiet and twitch samples could not be told apart)"}[f["side"]]
+        where = sides[f["side"]]
         if not f["during_twitches"]["judged"] and f["quiet"]["judged"]:
             where = "without stimulation (there are no twitches to compare with)"
-        text = (f"with the {words} ({100 * f['share']:.1f} % of the residual's variance; bin means from "
-                f"{R._fmt_num(lo)} to {R._fmt_num(hi)} deg/s²; χ² = {f['chi2']:.0f} on {f['dof']} bins, {_fmt_p(f['p_value'])}, "
+        text = (f"they change with the {words} ({100 * f['share']:.1f} % of the residual's variance; bin means from "
+                f"{R._fmt_num(lo)} to {R._fmt_num(hi)} deg/s²; χ²({f['dof']}) = {f['chi2']:.0f}, {_fmt_p(f['p_value'])}, "
                 f"significant in {len(f['legs_significant'])} of {f['n_legs']} legs), {where}")
-        if f["hint"]:
-            text += f": {f['hint']}"
-        parts.append(text)
+        parts.append(text + (f": {f['hint']}" if f["hint"] else ""))
+    off = structure.get("offset", {})
+    if off.get("found"):
+        text = (f"they are off zero by a constant (mean {R._fmt_num(float(np.mean(off['means'])))} deg/s², "
+                f"{100 * off['share']:.1f} % of the residual's variance; χ²({off['dof']}) = {off['chi2']:.0f}, "
+                f"{_fmt_p(off['p_value'])}), {sides[off['side']]}")
+        parts.append(text + (f": {off['hint']}" if off["hint"] else ""))
     locked = structure["twitch_locked"]
     if locked["flagged"]:
-        parts.append(f"with the stimulation at fixed lags in {len(locked['legs'])} of {locked['n_legs']} legs: "
-                     f"{locked['hint']}")
+        parts.append(f"they correlate with the stimulation at fixed lags in {len(locked['legs'])} of "
+                     f"{locked['n_legs']} legs: {locked['hint']}")
     if not parts:
         return ""
-    return ("The residuals still carry structure that no candidate describes: they change "
-            + "; and ".join(parts) + ". Such an effect can be written and added (docs/models.md, "
+    return (f"{lead}: " + "; ".join(parts) + ". Such an effect can be written and added (docs/models.md, "
             "'Writing an effect'), then screened as a candidate.")
