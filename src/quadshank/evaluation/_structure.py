@@ -341,5 +341,5 @@ def structure_sentence(structure: dict, lead: str = "The residuals still carry s
                      f"{locked['n_legs']} legs: {locked['hint']}")
     if not parts:
         return ""
-    return (f"{lead}: " + "; ".join(parts) + ". Such an effect can be written and added (docs/models.md, "
+    return (f"{lead}: " + "; ".join(parts) + ". An effect for each can be written and added (docs/models.md, "
             "'Writing an effect'), then screened as a candidate.")

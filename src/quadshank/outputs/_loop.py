@@ -143,11 +143,14 @@ def ranking_markdown(summary: Diagnosis, command: str | None = None) -> str:
         named = {f["feature"]: i for i, f in enumerate(left["found"], 1)}
         md += markdown_table([
             {"feature": R.FEATURE_WORDS.get(k, (k,))[0], "share of residual variance": f"{100 * v['share']:.2f} %",
-             "χ² / bins": f"{v['chi2']:.0f} / {v['dof']}", "p": f"{v['p_value']:.1e}",
+             "χ² / d.o.f.": f"{v['chi2']:.0f} / {v['dof']}", "p": f"{v['p_value']:.1e}",
              "legs significant": f"{len(v['legs_significant'])} of {v['n_legs']}",
              "named": f"{named[k]}. ({next(f['side'] for f in left['found'] if f['feature'] == k)})" if k in named else "—"}
             for k, v in left["screened"].items()
-        ]).splitlines()
+        ] + ([{"feature": "constant offset", "share of residual variance": f"{100 * off['share']:.2f} %",
+               "χ² / d.o.f.": f"{off['chi2']:.0f} / {off['dof']}", "p": f"{off['p_value']:.1e}",
+               "legs significant": "—", "named": f"yes ({off['side']})" if off["found"] else "—"}]
+             if (off := left.get("offset", {})).get("chi2") is not None else [])).splitlines()
         md += ["", f"A feature is named when its combined p-value is below {left['alpha']:g} divided by the number of "
                f"features and its bin means carry at least {100 * left['min_share']:g} % of the residual's variance. "
                "The table measures each feature on the residual as it is; each named trend is taken out before the "
