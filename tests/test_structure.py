@@ -12,6 +12,7 @@ import dataclasses
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from quadshank import Effect, Param, register_effect
 from quadshank.evaluation._structure import residual_structure, structure_sentence
@@ -198,3 +199,36 @@ def test_hidden_dry_friction_is_named_by_the_residuals_and_the_users_effect_clea
     assert row["delta_elpd"] > 10 * row["delta_elpd_se"]
     assert row["J_lowered_at_ms"] == [100, 250, 500, 1000]
     assert abs(float(np.asarray(ranking.fits["dry_friction"].values("JM-left")["friction"])) - 30.0) < 5.0
+
+
+def test_time_in_trial_runs_on_through_an_excluded_stretch():
+    """A stretch left out in the middle of trial 1 masks its samples, but the trial goes on: the
+    residuals' trial start stays the trial's first sample (time in trial and pulse count do not
+    start again after it), and trial 3 starts where it does."""
+    from quadshank.data._cohort import Cohort, Trial
+    from quadshank.data._simulate import simulate_cohort
+    from quadshank.evaluation._residuals import features, point_residuals
+    from quadshank.model._likelihood import prepare
+    from quadshank.model._model import paper_model
+
+    cohort, _ = simulate_cohort(legs=["JM-left"], minutes=0.2, seed=1, trials=(1, 3))
+    t1, t3 = cohort.trials_of("JM-left")
+    exclude = np.zeros(t1.n_samples, bool)
+    exclude[300:400] = True
+    t1 = Trial.from_signals("JM", "left", 1, t1.sampling_period_s, t1.angle_deg, t1.acceleration_deg_s2,
+                            t1.stimulation, velocity_deg_s=t1.velocity_deg_s, exclude=exclude)
+    model = paper_model("3s")
+    data = prepare(Cohort((t1, t3)), model, trials=(1, 3), legs=["JM-left"])
+    values = {p.name: np.asarray(getattr(e, p.name)) for e in model.effects for p in e.declared_params()}
+    r = point_residuals(model, data, 0, values, 4, 0)
+    mask = r["sample_mask"]
+    assert not mask[300:400].any() and mask[420:1000].any()  # the stretch is out, the trial goes on
+    n1 = t1.n_samples
+    np.testing.assert_array_equal(r["trial_start"][:n1], 0)
+    start3 = np.flatnonzero(mask[n1:])[0] + n1
+    assert r["trial_start"][start3] >= n1
+    assert np.all(r["trial_start"][start3 : start3 + t3.n_samples - 50] == r["trial_start"][start3])
+    f = features(r["angle"], r["velocity"], r["stimulation"], mask, r["trial_start"], 0.01)
+    k = np.flatnonzero(mask[:n1])
+    k = k[k > 400][0]
+    assert f["time"][k] == pytest.approx(k * 0.01)

@@ -458,8 +458,7 @@ def point_residuals(model: Model, data, i: int, values: dict, d: int, shift: int
     M = np.asarray(leg_active_output(model, x, d, data.response_length, K, shift))
     e = np.asarray(equivalent_acceleration(model, x["angle"], x["velocity"], x["acceleration"], mask=x["sample_mask"]))
     mask = np.asarray(data.sample_mask[i])
-    starts = np.flatnonzero(mask & ~np.concatenate([[False], mask[:-1]]))  # first sample of each trial
-    trial_start = starts[np.clip(np.searchsorted(starts, np.arange(mask.size), side="right") - 1, 0, None)]
+    trial_start = np.asarray(data.trial_start[i], int)  # not the mask's: it starts again after an excluded stretch
     return {
         "residual": np.where(mask, e - M, np.nan),
         "angle": np.asarray(data.angle[i], float),

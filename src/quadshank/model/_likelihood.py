@@ -195,6 +195,9 @@ class LikelihoodData:
     step_slot_order: np.ndarray | None = None  # (L, P) pulses by slot, then by angle
     step_slot_first: np.ndarray | None = None  # (L, P) position (in that order) of the slot's first pulse
     step_rank_pos: np.ndarray | None = None  # (L, P) position in that order of the j-th pulse by angle
+    #: (L, N) first sample of each sample's trial (padding: 0); not read by the likelihood, whose mask
+    #: starts again after every excluded stretch: the residual features' time in trial and pulse count
+    trial_start: np.ndarray | None = None
 
     @property
     def n_legs(self) -> int:
@@ -481,6 +484,7 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         touch_mask=touch_mask,
         **step,
         **slots,
+        trial_start=pad("trial_start", 0, np.int64),
     )
 
 
