@@ -7,15 +7,16 @@ one-step residuals of every leg (:func:`quadshank.evaluation._residuals.point_re
 1. For each feature of :func:`quadshank.evaluation._residuals.features` (knee
    angle, velocity, time in trial, preceding interpulse interval, pulse count,
    recruitment level), the binned trend of the residual
-   (:func:`~quadshank.evaluation._residuals.binned_trend`) per leg; the legs'
-   χ² add up, and so do their degrees of freedom.  How strong: the share of the
-   residual's sum of squares that the bin means carry (Σ n_b·mean_b² / Σ r²) and
-   the range of the bin means; how sure: the combined p-value and the legs whose
-   own trend is significant.  A feature needs at least :data:`MIN_BINS` distinct bins
+   (:func:`~quadshank.evaluation._residuals.binned_trend`) per leg, about the
+   residual's own mean there (m̄, the bins' precision-weighted mean; χ² on one degree
+   of freedom fewer than bins); the legs' χ² add up, and so do their degrees of
+   freedom.  How strong: the share of the residual's sum of squares that the trend
+   carries (Σ n_b·(mean_b − m̄)² / Σ r²) and the range of the bin means; how sure:
+   the combined p-value and the legs whose own trend is significant.  A feature needs at least :data:`MIN_BINS` distinct bins
    in every leg to be named (a single recruitment level has no trend).
 2. The feature with the largest share among the significant ones (p below
    ``alpha`` divided by the number of features, a Bonferroni bound) is named; its
-   bin means are taken out of the residual and the search repeats (at most
+   trend is taken out of the residual and the search repeats (at most
    ``max_steps`` features), so that a trend that only mirrors a named one (the
    angle of a swing seen through its velocity) is not named twice.
 3. For a named feature, the trend is measured again on the *quiet* samples (no
@@ -25,8 +26,7 @@ one-step residuals of every leg (:func:`quadshank.evaluation._residuals.point_re
    is active (the twitch's gain or its pulses); the feature then says which kind
    of effect would describe it (:data:`KIND_HINTS`).
 
-A trend is measured about the residual's own offset: a constant is not a change with a
-feature.  The offset itself (the residual's mean per leg against its standard error) is
+A constant is not a change with a feature.  The residual's offset (the residual's mean per leg against its standard error) is
 judged apart, with the same bound, quiet and during twitches: a constant torque the model
 lacks, or twitches too large or too small on average.
 
@@ -113,7 +113,8 @@ def _during_twitch(stimulation, trial_start, response_samples: int) -> np.ndarra
 
 
 def _trend(residual, feature, mask) -> dict | None:
-    """:func:`binned_trend` on ``mask`` with its sum of squared bin means; None without data."""
+    """:func:`binned_trend` on ``mask``, its χ² and sum of squares taken about the bins' weighted
+    mean (the offset, kept as ``offset``); None without data."""
     if int(np.sum(mask & np.isfinite(feature) & np.isfinite(residual))) < 20:
         return None
     try:
@@ -167,11 +168,12 @@ def residual_structure(residuals: dict[str, dict], dt: float, response_samples: 
     ``response_samples``: the model's twitch response [samples], which separates the
     samples during twitches from the quiet ones.  A feature is named when its combined
     p-value is below ``alpha / n_features`` (``features``: the names of
-    :data:`~quadshank.evaluation._residuals.FEATURE_LABELS` to look at, default all) and its bin means carry at least
-    ``min_share`` of the residual's sum of squares.  Returns ``found`` (the named
-    features in order, each with its strength, certainty, side and hint), ``screened``
-    (every feature's first-pass numbers) and ``twitch_locked`` (legs whose residual
-    correlates with the stimulation beyond chance).
+    :data:`~quadshank.evaluation._residuals.FEATURE_LABELS` to look at, default all) and its
+    trend carries at least ``min_share`` of the residual's sum of squares.  Returns ``found``
+    (the named features in order, each with its strength, certainty, side and hint),
+    ``screened`` (every feature's first-pass numbers), ``offset`` (the residual's constant
+    offset, judged the same way) and ``twitch_locked`` (legs whose residual correlates with
+    the stimulation beyond chance).
     """
     legs = {}
     for leg, r in residuals.items():
