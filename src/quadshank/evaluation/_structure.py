@@ -12,8 +12,9 @@ one-step residuals of every leg (:func:`quadshank.evaluation._residuals.point_re
    of freedom fewer than bins); the legs' χ² add up, and so do their degrees of
    freedom.  How strong: the share of the residual's sum of squares that the trend
    carries (Σ n_b·(mean_b − m̄)² / Σ r²) and the range of the bin means; how sure:
-   the combined p-value and the legs whose own trend is significant.  A feature needs at least :data:`MIN_BINS` distinct bins
-   in every leg to be named (a single recruitment level has no trend).
+   the combined p-value and the legs whose own trend is significant.  A feature
+   needs at least :data:`MIN_BINS` distinct bins in every leg to be named (a single
+   recruitment level has no trend).
 2. The feature with the largest share among the significant ones (p below
    ``alpha`` divided by the number of features, a Bonferroni bound) is named; its
    trend is taken out of the residual and the search repeats (at most
@@ -26,9 +27,10 @@ one-step residuals of every leg (:func:`quadshank.evaluation._residuals.point_re
    is active (the twitch's gain or its pulses); the feature then says which kind
    of effect would describe it (:data:`KIND_HINTS`).
 
-A constant is not a change with a feature.  The residual's offset (the residual's mean per leg against its standard error) is
-judged apart, with the same bound, quiet and during twitches: a constant torque the model
-lacks, or twitches too large or too small on average.
+A constant is not a change with a feature.  The residual's offset (its mean per leg
+against its standard error) is judged apart, with the same bound, quiet and during
+twitches: a constant torque the model lacks, or twitches too large or too small on
+average.
 
 The twitch-locked part (the residual's cross-correlation with the stimulation,
 :func:`~quadshank.evaluation._residuals.ccf`) is judged per leg as the residual
@@ -316,7 +318,11 @@ def _fmt_p(p: float) -> str:
     return f"p = {p:.1e}" if p < 0.001 else f"p = {p:.3f}"
 
 
-def structure_sentence(structure: dict, lead: str = "The residuals still carry structure that no candidate describes") -> str:
+#: How the diagnosis's sentence opens what :func:`structure_sentence` found.
+NO_CANDIDATE_LEAD = "The residuals still carry structure that no candidate describes"
+
+
+def structure_sentence(structure: dict, lead: str = NO_CANDIDATE_LEAD) -> str:
     """What :func:`residual_structure` found, in words, after ``lead``; empty when nothing stands out."""
     sides = {"passive": "as much between twitches as during them", "active": "during twitches, not between them",
              "unknown": "(quiet and twitch samples could not be told apart)"}
@@ -327,9 +333,9 @@ def structure_sentence(structure: dict, lead: str = "The residuals still carry s
         where = sides[f["side"]]
         if not f["during_twitches"]["judged"] and f["quiet"]["judged"]:
             where = "without stimulation (there are no twitches to compare with)"
-        text = (f"they change with the {words} ({100 * f['share']:.1f} % of the residual's variance; bin means from "
-                f"{R._fmt_num(lo)} to {R._fmt_num(hi)} deg/s²; χ²({f['dof']}) = {f['chi2']:.0f}, {_fmt_p(f['p_value'])}, "
-                f"significant in {len(f['legs_significant'])} of {f['n_legs']} legs), {where}")
+        text = (f"they change with the {words} ({100 * f['share']:.1f} % of the residual's variance; bin means "
+                f"from {R._fmt_num(lo)} to {R._fmt_num(hi)} deg/s²; χ²({f['dof']}) = {f['chi2']:.0f}, "
+                f"{_fmt_p(f['p_value'])}, significant in {len(f['legs_significant'])} of {f['n_legs']} legs), {where}")
         parts.append(text + (f": {f['hint']}" if f["hint"] else ""))
     off = structure.get("offset", {})
     if off.get("found"):
