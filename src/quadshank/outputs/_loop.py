@@ -152,7 +152,7 @@ def ranking_markdown(summary: Diagnosis, command: str | None = None) -> str:
                "legs significant": "—", "named": f"yes ({off['side']})" if off["found"] else "—"}]
              if (off := left.get("offset", {})).get("chi2") is not None else [])).splitlines()
         md += ["", f"A feature is named when its combined p-value is below {left['alpha']:g} divided by the number of "
-               f"features and its bin means carry at least {100 * left['min_share']:g} % of the residual's variance. "
+               f"features and its trend carries at least {100 * left['min_share']:g} % of the residual's variance. "
                "The table measures each feature on the residual as it is; each named trend is taken out before the "
                "next is looked for, and the verdict's sentence gives a later one's numbers after that." + (" See unexplained_structure.png." if left["found"] else "")]
     findings = summary.residual_findings
