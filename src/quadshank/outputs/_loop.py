@@ -93,6 +93,21 @@ def _j_cells(row: dict) -> dict[str, str]:
     return cells
 
 
+def _structure_rows(left: dict) -> list[dict]:
+    """The table of what the residuals still carry: each feature's first-pass trend, then the offset."""
+    side = {f["feature"]: f"{i}. ({f['side']})" for i, f in enumerate(left["found"], 1)}
+    rows = [{"feature": R.FEATURE_WORDS.get(k, (k,))[0], "share of residual variance": f"{100 * v['share']:.2f} %",
+             "χ² / d.o.f.": f"{v['chi2']:.0f} / {v['dof']}", "p": f"{v['p_value']:.1e}",
+             "legs significant": f"{len(v['legs_significant'])} of {v['n_legs']}", "named": side.get(k, "—")}
+            for k, v in left["screened"].items()]
+    off = left.get("offset", {})
+    if "chi2" in off:
+        rows.append({"feature": "constant offset", "share of residual variance": f"{100 * off['share']:.2f} %",
+                     "χ² / d.o.f.": f"{off['chi2']:.0f} / {off['dof']}", "p": f"{off['p_value']:.1e}",
+                     "legs significant": "—", "named": f"yes ({off['side']})" if off["found"] else "—"})
+    return rows
+
+
 def ranking_markdown(summary: Diagnosis, command: str | None = None) -> str:
     """A diagnosis (its ranking, verdict, NUTS confirmation, checks and findings) as Markdown."""
     rows = summary.ranking
@@ -140,21 +155,12 @@ def ranking_markdown(summary: Diagnosis, command: str | None = None) -> str:
     left = summary.unexplained
     if left and left.get("screened"):
         md += ["", "## What the residuals still carry (trend against each feature, legs combined)", ""]
-        named = {f["feature"]: i for i, f in enumerate(left["found"], 1)}
-        md += markdown_table([
-            {"feature": R.FEATURE_WORDS.get(k, (k,))[0], "share of residual variance": f"{100 * v['share']:.2f} %",
-             "χ² / d.o.f.": f"{v['chi2']:.0f} / {v['dof']}", "p": f"{v['p_value']:.1e}",
-             "legs significant": f"{len(v['legs_significant'])} of {v['n_legs']}",
-             "named": f"{named[k]}. ({next(f['side'] for f in left['found'] if f['feature'] == k)})" if k in named else "—"}
-            for k, v in left["screened"].items()
-        ] + ([{"feature": "constant offset", "share of residual variance": f"{100 * off['share']:.2f} %",
-               "χ² / d.o.f.": f"{off['chi2']:.0f} / {off['dof']}", "p": f"{off['p_value']:.1e}",
-               "legs significant": "—", "named": f"yes ({off['side']})" if off["found"] else "—"}]
-             if (off := left.get("offset", {})).get("chi2") is not None else [])).splitlines()
+        md += markdown_table(_structure_rows(left)).splitlines()
         md += ["", f"A feature is named when its combined p-value is below {left['alpha']:g} divided by the number of "
                f"features and its trend carries at least {100 * left['min_share']:g} % of the residual's variance. "
                "The table measures each feature on the residual as it is; each named trend is taken out before the "
-               "next is looked for, and the verdict's sentence gives a later one's numbers after that." + (" See unexplained_structure.png." if left["found"] else "")]
+               "next is looked for, and the verdict's sentence gives a later one's numbers after that."
+               + (" See unexplained_structure.png." if left["found"] else "")]
     findings = summary.residual_findings
     if findings:
         md += ["", "## Where the model fails (residuals of the baseline)", ""]
