@@ -141,6 +141,9 @@ def test_fit_model_passive_recovers_the_pendulum_with_the_release_excluded(tmp_p
     # 2 × 400 draws do not always explore to the checks' ESS; the curve and D' are what must be right
     assert rc in (0, 3) and s["diagnostics"]["rhat_max"] < 1.05 and s["diagnostics"]["divergences"] <= 5
     assert "uninformed" not in s and s["model"] == "passive"
+    assert s["likelihood"] == "angle" and s["legs"]["PT-left"]["params"]["sigma"]["units"] == "deg"
+    # the angle's noise: the goniometer's 0.05° (the free runs follow the swing)
+    assert all(0.03 < s["legs"][leg]["params"]["sigma"]["median"] < 0.08 for leg in s["legs"])
     # its report shows no delay: there is no muscle for one
     assert main(["-q", "report", str(tmp_path / "fit"), "--out", str(tmp_path / "report"), "--draws", "5",
                  "--start-stride", "50"]) == 0
@@ -152,7 +155,10 @@ def test_fit_model_passive_recovers_the_pendulum_with_the_release_excluded(tmp_p
         assert set(params) == {"damping", "gravity", "k1", "k2", "sigma", "nu"}
         found = {k: params[k]["median"] for k in ("damping", "gravity", "k1", "k2")}
         _assert_passive_recovered(found, passive, trials[0].angle_deg)
-        assert params["nu"]["median"] > 5  # the release, left in, makes the noise heavy-tailed (nu near 2)
+        assert params["nu"]["median"] > 5  # the release, left in, would make the noise heavy-tailed
+    # the angle is for the pendulum alone: refused for a muscle, before anything is written
+    rc = main(["-q", "fit", str(data), "--model", "model3", "--likelihood", "angle", "--out", str(tmp_path / "no")])
+    assert rc != 0 and "--model passive" in capsys.readouterr().err and not (tmp_path / "no").exists()
 
 
 def _realistic(passive: dict, seed: int, gravity_angle: float = 0.0) -> Trial:
@@ -219,3 +225,77 @@ def test_free_runs_restart_after_an_excluded_stretch():
     assert [(a, x.size) for a, x in runs] == [(0, 300), (320, t.n_samples - 320)]
     assert free_run_error(passive_model(PASSIVE, DT), t.replace(exclude=exclude, angle_deg=spasm)) < 0.05
     assert free_run_error(passive_model({**PASSIVE, "damping": 2.0}, DT), t) > 1.0
+
+
+def _numpy_free_runs(p: dict, angle, velocity, starts, dt):
+    """Free runs of eq. (8) without a muscle, NumPy RK4, each started at the measured state of one
+    of ``starts`` and run until the next start (or the end)."""
+    def f(a, v):
+        return v, -p["damping"] * v - p["gravity"] * np.sin(np.deg2rad(a)) + p["k1"] * np.expm1(-p["k2"] * a)
+
+    out = np.full(angle.size, np.nan)
+    for s, e in zip(starts, list(starts[1:]) + [angle.size]):
+        a, v = float(angle[s]), float(velocity[s])
+        for k in range(s, e):
+            out[k] = a
+            k1a, k1v = f(a, v)
+            k2a, k2v = f(a + dt / 2 * k1a, v + dt / 2 * k1v)
+            k3a, k3v = f(a + dt / 2 * k2a, v + dt / 2 * k2v)
+            k4a, k4v = f(a + dt * k3a, v + dt * k3v)
+            a, v = a + dt / 6 * (k1a + 2 * k2a + 2 * k3a + k4a), v + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v)
+    return out
+
+
+def test_the_angle_likelihood_is_student_t_about_free_runs_restarted_after_excluded_samples():
+    """The fit's angle objective against a NumPy reference: each stretch between excluded samples
+    runs freely from its first sample's measured state, and every later sample's measured angle is
+    Student-t about it; its segments sum to the whole, and its gradient (forward sensitivities)
+    is reverse mode's."""
+    import jax
+    import jax.numpy as jnp
+    from scipy import stats
+
+    from quadshank.inference._priors import build_model
+    from quadshank.model import LikelihoodError, leg_loglik_by_delay, leg_pointwise, prepare
+    from quadshank.model._likelihood import _free_run_plain, free_run_angles
+
+    t = _realistic(PASSIVE, 0)
+    gap = (t.time_s >= 3.0) & (t.time_s < 3.2)
+    t = t.replace(exclude=t.exclude | gap)
+    model = build_model("passive").with_params({k: np.float32(v) for k, v in PASSIVE.items()})
+    data = prepare(Cohort((t,)), model)
+    assert data.objective == "angle"
+    x = {k: v[0] for k, v in data.leg_arrays().items()}
+    noise = {"sigma": 0.3, "nu": 6.0}
+    ll = np.asarray(leg_loglik_by_delay(model, noise, x, data.response_length, 0))
+    assert ll.shape[0] == 11 and np.ptp(ll) == 0.0  # no muscle: every delay alike
+
+    kept = ~t.exclude
+    starts = [int(k) for k in np.flatnonzero(kept & ~np.concatenate([[False], kept[:-1]]))]
+    assert len(starts) == 2  # after the release and after the gap
+    runs = _numpy_free_runs(PASSIVE, t.angle_deg, t.velocity_deg_s, starts, DT)
+    compared = kept.copy()
+    compared[starts] = False  # a run's first sample is its measured start, not compared
+    expected = stats.t.logpdf(t.angle_deg - runs, df=noise["nu"], scale=noise["sigma"])[compared].sum()
+    assert ll[0, 0] == pytest.approx(expected, rel=2e-4)
+    pointwise = np.asarray(leg_pointwise(model, noise, x, 4, data.response_length, data.n_segments))
+    assert pointwise.sum() == pytest.approx(ll[0, 0], rel=1e-5)
+
+    # the gradient, with a goniometer offset (a parameter the measured start depends on)
+    m2 = build_model("passive", ["goniometer_offset"])
+    x2 = {k: v[0] for k, v in prepare(Cohort((t,)), m2).leg_arrays().items()}
+    values = {k: jnp.float32(v) for k, v in {**PASSIVE, "angle_offset": 1.5}.items()}
+
+    def loss(v, run):
+        pred = run(m2.with_params(v), x2["angle"], x2["velocity"], x2["reset"])
+        return jnp.sum(jnp.where(x2["sample_mask"], (pred - x2["angle"]) ** 2, 0.0))
+
+    fast = jax.grad(loss)(values, lambda m, a, v, r: free_run_angles(m, {"angle": a, "velocity": v, "reset": r}))
+    slow = jax.grad(loss)(values, _free_run_plain)
+    for k in values:
+        assert float(fast[k]) == pytest.approx(float(slow[k]), rel=1e-3), k
+
+    # the angle is for the pendulum alone
+    with pytest.raises(LikelihoodError, match="--model passive"):
+        prepare(Cohort((t,)), build_model("model3"), objective="angle")
+    assert prepare(Cohort((t,)), model, objective="acceleration").objective == "acceleration"

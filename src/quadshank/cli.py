@@ -297,6 +297,7 @@ def cmd_fit(args) -> int:
         delay_evidence=args.delay_evidence,
         max_tree_depth=args.max_tree_depth,
         chain_method=args.chain_method,
+        likelihood=args.likelihood,
     )
     legs = _csv_list(args.legs) if args.legs else None
     summary = run_fit(
@@ -604,6 +605,10 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--model", choices=list(FIT_MODELS), default="model3",
                    help="the model; passive: the pendulum alone, for pendulum tests (default model3)")
     f.add_argument("--add-effect", action="append", metavar="NAME", help="extend the model by a registered effect")
+    f.add_argument("--likelihood", choices=("auto", "acceleration", "angle"), default="auto",
+                   help="what the likelihood compares: the equivalent acceleration (equation error, every model) or "
+                        "the angle of free swings from the measured state (output error, for --model passive); auto "
+                        "(default): the angle for --model passive, the acceleration otherwise")
     f.add_argument("--trials", default="1", help="identification trials, comma-separated (default 1, as the paper)")
     f.add_argument("--legs", default="", help="legs, comma-separated (default: all in the data)")
     f.add_argument("--chains", type=int, default=4)

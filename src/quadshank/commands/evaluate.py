@@ -146,7 +146,7 @@ def _residual_section(fits: list[LoadedFit], cohort: Cohort, out: Path, md: list
     md += ["## Residuals of each fit (posterior medians, modal delay)", ""]
     findings, structure = {}, {}
     for f in fits:
-        data = prepare(cohort, f.model, tuple(f.desc["trials"]), f.desc["legs"])
+        data = prepare(cohort, f.model, tuple(f.desc["trials"]), f.desc["legs"], objective="acceleration")
         res = {leg: fit_residuals(f.idata, f.model, data, leg) for leg in f.desc["legs"]}
         stem = f.label.replace("+", "_")
         paths, notes = residual_figures(res, out / "figures", stem, f.model.sampling_period_s)

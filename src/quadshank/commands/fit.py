@@ -18,6 +18,7 @@ from ..inference._fitio import (
 from ..inference._identify import check_delay_range
 from ..inference._nuts import FitSettings, run_nuts
 from ..inference._priors import build_model, delay_prior_from
+from ..model._likelihood import resolve_objective
 
 #: A leg with fewer pulses than this in its fitted trials has active parameters its own data hardly
 #: inform (the classical identification asks for 8 isolated twitches; one twitch pins nothing down).
@@ -66,6 +67,7 @@ def run_fit(
     out = Path(out)
     check_delay_range(cohort.sampling_period_s)
     m = build_model(model, add_effects, sampling_period_s=cohort.sampling_period_s)
+    resolve_objective(m, settings.likelihood)  # refuse the angle for a muscle before anything is written
     log_prior = None
     if delay_from is not None:
         chosen = tuple(legs) if legs is not None else cohort.legs  # the legs fit() will use

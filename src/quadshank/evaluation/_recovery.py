@@ -385,7 +385,7 @@ class LegMaximumLikelihood:
         _, ref = _flat_truth(true["params"])
         shapes = tuple((k, tuple(np.shape(v))) for k, v in true["params"].items())
         unit = np.where(ref != 0.0, 0.05 * np.abs(ref), 0.05)
-        data = prepare(cohort, self.model, trials=trials, legs=[leg])
+        data = prepare(cohort, self.model, trials=trials, legs=[leg], objective="acceleration")
         with jax.enable_x64(True):
             x = {k: jnp.asarray(v[0], jnp.float64 if v.dtype.kind == "f" else v.dtype) for k, v in data.leg_arrays().items()}
             args = (jnp.asarray(ref), jnp.asarray(unit), jnp.asarray(int(true["delay"])), x, shapes)

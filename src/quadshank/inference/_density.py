@@ -36,7 +36,8 @@ the grid (:func:`spread_draws`).
 Population means and subject values are drawn afterwards from their Gaussian
 conditional given each draw and its spreads (:func:`hyper_draws`).  A dense mass matrix absorbs the remaining linear correlations
 (k1 with k2, gain with the gain factors).  Noise (Student-t, see
-:mod:`quadshank.model._likelihood`) is per leg: σ ~ LogNormal(log 40 deg/s², 1),
+:mod:`quadshank.model._likelihood`) is per leg: σ ~ LogNormal(log 40 deg/s², 1)
+(on the angle, for the pendulum alone: LogNormal(log 0.5°, 1)),
 ν ~ Gamma(2, 0.1).  The delay d of each leg has a uniform prior on 0 … 10
 samples (or another fit's posterior, :func:`delay_prior_from`) and is summed
 out exactly, jointly with a delay effect's shift; P(d | data) is the posterior mean of the
@@ -74,7 +75,7 @@ from ..model._likelihood import (
 from ..model._model import Model
 from ._priors import (
     NU_PRIOR,
-    SIGMA_PRIOR,
+    SIGMA_PRIORS,
     _hierarchical,
     _with_discrete_axes,
     log_shift_prior,
@@ -102,7 +103,7 @@ def numpyro_model(
     if step is not None:  # summed out in the likelihood; the value is never read
         values[step.name] = jnp.zeros((n_legs, *step.shape), jnp.float32)
     with numpyro.plate("legs", n_legs):
-        sigma = numpyro.sample("sigma", dist.LogNormal(*SIGMA_PRIOR))
+        sigma = numpyro.sample("sigma", dist.LogNormal(*SIGMA_PRIORS[data.objective]))
         nu = numpyro.sample("nu", dist.Gamma(*NU_PRIOR))
     stacked = _with_discrete_axes(model.with_params(values), (n_legs,))
     R, K = data.response_length, data.max_shift

@@ -42,7 +42,7 @@ from ._draws import (
     sample_step_states,
 )
 from ._nuts import FitSettings, chain_method
-from ._priors import NOISE_PARAMS, model_params, step_param
+from ._priors import NOISE_PARAMS, SIGMA_UNITS, model_params, step_param
 from ._summaries import INTERVAL, THRESHOLDS, interval, pooled_draws
 
 __all__ = [
@@ -97,6 +97,7 @@ class FitResult(Result):
     uninformed: dict | None = None  # leg -> pulses, and the active parameters its own data hardly inform
     effect_origins: dict | None = None  # a user's effect -> its module, file and source hash (not built-ins)
     target: dict | None = None  # drawn to a target ESS: how the blocks ended (inference.target_status)
+    likelihood: str = "acceleration"  # what the likelihood compared (model._likelihood.OBJECTIVES)
 
     @property
     def ok(self) -> bool:
@@ -429,6 +430,7 @@ def fit_summary(idata) -> dict:
         "diagnostics": diag,
         "banner": None if diag["ok"] else "FIT FAILED ITS CHECKS: " + "; ".join(diag["problems"]),
         "settings": desc["settings"],
+        "likelihood": desc.get("likelihood", "acceleration"),
         "chain_method": desc.get("chain_method", desc["settings"].get("chain_method")),
         "sampling_period_s": desc.get("sampling_period_s", SAMPLING_PERIOD_S),
         "interval": list(INTERVAL),
@@ -527,7 +529,8 @@ def describe_fit(model: Model, data: LikelihoodData, settings: FitSettings) -> d
             p.name: {"units": p.units, "prior": list(p.prior), "level": p.level, "shape": list(p.shape), "doc": p.doc}
             for p in model_params(model)
         },
-        "noise": {k: {"units": u, "doc": doc} for k, (u, doc) in NOISE_PARAMS.items()},
+        "noise": noise_description(data.objective),
+        "likelihood": data.objective,
         "legs": list(data.legs),
         "subjects": list(data.subjects),
         "leg_subject": [int(i) for i in data.leg_subject],
@@ -537,6 +540,14 @@ def describe_fit(model: Model, data: LikelihoodData, settings: FitSettings) -> d
         "chain_method": _chain_method_quietly(settings, data),
         "sampling_period_s": model.sampling_period_s,
     }
+
+
+def noise_description(objective: str) -> dict:
+    """The noise parameters' units and meaning for a likelihood on ``objective``."""
+    out = {k: {"units": u, "doc": doc} for k, (u, doc) in NOISE_PARAMS.items()}
+    if objective == "angle":
+        out["sigma"] = {"units": SIGMA_UNITS["angle"], "doc": "Student-t scale of one sample's angle about its free run"}
+    return out
 
 
 def _chain_method_quietly(settings: FitSettings, data) -> str:

@@ -32,6 +32,7 @@ from numpyro.infer import MCMC, NUTS, init_to_median, init_to_uniform
 from ..data._cohort import Cohort
 from ..model._likelihood import (
     N_DELAYS,
+    OBJECTIVES,
     LikelihoodData,
     prepare,
 )
@@ -108,6 +109,11 @@ class FitSettings:
     #: With ``target_ess``: seconds from the fit's start (screen and compilation included) after
     #: which no further block is begun; a block that would end past it is not begun either.
     time_limit_s: float = 1800.0
+    #: What the likelihood compares: "acceleration" (equation error: the equivalent acceleration,
+    #: every model), "angle" (output error: free runs of the pendulum from the measured state, for
+    #: a model without a muscle) or "auto": the angle for the pendulum alone, the acceleration with
+    #: a muscle (:func:`quadshank.model._likelihood.resolve_objective`).
+    likelihood: str = "auto"
 
     def __post_init__(self):
         if self.start not in STARTS:
@@ -123,6 +129,8 @@ class FitSettings:
             raise ValueError("trials: give at least one trial to fit")
         if self.target_ess is not None and int(self.target_ess) < 1:
             raise ValueError(f"target_ess must be at least 1, not {self.target_ess}")
+        if self.likelihood not in OBJECTIVES + ("auto",):
+            raise ValueError(f"likelihood must be one of auto, {', '.join(OBJECTIVES)}, not {self.likelihood!r}")
         if not self.time_limit_s > 0:
             raise ValueError(f"time_limit_s must be positive, not {self.time_limit_s}")
 
@@ -165,7 +173,7 @@ def fit_screen(cohort: Cohort, model: Model, settings: FitSettings, legs=None, n
         print("fit: each leg's mode and Laplace covariance (the screen) for the chains' start and metric",
               file=sys.stderr, flush=True)
     return laplace_fit(cohort, model, trials=settings.trials, legs=legs, n_starts=n_starts,
-                       n_draws=max(settings.chains, 2), seed=settings.seed, loo=False)
+                       n_draws=max(settings.chains, 2), seed=settings.seed, loo=False, objective=settings.likelihood)
 
 
 def delay_start(cohort: Cohort, settings: FitSettings, screen, log_delay_prior=None, progress: bool = False):
@@ -339,7 +347,7 @@ def fit(
 
 
 def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen, started=None):
-    data = prepare(cohort, model, trials=settings.trials, legs=legs)
+    data = prepare(cohort, model, trials=settings.trials, legs=legs, objective=settings.likelihood)
     arrays = {k: v.astype(jnp.float64) if jnp.issubdtype(v.dtype, jnp.floating) else v for k, v in data.leg_arrays().items()}
     if log_delay_prior is not None:
         log_delay_prior = np.asarray(log_delay_prior, np.float32)

@@ -29,7 +29,13 @@ NOISE_PARAMS = {
 }
 
 
-SIGMA_PRIOR = (math.log(40.0), 1.0)
+#: σ ~ LogNormal(loc, scale) per leg, by what the likelihood compares
+#: (:data:`quadshank.model._likelihood.OBJECTIVES`): 40 deg/s² on the equivalent acceleration,
+#: 0.5° on the angle (a goniometer's noise plus a free run's drift).
+SIGMA_PRIORS = {"acceleration": (math.log(40.0), 1.0), "angle": (math.log(0.5), 1.0)}
+SIGMA_PRIOR = SIGMA_PRIORS["acceleration"]
+#: σ's units by objective (the noise table's "sigma" entry is the acceleration's).
+SIGMA_UNITS = {"acceleration": "deg/s^2", "angle": "deg"}
 
 
 #: Probability spread evenly over all delays when a delay prior comes from another fit.

@@ -53,6 +53,7 @@ from ._draws import sample_delays
 from ._priors import (
     NU_PRIOR,
     SIGMA_PRIOR,
+    SIGMA_PRIORS,
     _with_discrete_axes,
     log_shift_prior,
     model_params,
@@ -172,19 +173,20 @@ def leg_draw_models(fit: LaplaceFit, leg: str, n: int | None = None) -> Model:
     return m
 
 
-def _log_prior(specs: list[_Spec], vec):
-    """log prior density of the unconstrained vector (up to a constant)."""
+def _log_prior(specs: list[_Spec], vec, sigma_prior=SIGMA_PRIOR):
+    """log prior density of the unconstrained vector (up to a constant); ``sigma_prior``: σ's
+    (:data:`~quadshank.inference._priors.SIGMA_PRIORS`)."""
     z = _unpack(specs, vec)[3]
     log_nu = vec[-1]
     nu_a, nu_b = NU_PRIOR
     return (
         -0.5 * jnp.sum(z**2)
-        - 0.5 * ((vec[-2] - SIGMA_PRIOR[0]) / SIGMA_PRIOR[1]) ** 2
+        - 0.5 * ((vec[-2] - sigma_prior[0]) / sigma_prior[1]) ** 2
         + nu_a * log_nu - nu_b * jnp.exp(log_nu)  # Gamma(a, b) on ν, with the Jacobian of log ν
     )
 
 
-def _objective(model: Model, specs: list[_Spec], R: int, K: int):
+def _objective(model: Model, specs: list[_Spec], R: int, K: int, sigma_prior=SIGMA_PRIOR):
     log_prior_dk = jnp.asarray(log_shift_prior(K), jnp.float64) - math.log(N_DELAYS)  # (D, K + 1)
 
     def joint(vec, x):
@@ -192,7 +194,7 @@ def _objective(model: Model, specs: list[_Spec], R: int, K: int):
         values, sigma, nu, _ = _unpack(specs, vec)
         m = _with_discrete_axes(model.with_params(values), ())
         ll = leg_loglik_by_delay(m, {"sigma": sigma, "nu": nu}, x, R, K)
-        return ll + log_prior_dk, _log_prior(specs, vec)
+        return ll + log_prior_dk, _log_prior(specs, vec, sigma_prior)
 
     def neg_logpost(vec, x):
         logp, prior = joint(vec, x)
@@ -219,13 +221,16 @@ def _leg_arrays64(data: LikelihoodData) -> dict:
 _COMPILED: dict = {}
 
 
-def _compiled(model: Model, specs: list[_Spec], R: int, K: int, n_segments: int):
+def _compiled(model: Model, specs: list[_Spec], R: int, K: int, n_segments: int, objective: str = "acceleration"):
     """The jitted functions of one model structure and its priors, made once per process
-    (screens of many datasets of one shape then compile once)."""
-    key = (jax.tree_util.tree_structure(model), tuple((s.name, s.shape, repr(s.param.prior)) for s in specs), R, K, n_segments)
+    (screens of many datasets of one shape then compile once); ``objective``: what the
+    likelihood compares (σ's prior follows it)."""
+    key = (jax.tree_util.tree_structure(model), tuple((s.name, s.shape, repr(s.param.prior)) for s in specs), R, K, n_segments,
+           objective)
     if key in _COMPILED:
         return _COMPILED[key]
-    joint, neg_logpost = _objective(model, specs, R, K)
+    sigma_prior = SIGMA_PRIORS[objective]
+    joint, neg_logpost = _objective(model, specs, R, K, sigma_prior)
 
     def pointwise_one(v, d, k, x):
         values, sigma, nu, _ = _unpack(specs, v)
@@ -236,7 +241,7 @@ def _compiled(model: Model, specs: list[_Spec], R: int, K: int, n_segments: int)
         joint,
         jax.jit(jax.value_and_grad(neg_logpost)),
         jax.jit(jax.vmap(lambda v, x: joint(v, x)[0], in_axes=(0, None))),
-        jax.jit(jax.vmap(lambda v: _log_prior(specs, v))),
+        jax.jit(jax.vmap(lambda v: _log_prior(specs, v, sigma_prior))),
         jax.jit(jax.vmap(pointwise_one, in_axes=(0, 0, 0, None))),
         jax.jit(jax.value_and_grad(_neg_logpost_at_delay(joint))),  # compiled on first use (delay_modes)
     )
@@ -282,7 +287,8 @@ def laplace_fit(cohort: Cohort, model: Model, trials=(1,), legs=None, **kw) -> L
     extension), ``n_starts`` (prior draws tried for the other parameters),
     ``n_draws``, ``seed``, ``max_iter``, ``loo`` (False: no pointwise
     log-likelihood and PSIS-LOO, whose ELPD fields are then NaN; the posterior
-    alone, for a quicker look).  Runs in double precision: the log
+    alone, for a quicker look), ``objective`` (what the likelihood compares,
+    :func:`quadshank.model._likelihood.resolve_objective`).  Runs in double precision: the log
     posterior of thousands of samples is ~1e5, and single precision leaves
     L-BFGS and the Hessian with a noise of order one at the mode.
     """
@@ -302,11 +308,12 @@ def _laplace_fit(
     seed: int = 0,
     max_iter: int = 400,
     loo: bool = True,
+    objective: str = "auto",
 ) -> LaplaceFit:
-    data = prepare(cohort, model, trials=trials, legs=legs)
+    data = prepare(cohort, model, trials=trials, legs=legs, objective=objective)
     specs = _specs(model)
     R, K = data.response_length, data.max_shift
-    joint, value_and_grad, joint_b, prior_b, pw, _ = _compiled(model, specs, R, K, data.n_segments)
+    joint, value_and_grad, joint_b, prior_b, pw, _ = _compiled(model, specs, R, K, data.n_segments, data.objective)
     arrays = _leg_arrays64(data)
     dim = sum(s.size for s in specs) + 2
     rng = np.random.default_rng(seed)  # the root seed's own stream: the starts and the Laplace draws
@@ -326,7 +333,7 @@ def _laplace_fit(
             known = {k[: -len("_s_leg")]: (v[..., i] if np.ndim(v) > 1 else v[i]) for k, v in classical.items()}
             sizes = {sp.name: sp.size for sp in specs}
             known = {k: v for k, v in known.items() if np.size(v) == sizes.get(k)}  # e.g. not a DARMA of another order
-            log_sigma, log_nu = SIGMA_PRIOR[0], math.log(10.0)
+            log_sigma, log_nu = SIGMA_PRIORS[data.objective][0], math.log(10.0)
         unknown = [s for s in specs if s.name not in known]
         n_try = 1 + (n_starts if unknown else 0)
         best = None
@@ -450,7 +457,8 @@ def delay_modes(screen: LaplaceFit, max_iter: int = 400) -> DelayModes:
 
 def _delay_modes(screen: LaplaceFit, max_iter: int) -> DelayModes:
     data = screen.data
-    value_and_grad = _compiled(screen.model, list(screen.specs), data.response_length, data.max_shift, data.n_segments)[5]
+    value_and_grad = _compiled(screen.model, list(screen.specs), data.response_length, data.max_shift, data.n_segments,
+                               data.objective)[5]
     arrays = _leg_arrays64(data)
     log_ev = np.full((data.n_legs, N_DELAYS), -np.inf)
     modes = np.repeat(screen.mode[:, None, :], N_DELAYS, axis=1).astype(np.float64)
@@ -488,7 +496,7 @@ def restart_screen(screen: LaplaceFit, cohort: Cohort, starts: dict[str, np.ndar
     for leg, v in starts.items():
         mode[screen.legs.index(leg)] = v
     return laplace_fit(cohort, screen.model, trials=trials, legs=screen.legs, start=dataclasses.replace(screen, mode=mode),
-                       n_starts=0, n_draws=screen.draws.shape[1], seed=seed, loo=False)
+                       n_starts=0, n_draws=screen.draws.shape[1], seed=seed, loo=False, objective=screen.data.objective)
 
 
 def delta_elpd(a: LaplaceFit, b: LaplaceFit) -> tuple[float, float]:

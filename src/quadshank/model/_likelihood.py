@@ -73,6 +73,16 @@ A delay that steps with the angle
     pairs in angle order (:func:`step_tables`, data alone).  Each state is
     weighted by its interval's prior mass (:func:`step_log_mass`).
 
+The angle, for the pendulum alone
+    A model without a muscle (``--model passive``, pendulum tests) can instead be compared on
+    the angle (``objective="angle"``, output error): each stretch of compared samples (a trial,
+    or the part of it between excluded samples) is run freely from its first sample's measured
+    angle and velocity by RK4, and every later sample's measured angle is Student-t about the
+    run's (σ in degrees).  A free swing's error accumulates, so neighbouring residuals are
+    correlated and the posterior is narrower than the noise alone would make it; what this
+    buys is a fit that follows the swing, where the acceleration (derived from a noisy angle
+    when there is no accelerometer) weighs the noise of its derivative.
+
 Units for PSIS-LOO
     Windows are summed into segments of SEGMENT_SAMPLES (1 s) per trial: the
     residual's correlation (twitch-shape misfit, resonance) dies out within a
@@ -87,6 +97,7 @@ import dataclasses
 import math
 
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 
@@ -96,8 +107,10 @@ from ._effects import FIRST_IPI_S, Effect, PulseContext, StepContext
 from ._model import (
     Model,
     acceleration_response,
+    _rk4,
     causal_fir,
     measured_acceleration,
+    measured_angle,
     passive_acceleration,
     pulse_factors,
     true_angle,
@@ -120,9 +133,14 @@ __all__ = [
     "response_length",
     "SEGMENT_SAMPLES",
     "N_DELAYS",
+    "OBJECTIVES",
+    "resolve_objective",
     "PULSE_LEVEL_FIELDS",
 ]
 
+#: What the likelihood can compare: the equivalent acceleration (equation error, every model) or
+#: the angle of free runs from the measured state (output error, the pendulum alone).
+OBJECTIVES = ("acceleration", "angle")
 #: Samples per PSIS-LOO unit (1 s at T_s = 10 ms).
 SEGMENT_SAMPLES = 100
 #: Delays considered: 0 .. MAX_DELAY samples.
@@ -198,6 +216,12 @@ class LikelihoodData:
     #: (L, N) first sample of each sample's trial (padding: 0); not read by the likelihood, whose mask
     #: starts again after every excluded stretch: the residual features' time in trial and pulse count
     trial_start: np.ndarray | None = None
+    #: What the likelihood compares (:data:`OBJECTIVES`): the equivalent acceleration, or the angle of
+    #: free runs started afresh from the measured state at ``reset``
+    objective: str = "acceleration"
+    #: (L, N) bool, with the angle objective: the first sample of each stretch of compared samples,
+    #: where a free run starts from the measured angle and velocity (not itself compared); else None
+    reset: np.ndarray | None = None
 
     @property
     def n_legs(self) -> int:
@@ -211,6 +235,7 @@ class LikelihoodData:
             "segment_mask pulse_sample pulse_u pulse_ipi_s pulse_count pulse_time_s touch_sample touch_valid touch_pos touch_window touch_mask"
         ).split()
         names += [f.name for f in dataclasses.fields(self) if f.name.startswith("step_") or f.name in PULSE_LEVEL_FIELDS]
+        names.append("reset")
         return {n: jnp.asarray(getattr(self, n)) for n in names if getattr(self, n) is not None}
 
 
@@ -291,8 +316,29 @@ def response_length(model: Model) -> int:
     return R if g is None else R + int(g.shape[0]) - 1
 
 
-def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodData:
-    """Arrange a cohort's chosen trials for the likelihood of ``model``."""
+def resolve_objective(model: Model, objective: str = "auto") -> str:
+    """What the likelihood of ``model`` compares (:data:`OBJECTIVES`): ``"auto"`` is the angle for
+    the pendulum alone (a model without a muscle: its free swing predicts the angle better than
+    the acceleration's fit does, ``benchmarks/bench_pendulum.py``) and the acceleration for a
+    model with a muscle, the only objective that has (its delay and twitches are compared
+    window by window, :mod:`quadshank.model._likelihood`)."""
+    if objective not in OBJECTIVES + ("auto",):
+        raise LikelihoodError(f"unknown likelihood {objective!r}; use auto, {' or '.join(OBJECTIVES)}")
+    muscle = model.activation.name != "no_muscle"
+    if objective == "auto":
+        return "acceleration" if muscle else "angle"
+    if objective == "angle" and muscle:
+        raise LikelihoodError(
+            f"model {model.name!r} has a muscle: the angle likelihood (free runs from the measured state) is for "
+            "the pendulum alone (--model passive, pendulum tests); a model with a muscle is fitted on the "
+            "acceleration and judged by the angle through J (quadshank evaluate)")
+    return objective
+
+
+def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None, objective: str = "auto") -> LikelihoodData:
+    """Arrange a cohort's chosen trials for the likelihood of ``model``; ``objective``: what it
+    compares (:func:`resolve_objective`)."""
+    objective = resolve_objective(model, objective)
     act = model.activation
     resolution = getattr(act, "resolution", "sample")
     R = response_length(model)
@@ -348,6 +394,10 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
     acceleration = pad("acceleration", 0.0, np.float32)
     stimulation = pad("stimulation", 0.0, np.float32)
     sample_mask = pad("mask", False, bool)
+    reset = None
+    if objective == "angle":  # each stretch of compared samples starts a free run from its measured state
+        reset = sample_mask & ~np.concatenate([np.zeros((L, 1), bool), sample_mask[:, :-1]], axis=1)
+        sample_mask = sample_mask & ~reset
     starts = pad("start", True, bool)
     sample_segment = pad("segment", -1, np.int64)
 
@@ -485,6 +535,8 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None) -> LikelihoodD
         **step,
         **slots,
         trial_start=pad("trial_start", 0, np.int64),
+        objective=objective,
+        reset=reset,
     )
 
 
@@ -593,6 +645,85 @@ def step_tables(angle, pulse_sample, pulse_u, touch_valid, touch_pos, RK: int) -
 
 
 # ============================================================================ JAX side
+
+
+def free_run_angles(model: Model, x: dict):
+    """The goniometer reading that ``model``'s free run predicts at every sample of one leg: a run
+    starts afresh from the measured angle and velocity at each ``x["reset"]`` sample and steps
+    eq. (8)'s passive system (no muscle) by RK4 until the next.  Differentiable in the model's
+    parameters (not in the data)."""
+    return _free_run(model, x["angle"], x["velocity"], x["reset"])
+
+
+def _free_run_plain(model: Model, angle, velocity, reset):
+    dt = model.sampling_period_s
+    true = true_angle(model, angle)
+
+    def body(state, inputs):
+        start, a_meas, v_meas = inputs
+        a = jnp.where(start, a_meas, state[0])
+        v = jnp.where(start, v_meas, state[1])
+        return _rk4(model, a, v, 0.0, dt), a
+
+    _, predicted = jax.lax.scan(body, (true[0], velocity[0]), (reset, true, velocity))
+    return measured_angle(model, predicted)
+
+
+def _float_leaves(model: Model):
+    """The model's leaves, its tree, the positions of its floating leaves (the parameters) and a
+    function of their concatenation that rebuilds the model."""
+    leaves, tree = jax.tree_util.tree_flatten(model)
+    at = [i for i, v in enumerate(leaves) if jnp.issubdtype(jnp.result_type(v), jnp.inexact)]
+    flat, unravel = jax.flatten_util.ravel_pytree([leaves[i] for i in at])
+
+    def rebuild(v):
+        out = list(leaves)
+        for i, leaf in zip(at, unravel(v)):
+            out[i] = leaf
+        return tree.unflatten(out)
+
+    return leaves, tree, at, flat, rebuild
+
+
+# The free run's gradient by forward sensitivities: a reverse pass through the scan over every
+# sample costs about six forward runs, while the handful of parameters of the pendulum alone ride
+# along a single forward run as tangents (jacfwd), and J^T g is then one product.
+@jax.custom_vjp
+def _free_run(model: Model, angle, velocity, reset):
+    return _free_run_plain(model, angle, velocity, reset)
+
+
+def _free_run_fwd(model, angle, velocity, reset):
+    _, _, _, flat, rebuild = _float_leaves(model)
+
+    def run(v):
+        out = _free_run_plain(rebuild(v), angle, velocity, reset)
+        return out, out
+
+    jac, predicted = jax.jacfwd(run, has_aux=True)(flat)  # (N, parameters)
+    return predicted, (model, jac, angle, velocity, reset)
+
+
+def _free_run_bwd(res, g):
+    model, jac, angle, velocity, reset = res
+    leaves, tree, at, _, _ = _float_leaves(model)
+    _, unravel = jax.flatten_util.ravel_pytree([leaves[i] for i in at])
+    grads = [np.zeros(np.shape(v), jax.dtypes.float0) for v in leaves]
+    for i, leaf in zip(at, unravel(g @ jac)):
+        grads[i] = leaf
+    # the data are measured, not differentiated
+    return (tree.unflatten(grads), jnp.zeros_like(angle), jnp.zeros_like(velocity),
+            np.zeros(np.shape(reset), jax.dtypes.float0))
+
+
+_free_run.defvjp(_free_run_fwd, _free_run_bwd)
+
+
+def _angle_logpdf(model: Model, noise: dict, x: dict):
+    """Student-t log density (σ and ν in degrees) of each compared sample's measured angle about
+    its free run's (:func:`free_run_angles`), 0 where not compared."""
+    r = x["angle"] - free_run_angles(model, x)
+    return jnp.where(x["sample_mask"], student_t_logpdf(r, noise["nu"], noise["sigma"]), 0.0)
 
 
 def student_t_logpdf(x, nu, scale):
@@ -850,6 +981,8 @@ def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
 
     Entries with shift > d are computed but meaningless (the prior excludes them).
     """
+    if "reset" in x:  # the angle objective: no muscle, so every delay alike
+        return jnp.broadcast_to(jnp.sum(_angle_logpdf(model, noise, x)), (N_DELAYS, K + 1))
     if "pulse_slot" in x:
         return _by_delay_pulses(model, noise, x, R, K)
     x, E, table, base, k0, F, G, uq = _leg_terms(model, noise, x)
@@ -1118,7 +1251,12 @@ def student_t_cdf(z, nu):
 
 def leg_window_cdf(model: Model, noise: dict, x: dict, d_index, R: int, K: int = 0, shift=0):
     """The predictive CDF of each likelihood window's measured equivalent acceleration at
-    (θ, d, shift): P(E_rep ≤ E | θ) under the Student-t noise model (the LOO-PIT's ingredient)."""
+    (θ, d, shift): P(E_rep ≤ E | θ) under the Student-t noise model (the LOO-PIT's ingredient).
+    With the angle objective, of each compared sample's angle (its one-sample window)."""
+    if "reset" in x:
+        z = (x["angle"] - free_run_angles(model, x)) / noise["sigma"]
+        cdf = jnp.where(x["sample_mask"], student_t_cdf(z, noise["nu"]), 0.0)
+        return jax.ops.segment_sum(cdf, x["window"], num_segments=x["window_mask"].shape[-1])
     x = _sensed(model, x)
     E, scale, nu, _ = _all_windows(model, noise, x)
     M, scale, _ = _active_windows(model, x, d_index, R, K, shift, scale)
@@ -1127,6 +1265,10 @@ def leg_window_cdf(model: Model, noise: dict, x: dict, d_index, R: int, K: int =
 
 def leg_pointwise(model: Model, noise: dict, x: dict, d_index, R: int, n_segments: int, K: int = 0, shift=0):
     """log p(y_segment | θ, d, shift) per PSIS-LOO segment of one leg."""
+    if "reset" in x:
+        lp = _angle_logpdf(model, noise, x)
+        seg = jnp.where(x["sample_mask"], x["window_segment"][x["window"]], n_segments)
+        return jax.ops.segment_sum(lp, seg, num_segments=n_segments + 1)[:n_segments]
     x = _sensed(model, x)
     E, scale, nu, norm = _all_windows(model, noise, x)
     M, scale, dnorm = _active_windows(model, x, d_index, R, K, shift, scale)
