@@ -299,3 +299,18 @@ def test_the_angle_likelihood_is_student_t_about_free_runs_restarted_after_exclu
     with pytest.raises(LikelihoodError, match="--model passive"):
         prepare(Cohort((t,)), build_model("model3"), objective="angle")
     assert prepare(Cohort((t,)), model, objective="acceleration").objective == "acceleration"
+
+
+def test_the_residual_figures_of_a_pendulum_fit_leave_out_what_has_no_pulses(tmp_path):
+    """A diagnosis of pendulum tests: the residuals have no interpulse interval or pulse count to
+    bin against, and their figures are drawn from the features they have."""
+    from quadshank.inference import laplace_fit
+    from quadshank.inference._priors import build_model
+    from quadshank.outputs import residual_figures
+    from quadshank.outputs._loop import screen_residuals
+
+    t = _realistic(PASSIVE, 0, gravity_angle=8.0)
+    screen = laplace_fit(Cohort((t,)), build_model("passive"), n_draws=20)
+    assert screen.data.objective == "angle"
+    paths, notes = residual_figures(screen_residuals(screen), tmp_path, "baseline", DT)
+    assert paths and all(p.exists() for p in paths) and "PT-left" in notes

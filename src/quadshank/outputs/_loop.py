@@ -29,7 +29,9 @@ def residual_figures(residuals: dict[str, dict], out, label: str, dt: float) -> 
     paths, notes = [], {}
     for leg, r in residuals.items():
         feats = R.features(r["angle"], r["velocity"], r["stimulation"], r["sample_mask"], r["trial_start"], dt)
-        trends = {k: R.binned_trend(r["residual"], v, r["sample_mask"]) for k, v in feats.items()}
+        # a feature the recording does not have (no pulses: no interval or pulse count) is left out
+        trends = {k: R.binned_trend(r["residual"], v, r["sample_mask"]) for k, v in feats.items()
+                  if np.count_nonzero(np.isfinite(v) & np.asarray(r["sample_mask"], bool)) >= 2}
         ac = R.acf(r["residual"], r["sample_mask"])
         cc = R.ccf(r["residual"], r["stimulation"], r["sample_mask"])
         found = R.findings(trends, ac, cc)
