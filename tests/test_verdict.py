@@ -1,6 +1,7 @@
 """The loop's bar and verdict sentence on J bands and evidence given by hand (no fits)."""
 
 import numpy as np
+import pytest
 
 from quadshank.loop._diagnose import J_HORIZONS_MS, Ranking, evidence_bar, verdict_sentence
 from quadshank.model._effects import registered_effects
@@ -89,3 +90,53 @@ def test_an_effect_names_horizons_the_bands_are_drawn_at(scratch_registry):
 
     with pytest.raises(TypeError, match=r"acts_at_ms must name some of the horizons \(100, 250, 500, 1000\)"):
         register_effect(SlowGain)
+
+
+def test_evidence_that_rests_on_unreliable_segments_is_not_counted():
+    """PSIS-LOO's Pareto k: the evidence must hold on the segments both models' leave-one-out
+    estimates are reliable for; evidence carried by a few segments of high k is not support."""
+    from quadshank.loop._diagnose import PARETO_K_MAX, k_checked_difference
+
+    rng = np.random.default_rng(1)
+    n = 120
+    base = rng.normal(-50.0, 1.0, n)
+    ext = base + rng.normal(0.05, 0.5, n)  # no real gain on most segments ...
+    ext[:4] += 150.0  # ... and a large one on four segments whose k is high
+    k_base = np.full(n, 0.2)
+    k_ext = np.full(n, 0.3)
+    k_ext[:4] = 1.4
+    k_base[[10, 11]] = np.nan  # a segment not compared in one fit is left out of both
+    base[[10, 11]] = np.nan
+    d, se, share = k_checked_difference(base, ext, k_base, k_ext)
+    keep = np.ones(n, bool)
+    keep[:4] = keep[[10, 11]] = False
+    assert d == pytest.approx(np.sum((ext - base)[keep])) and share == pytest.approx(4 / (n - 2))
+    assert PARETO_K_MAX == 0.7
+
+    full = np.nansum(ext - base)
+    diff = (ext - base)[np.isfinite(base)]
+    full_se = float(np.sqrt(diff.size * np.var(diff)))
+    row = {"effect": "fatigue", **evidence_bar(full, full_se, BEFORE, GAIN_LIKE, True, (500, 1000), (d, se, share))}
+    assert full > 2 * full_se  # supported over every segment ...
+    assert not row["supported"] and not row["clears_bar"]  # ... but not on the reliable ones
+    text = verdict_sentence(_ranking([row], "none"))
+    assert "fatigue's evidence" in text and "Pareto k > 0.7 in 3 %" in text and "NUTS (--confirm)" in text
+    # where the reliable segments carry the evidence as well, it stands
+    ext2 = base + 5.0
+    row2 = evidence_bar(float(np.nansum(ext2 - base)), 1.0, BEFORE, GAIN_LIKE, True, (500, 1000),
+                        k_checked_difference(base, ext2, k_base, k_ext))
+    assert row2["supported"] and row2["clears_bar"]
+
+
+def test_where_most_segments_are_unreliable_the_approximation_is_named_not_the_segments():
+    """Every segment's k high alike (the screen's Gaussian against a step in the delay) says the
+    approximation fails as a whole, not that a few segments carry the evidence: the evidence is
+    kept, and the sentence sends the candidate to NUTS."""
+    from quadshank.loop._diagnose import K_SHARE_MAX
+
+    row = {"effect": "angle_delay",
+           **evidence_bar(708.0, 170.0, BEFORE, DELAY_LIKE, True, (100, 250), (0.0, 0.0, 1.0))}
+    assert K_SHARE_MAX < 1.0 and row["supported"] and row["clears_bar"] and row["pareto_k_high_share"] == 1.0
+    text = verdict_sentence(_ranking([row], "angle_delay"))
+    assert "stands poorly for the posterior with angle_delay (Pareto k > 0.7 in 100 % of the segments)" in text
+    assert "rests on segments" not in text

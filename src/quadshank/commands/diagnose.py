@@ -21,6 +21,7 @@ from ..loop._diagnose import (
     Diagnosis,
     Ranking,
     evidence_bar,
+    k_checked_difference,
     nuts_j_draws,
     nuts_sentence,
     rank_effects,
@@ -77,6 +78,7 @@ def confirm_with_nuts(
     if list(loo_a.loo_i["observation"].values) != list(loo_b.loo_i["observation"].values):
         raise ValueError(f"{base.folder} and {out}: the fits' PSIS-LOO segments differ; they are not of the same data")
     d, se = paired_difference(loo_a.loo_i.values, loo_b.loo_i.values)
+    checked = k_checked_difference(loo_a.loo_i.values, loo_b.loo_i.values, loo_a.pareto_k.values, loo_b.pareto_k.values)
     if J_base is None:
         J_base = nuts_j_draws(base, cohort, trials, n_draws=n_j_draws, start_stride=start_stride)
     J_ext = nuts_j_draws(ext, cohort, trials, n_draws=n_j_draws, start_stride=start_stride)
@@ -85,7 +87,7 @@ def confirm_with_nuts(
         "model": s.model,
         "folder": str(Path(out)),
         **evidence_bar(d, se, J_base, J_ext, registered_effects()[effect].predicts_angle,
-                       registered_effects()[effect].acts_at_ms),
+                       registered_effects()[effect].acts_at_ms, checked),
         "pareto_k_max": float(np.max(np.asarray(loo_b.pareto_k))),
         "diagnostics": s.diagnostics,
         "banner": s.banner,

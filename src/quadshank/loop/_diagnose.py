@@ -14,7 +14,9 @@ with the model on the same data by
   angle, velocity, pulse count, preceding interpulse interval, ...).
 
 An effect is *supported by the evidence* when its ΔELPD exceeds
-``ELPD_SE_BAR`` standard errors.  It *clears the bar* when it is supported and
+``ELPD_SE_BAR`` standard errors, both over every segment and over the
+segments whose PSIS-LOO both models estimate reliably (Pareto k at most
+``PARETO_K_MAX``: :func:`k_checked_difference`).  It *clears the bar* when it is supported and
 lowers J beyond the bands (the extension's upper 90 % limit below the model's
 lower one) at every horizon where it acts (the effect's ``acts_at_ms``: a
 delay at 100 and 250 ms, where a prediction feels it; the others at 500 and
@@ -49,15 +51,24 @@ from ..data._paper import HORIZONS_MS
 from ..evaluation._posterior import posterior_prediction_errors
 from ..inference._fitio import posterior_models
 from ..inference._priors import build_model
-from ..inference._screen import LaplaceFit, delta_elpd, laplace_fit, leg_draw_models
+from ..inference._screen import LaplaceFit, delta_elpd, laplace_fit, leg_draw_models, paired_difference
 from ..inference._summaries import interval
 from ..model._effects import registered_effects
 from ..model._model import Model
 
-__all__ = ["candidates", "rank_effects", "Ranking", "Diagnosis", "Discovery", "ELPD_SE_BAR", "J_HORIZONS_MS", "evidence_notes"]
+__all__ = ["candidates", "rank_effects", "Ranking", "Diagnosis", "Discovery", "ELPD_SE_BAR", "J_HORIZONS_MS", "evidence_notes",
+           "PARETO_K_MAX", "k_checked_difference"]
 
 #: ΔELPD must exceed this many standard errors.
 ELPD_SE_BAR = 2.0
+#: A segment whose PSIS-LOO has a Pareto k above this is not trusted (Vehtari et al., "Pareto
+#: smoothed importance sampling", 2024): the evidence must hold without such segments too.
+PARETO_K_MAX = 0.7
+#: Where more than this share of the segments is above PARETO_K_MAX, it is the approximation of the
+#: whole posterior that fails (the screen's Laplace Gaussian for a step in the delay, say: every
+#: segment's k alike), not a few influential segments: the segment check is then not applied, and
+#: the row says the candidate needs NUTS (``--confirm``).
+K_SHARE_MAX = 0.5
 #: Horizons [ms] at which J bands are drawn; each candidate is judged at its own (``Effect.acts_at_ms``).
 J_HORIZONS_MS = HORIZONS_MS
 #: Posterior draws, and the stride between prediction starts, of the J bands behind the bar.
@@ -239,6 +250,7 @@ def rank_effects(
         try:
             ext = laplace_fit(cohort, _extend(model, name), trials, legs, start=base, **kw)
             d, se = delta_elpd(base, ext)
+            checked = k_checked_difference(base.elpd_i, ext.elpd_i, base.pareto_k, ext.pareto_k)
             J1 = j_draws(ext, cohort, eval_trials, n_draws=n_j_draws, start_stride=start_stride)
         except Exception as err:  # noqa: BLE001 - one candidate (a user's effect, say) must not end the screen
             failed[name] = f"{type(err).__name__}: {err}"
@@ -248,7 +260,7 @@ def rank_effects(
         fits[name] = ext
         row = {
             "effect": name,
-            **evidence_bar(d, se, J0, J1, known[name].predicts_angle, known[name].acts_at_ms),
+            **evidence_bar(d, se, J0, J1, known[name].predicts_angle, known[name].acts_at_ms, checked),
             "pareto_k_max": float(np.nanmax(ext.pareto_k)),
             # how well the Laplace Gaussian stands for the posterior (n_draws: exactly)
             "importance_ess_min": float(np.min(ext.weights_ess)),
@@ -265,11 +277,23 @@ def rank_effects(
     return Ranking(base=base, fits=fits, rows=rows, verdict=verdict, J_base=J_base, failed=failed)
 
 
+def k_checked_difference(a_i, b_i, k_a, k_b) -> tuple[float, float, float]:
+    """ΔELPD and its SE (:func:`~quadshank.inference._screen.paired_difference`) over the segments
+    whose Pareto k is at most :data:`PARETO_K_MAX` in both fits, and the share of the compared
+    segments left out."""
+    a_i, b_i = np.asarray(a_i, float), np.asarray(b_i, float)
+    compared = np.isfinite(a_i) & np.isfinite(b_i)
+    reliable = compared & (np.asarray(k_a, float) <= PARETO_K_MAX) & (np.asarray(k_b, float) <= PARETO_K_MAX)
+    d, se = paired_difference(np.where(reliable, a_i, np.nan), np.where(reliable, b_i, np.nan))
+    return d, se, float(1.0 - reliable.sum() / max(int(compared.sum()), 1))
+
+
 def evidence_bar(d: float, se: float, J0: np.ndarray, J1: np.ndarray, predicts_angle: bool,
-                 acts_at_ms=(500, 1000)) -> dict:
+                 acts_at_ms=(500, 1000), k_checked: tuple | None = None) -> dict:
     """Whether an extension is supported by the evidence and clears the bar (module docs):
     ΔELPD ± SE, J at J_HORIZONS_MS before and after (from per-draw J, (draws, horizons)), judged
-    at the horizons ``acts_at_ms`` where the effect acts."""
+    at the horizons ``acts_at_ms`` where the effect acts.  ``k_checked``: ΔELPD, SE and the share
+    of segments left out by :func:`k_checked_difference`; the evidence must hold there too."""
     out = {"delta_elpd": d, "delta_elpd_se": se}
     lowered = []
     for j, h in enumerate(J_HORIZONS_MS):
@@ -283,6 +307,12 @@ def evidence_bar(d: float, se: float, J0: np.ndarray, J1: np.ndarray, predicts_a
     out["J_lowered_beyond_bands"] = all(h in lowered for h in judged)
     out["predicts_angle"] = bool(predicts_angle)
     out["supported"] = bool(d > ELPD_SE_BAR * se)
+    if k_checked is not None:
+        d_k, se_k, share = k_checked
+        out["delta_elpd_k_checked"], out["delta_elpd_k_checked_se"] = float(d_k), float(se_k)
+        out["pareto_k_high_share"] = float(share)
+        if share <= K_SHARE_MAX:
+            out["supported"] = bool(out["supported"] and d_k > ELPD_SE_BAR * se_k)
     out["clears_bar"] = bool(out["supported"] and (out["J_lowered_beyond_bands"] or not predicts_angle))
     return out
 
@@ -311,6 +341,22 @@ def evidence_notes(ranking: Ranking) -> str:
             f"{lead['effect']} has the most evidence (ΔELPD {lead['delta_elpd']:.0f} ± {lead['delta_elpd_se']:.0f}) "
             f"but changes J little where it acts ({_j_change(lead, lead['judged_at_ms'])}; the bands overlap), so it is "
             "not called missing; more data, or a look at its residual signature, can settle it."
+        )
+    strong = [r for r in rows if r["delta_elpd"] > ELPD_SE_BAR * r["delta_elpd_se"]]
+    shaky = [r for r in strong if not r["supported"] and "delta_elpd_k_checked" in r]
+    loose = [r for r in strong if r.get("pareto_k_high_share", 0.0) > K_SHARE_MAX]
+    for r in loose[:2]:
+        notes.append(
+            f"The screen's Laplace approximation stands poorly for the posterior with {r['effect']} (Pareto k > "
+            f"{PARETO_K_MAX:g} in {100 * r['pareto_k_high_share']:.0f} % of the segments), so its ΔELPD is an "
+            "approximation's; NUTS (--confirm) checks it."
+        )
+    for r in shaky[:2]:
+        notes.append(
+            f"{r['effect']}'s evidence (ΔELPD {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f}) rests on segments whose "
+            f"leave-one-out estimate is unreliable (Pareto k > {PARETO_K_MAX:g} in {100 * r['pareto_k_high_share']:.0f} % "
+            f"of them): without them it is {r['delta_elpd_k_checked']:.0f} ± {r['delta_elpd_k_checked_se']:.0f}, so it "
+            "is not counted as supported; NUTS (--confirm) can settle it."
         )
     best = chosen if chosen is not None else lead
     others = [r for r in rows if r is not best and r.get("predicts_angle", True) and r["J_lowered_beyond_bands"]

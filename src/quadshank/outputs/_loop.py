@@ -120,7 +120,9 @@ def ranking_markdown(summary: Diagnosis, command: str | None = None) -> str:
     md += markdown_table([
         {"rank": str(i), "effect": r["effect"], "ΔELPD ± SE": f"{r['delta_elpd']:.1f} ± {r['delta_elpd_se']:.1f}",
          **_j_cells(r), "clears the bar": "yes" if r["clears_bar"] else "no",
-         "Pareto k max": f"{r['pareto_k_max']:.2f}", "importance ESS": f"{r['importance_ess_min']:.0f}"}
+         "Pareto k max": f"{r['pareto_k_max']:.2f}",
+         "segments k > 0.7": f"{100 * r['pareto_k_high_share']:.0f} %" if "pareto_k_high_share" in r else "–",
+         "importance ESS": f"{r['importance_ess_min']:.0f}"}
         for i, r in enumerate(rows, 1)
     ]).splitlines()
     md += [
