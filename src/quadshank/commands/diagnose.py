@@ -78,7 +78,7 @@ def confirm_with_nuts(
     if list(loo_a.loo_i["observation"].values) != list(loo_b.loo_i["observation"].values):
         raise ValueError(f"{base.folder} and {out}: the fits' PSIS-LOO segments differ; they are not of the same data")
     d, se = paired_difference(loo_a.loo_i.values, loo_b.loo_i.values)
-    checked = k_checked_difference(loo_a.loo_i.values, loo_b.loo_i.values, loo_a.pareto_k.values, loo_b.pareto_k.values)
+    checked = k_checked_difference(loo_a.loo_i.values, loo_b.loo_i.values, loo_b.pareto_k.values)
     if J_base is None:
         J_base = nuts_j_draws(base, cohort, trials, n_draws=n_j_draws, start_stride=start_stride)
     J_ext = nuts_j_draws(ext, cohort, trials, n_draws=n_j_draws, start_stride=start_stride)
