@@ -670,19 +670,20 @@ def _free_run_plain(model: Model, angle, velocity, reset):
 
 
 def _float_leaves(model: Model):
-    """The model's leaves, its tree, the positions of its floating leaves (the parameters) and a
-    function of their concatenation that rebuilds the model."""
+    """The model's leaves, its tree, the positions of its floating leaves (the parameters), their
+    concatenation and the function that splits a vector of that length back into them."""
     leaves, tree = jax.tree_util.tree_flatten(model)
     at = [i for i, v in enumerate(leaves) if jnp.issubdtype(jnp.result_type(v), jnp.inexact)]
     flat, unravel = jax.flatten_util.ravel_pytree([leaves[i] for i in at])
+    return leaves, tree, at, flat, unravel
 
-    def rebuild(v):
-        out = list(leaves)
-        for i, leaf in zip(at, unravel(v)):
-            out[i] = leaf
-        return tree.unflatten(out)
 
-    return leaves, tree, at, flat, rebuild
+def _with_floats(leaves, tree, at, floats):
+    """The tree of ``leaves`` with the leaves at positions ``at`` replaced by ``floats``."""
+    out = list(leaves)
+    for i, leaf in zip(at, floats):
+        out[i] = leaf
+    return tree.unflatten(out)
 
 
 # The free run's gradient by forward sensitivities: a reverse pass through the scan over every
@@ -694,10 +695,10 @@ def _free_run(model: Model, angle, velocity, reset):
 
 
 def _free_run_fwd(model, angle, velocity, reset):
-    _, _, _, flat, rebuild = _float_leaves(model)
+    leaves, tree, at, flat, unravel = _float_leaves(model)
 
     def run(v):
-        out = _free_run_plain(rebuild(v), angle, velocity, reset)
+        out = _free_run_plain(_with_floats(leaves, tree, at, unravel(v)), angle, velocity, reset)
         return out, out
 
     jac, predicted = jax.jacfwd(run, has_aux=True)(flat)  # (N, parameters)
@@ -706,13 +707,10 @@ def _free_run_fwd(model, angle, velocity, reset):
 
 def _free_run_bwd(res, g):
     model, jac, angle, velocity, reset = res
-    leaves, tree, at, _, _ = _float_leaves(model)
-    _, unravel = jax.flatten_util.ravel_pytree([leaves[i] for i in at])
-    grads = [np.zeros(np.shape(v), jax.dtypes.float0) for v in leaves]
-    for i, leaf in zip(at, unravel(g @ jac)):
-        grads[i] = leaf
+    leaves, tree, at, _, unravel = _float_leaves(model)
+    zeros = [np.zeros(np.shape(v), jax.dtypes.float0) for v in leaves]
     # the data are measured, not differentiated
-    return (tree.unflatten(grads), jnp.zeros_like(angle), jnp.zeros_like(velocity),
+    return (_with_floats(zeros, tree, at, unravel(g @ jac)), jnp.zeros_like(angle), jnp.zeros_like(velocity),
             np.zeros(np.shape(reset), jax.dtypes.float0))
 
 
