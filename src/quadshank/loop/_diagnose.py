@@ -359,7 +359,7 @@ def evidence_notes(ranking: Ranking) -> str:
         notes.append(
             f"{r['effect']}'s evidence (ΔELPD {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f}) rests on segments whose "
             f"leave-one-out estimate is unreliable (Pareto k > {PARETO_K_MAX:g} in {100 * r['pareto_k_high_share']:.0f} % "
-            f"of them): without them it is {r['delta_elpd_k_checked']:.0f} ± {r['delta_elpd_k_checked_se']:.0f}, so it "
+            f"of the segments): without them it is {r['delta_elpd_k_checked']:.0f} ± {r['delta_elpd_k_checked_se']:.0f}, so it "
             "is not counted as supported; NUTS (--confirm) can settle it."
         )
     best = chosen if chosen is not None else lead
