@@ -314,3 +314,23 @@ def test_the_residual_figures_of_a_pendulum_fit_leave_out_what_has_no_pulses(tmp
     assert screen.data.objective == "angle"
     paths, notes = residual_figures(screen_residuals(screen), tmp_path, "baseline", DT)
     assert paths and all(p.exists() for p in paths) and "PT-left" in notes
+
+
+def test_the_loop_on_pendulum_tests_lists_the_muscle_candidates_as_not_applicable(tmp_path):
+    """Candidates that cannot change a pendulum's likelihood are named in the report, not ranked."""
+    from quadshank.loop import rank_effects
+    from quadshank.loop._diagnose import Diagnosis, verdict_sentence
+    from quadshank.outputs._loop import ranking_markdown
+
+    import warnings
+
+    t = _realistic(PASSIVE, 0, gravity_angle=8.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # a screen that fails warns, and is left out
+        ranking = rank_effects(Cohort((t,)), "passive", effects=["torque_angle_peak", "accel_resonance", "goniometer_offset"],
+                               n_draws=20, n_j_draws=10, start_stride=20, n_starts=0)
+    assert [r["effect"] for r in ranking.rows] == ["goniometer_offset"] and ranking.verdict == "goniometer_offset"
+    assert set(ranking.not_applicable) == {"torque_angle_peak", "accel_resonance"}
+    d = Diagnosis(**ranking.to_json(), sentence=verdict_sentence(ranking), trials=[1])
+    md = ranking_markdown(d)
+    assert "do not apply to these data" in md and "**torque_angle_peak**: acts through the muscle" in md

@@ -138,3 +138,31 @@ def test_where_most_segments_are_unreliable_the_approximation_is_named_not_the_s
     text = verdict_sentence(_ranking([row], "angle_delay"))
     assert "stands poorly for the posterior with angle_delay (Pareto k > 0.7 in 100 % of the segments)" in text
     assert "rests on segments" not in text
+
+
+def test_candidates_that_cannot_change_the_likelihood_are_named_with_the_reason():
+    """On the pendulum alone, or on trials without pulses, an effect that acts through the muscle
+    has nothing to explain; where the fit compares angles, neither has one on what the
+    accelerometer reads alone."""
+    from quadshank.data import Cohort, simulate_pendulum_test
+    from quadshank.inference._priors import build_model
+    from quadshank.loop._diagnose import MUSCLE_KINDS, candidates, not_applicable
+
+    known = registered_effects()
+    t = simulate_pendulum_test({"damping": 1.3, "gravity": 1950.0, "k1": 30.0, "k2": 0.05}, subject="PT", trial=1)
+    pendulum = Cohort((t,))
+    passive = build_model("passive")
+    offered = candidates(passive)
+    found = not_applicable(passive, pendulum, offered, pendulum.legs, (1,))
+    muscle = {e for e in offered if known[e].kind in MUSCLE_KINDS}
+    assert muscle and set(found) == muscle | {"accel_resonance"}
+    assert {"gravity_offset", "goniometer_offset"} <= set(offered) - set(found)
+    assert "passive has none" in found["torque_angle_peak"] and "compares angles" in found["accel_resonance"]
+
+    model3 = build_model("model3")
+    offered = candidates(model3)
+    found = not_applicable(model3, pendulum, offered, pendulum.legs, (1,))
+    assert set(found) == {e for e in offered if known[e].kind in MUSCLE_KINDS}  # judged by the acceleration
+    assert "hold no pulse" in found["potentiation"]
+    one_pulse = Cohort((t.replace(stimulation=(np.arange(t.n_samples) == 200).astype(float)),))
+    assert not_applicable(model3, one_pulse, offered, one_pulse.legs, (1,)) == {}

@@ -508,4 +508,6 @@ def paired_difference(a_i, b_i) -> tuple[float, float]:
     """Σ(b_i − a_i) over the segments where both pointwise ELPDs are finite, and its standard error."""
     a_i, b_i = np.asarray(a_i, float), np.asarray(b_i, float)
     diff = (b_i - a_i)[np.isfinite(a_i) & np.isfinite(b_i)]
+    if diff.size == 0:  # no segment to compare (every one left out): no difference, and no evidence
+        return 0.0, 0.0
     return float(diff.sum()), float(math.sqrt(diff.size * np.var(diff)))

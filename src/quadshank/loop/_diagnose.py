@@ -54,10 +54,11 @@ from ..inference._priors import build_model
 from ..inference._screen import LaplaceFit, delta_elpd, laplace_fit, leg_draw_models, paired_difference
 from ..inference._summaries import interval
 from ..model._effects import registered_effects
+from ..model._likelihood import resolve_objective
 from ..model._model import Model
 
 __all__ = ["candidates", "rank_effects", "Ranking", "Diagnosis", "Discovery", "ELPD_SE_BAR", "J_HORIZONS_MS", "evidence_notes",
-           "PARETO_K_MAX", "k_checked_difference"]
+           "PARETO_K_MAX", "k_checked_difference", "not_applicable", "MUSCLE_KINDS"]
 
 #: ΔELPD must exceed this many standard errors.
 ELPD_SE_BAR = 2.0
@@ -86,6 +87,35 @@ def candidates(model: Model) -> list[str]:
         if cls.kind == "delay" and model.delay_effect is not None:
             continue
         out.append(name)
+    return out
+
+
+#: Effect kinds that act through the stimulated muscle: on the pendulum alone, or on trials without
+#: pulses, their parameters have nothing to explain, and a ΔELPD of a few units would be noise.
+MUSCLE_KINDS = ("activation", "gain", "pulse", "delay", "output", "noise")
+
+
+def not_applicable(model: Model, cohort: Cohort, effects, legs, trials) -> dict:
+    """The effects of ``effects`` that cannot change ``model``'s likelihood on these data, and why.
+
+    An effect acting through the muscle (:data:`MUSCLE_KINDS`) on a model without one
+    (``--model passive``) or on trials that hold no pulse, and an effect on what the
+    accelerometer reads alone (``predicts_angle = False``) where the fit compares angles.
+    They are listed, not screened: their ΔELPD could only be noise.
+    """
+    known = registered_effects()
+    muscle = model.activation.name != "no_muscle"
+    pulses = any(t.pulse_indices.size for leg in legs for t in cohort.trials_of(leg) if t.trial in trials)
+    by_angle = resolve_objective(model, "auto") == "angle"
+    out = {}
+    for name in effects:
+        cls = known[name]
+        if cls.kind in MUSCLE_KINDS and not muscle:
+            out[name] = f"acts through the muscle, and {model.name} has none (the pendulum alone)"
+        elif cls.kind in MUSCLE_KINDS and not pulses:
+            out[name] = f"acts through the stimulation, and trial(s) {', '.join(map(str, trials))} hold no pulse"
+        elif not cls.predicts_angle and cls.kind == "measurement" and by_angle:
+            out[name] = "changes only what the accelerometer reads, and the fit compares angles"
     return out
 
 
@@ -137,6 +167,8 @@ class Ranking:
     J_base: dict  # horizon_ms -> interval
     #: candidates that could not be screened: effect -> why (the ranking goes on without them)
     failed: dict = dataclasses.field(default_factory=dict)
+    #: candidates that cannot change the likelihood on these data (:func:`not_applicable`): effect -> why
+    not_applicable: dict = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {
@@ -146,6 +178,7 @@ class Ranking:
             "J_ms": self.J_base,
             "ranking": self.rows,
             "failed": [{"effect": k, "error": v} for k, v in self.failed.items()],
+            "not_applicable": [{"effect": k, "why": v} for k, v in self.not_applicable.items()],
             "verdict": self.verdict,
             "bar": {"elpd_se": ELPD_SE_BAR, "J_horizons_ms": list(J_HORIZONS_MS), "J_judged_at": "acts_at_ms"},
         }
@@ -171,6 +204,7 @@ class Diagnosis(Result):
     sentence: str
     trials: list
     failed: list = dataclasses.field(default_factory=list)
+    not_applicable: list = dataclasses.field(default_factory=list)  # candidates not screened, and why
     screen_verdict: str | None = None  # the screen's own verdict, where NUTS confirmed it
     confirmed_from: str | None = None
     predictive_checks: dict | None = None
@@ -237,6 +271,8 @@ def rank_effects(
         have = {e.name for e in model.effects}
         offered = set(candidates(model)) | {e for e in effects if not known[e].candidate and e not in have}
         effects = [e for e in effects if e in offered]  # not those the model has (a later round of discover)
+    inapplicable = not_applicable(model, cohort, effects, legs, trials)
+    effects = [e for e in effects if e not in inapplicable]
 
     kw = dict(n_draws=n_draws, seed=seed, n_starts=n_starts)
     if base is None:
@@ -274,7 +310,8 @@ def rank_effects(
     rows.sort(key=lambda r: (-r["clears_bar"], -r["delta_elpd"]))
     verdict = next((r["effect"] for r in rows if r["clears_bar"]), "none")
     J_base = {f"{h}": interval(J0[:, j]) for j, h in enumerate(J_HORIZONS_MS)}
-    return Ranking(base=base, fits=fits, rows=rows, verdict=verdict, J_base=J_base, failed=failed)
+    return Ranking(base=base, fits=fits, rows=rows, verdict=verdict, J_base=J_base, failed=failed,
+                   not_applicable=inapplicable)
 
 
 def k_checked_difference(a_i, b_i, k_b) -> tuple[float, float, float]:

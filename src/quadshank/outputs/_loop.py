@@ -152,6 +152,9 @@ def ranking_markdown(summary: Diagnosis, command: str | None = None) -> str:
     if failed:
         md += ["", "## Candidates that could not be screened", ""]
         md += [f"- **{f['effect']}**: {f['error']}" for f in failed]
+    if summary.not_applicable:
+        md += ["", "## Candidates that do not apply to these data (not screened)", ""]
+        md += [f"- **{f['effect']}**: {f['why']}" for f in summary.not_applicable]
     checks = summary.predictive_checks
     if checks:
         md += ["", "## Predictive checks of the baseline (LOO-PIT, pointwise ELPD in time)", ""]

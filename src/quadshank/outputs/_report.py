@@ -321,6 +321,10 @@ def _diagnosis_section(diagnosis: dict | None) -> str:
         for f in s.failed:
             parts.append(f'<p class="warning">Not screened: <strong>{_e(f.get("effect"))}</strong> '
                          f'({_e(f.get("error"))}).</p>')
+        if s.not_applicable:
+            parts.append('<p class="note">Not screened, as they do not apply to these data: '
+                         + "; ".join(f'<strong>{_e(f.get("effect"))}</strong> ({_e(f.get("why"))})'
+                                     for f in s.not_applicable) + ".</p>")
     if diagnosis.get("final_model"):
         parts.append(f"<p>Final model of the loop: <strong>{_e(diagnosis['final_model'])}</strong>.</p>")
     if diagnosis.get("mismatch"):
