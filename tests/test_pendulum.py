@@ -334,3 +334,7 @@ def test_the_loop_on_pendulum_tests_lists_the_muscle_candidates_as_not_applicabl
     d = Diagnosis(**ranking.to_json(), sentence=verdict_sentence(ranking), trials=[1])
     md = ranking_markdown(d)
     assert "do not apply to these data" in md and "**torque_angle_peak**: acts through the muscle" in md
+    # a diagnosis of a pendulum fit made on the acceleration screens by the acceleration
+    ranking = rank_effects(Cohort((t,)), "passive", effects=["torque_angle_peak", "accel_resonance"],
+                           n_draws=20, n_j_draws=10, start_stride=20, n_starts=0, objective="acceleration")
+    assert ranking.base.data.objective == "acceleration" and list(ranking.not_applicable) == ["torque_angle_peak"]

@@ -405,6 +405,8 @@ def _say_ranking(args, summary: Diagnosis) -> None:
                    f"J at 1 s {r['J_1000ms']['before']['median']:.3f} -> {r['J_1000ms']['after']['median']:.3f} deg{mark}")
     for f in summary.failed:
         _say(args, f"not screened: {f['effect']} ({f['error']})")
+    for f in summary.not_applicable:
+        _say(args, f"not applicable: {f['effect']} ({f['why']})")
     _say(args, f"verdict: {summary.verdict}. {summary.sentence}")
 
 
@@ -420,6 +422,7 @@ def cmd_diagnose(args) -> int:
         cohort, model, args.out, trials=tuple(desc["trials"]), legs=desc["legs"],
         effects=_csv_list(args.effects) if args.effects else None, command=command, progress=not args.quiet,
         confirm_from=args.fitdir if args.confirm else None, n_confirm=args.confirm,
+        objective=desc.get("likelihood", "acceleration"),  # the screens compare what the fit compared
     )
     _say_ranking(args, summary)
     _say(args, f"report: {Path(args.out) / 'report.md'}")

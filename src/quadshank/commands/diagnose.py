@@ -150,6 +150,7 @@ def run_diagnose(
     progress_label: str = "",
     confirm_from=None,
     n_confirm: int = 1,
+    objective: str = "auto",
 ) -> Diagnosis:
     """Rank the candidate effects for ``model``; writes figures, report.md and summary.json (last).
 
@@ -157,12 +158,13 @@ def run_diagnose(
     ``model`` on the same data; then the ``n_confirm`` best candidates that clear
     the screen's bar are refitted with NUTS (``out/confirm/fit-EFFECT``, the same
     settings) and the verdict is the best that clears the bar under NUTS too
-    (:func:`confirm_leaders`); the screen's own is kept as ``screen_verdict``."""
+    (:func:`confirm_leaders`); the screen's own is kept as ``screen_verdict``.  ``objective``: what
+    the screens' likelihood compares (the saved fit's ``likelihood``)."""
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     ranking = rank_effects(cohort, model, trials=trials, legs=legs, effects=effects, base=base, seed=seed,
-                           n_starts=n_starts, progress=progress, progress_label=progress_label)
+                           n_starts=n_starts, progress=progress, progress_label=progress_label, objective=objective)
     screen_verdict = ranking.verdict
     if confirm_from is not None:
         ranking.verdict = confirm_leaders(cohort, ranking, confirm_from, out / "confirm", n_confirm=n_confirm,

@@ -95,18 +95,19 @@ def candidates(model: Model) -> list[str]:
 MUSCLE_KINDS = ("activation", "gain", "pulse", "delay", "output", "noise")
 
 
-def not_applicable(model: Model, cohort: Cohort, effects, legs, trials) -> dict:
+def not_applicable(model: Model, cohort: Cohort, effects, legs, trials, objective: str = "auto") -> dict:
     """The effects of ``effects`` that cannot change ``model``'s likelihood on these data, and why.
 
     An effect acting through the muscle (:data:`MUSCLE_KINDS`) on a model without one
     (``--model passive``) or on trials that hold no pulse, and an effect on what the
-    accelerometer reads alone (``predicts_angle = False``) where the fit compares angles.
+    accelerometer reads alone (``predicts_angle = False``) where the fit compares angles
+    (``objective``, :func:`~quadshank.model._likelihood.resolve_objective`).
     They are listed, not screened: their ΔELPD could only be noise.
     """
     known = registered_effects()
     muscle = model.activation.name != "no_muscle"
     pulses = any(t.pulse_indices.size for leg in legs for t in cohort.trials_of(leg) if t.trial in trials)
-    by_angle = resolve_objective(model, "auto") == "angle"
+    by_angle = resolve_objective(model, objective) == "angle"
     out = {}
     for name in effects:
         cls = known[name]
@@ -247,6 +248,7 @@ def rank_effects(
     base: LaplaceFit | None = None,
     progress: bool = False,
     progress_label: str = "",
+    objective: str = "auto",
 ) -> Ranking:
     """Screen every one-effect extension of ``model``; returns a :class:`Ranking`.
 
@@ -255,7 +257,8 @@ def rank_effects(
     model fails on the measurements it has).  ``n_starts``: prior draws tried, besides the
     prior median, for the parameters an extension adds (:func:`quadshank.inference._screen.laplace_fit`).
     ``progress``: a progress bar over the candidates, naming the one being screened, its
-    description prefixed by ``progress_label`` (discover: the round).
+    description prefixed by ``progress_label`` (discover: the round).  ``objective``: what the
+    screens' likelihood compares (a saved fit's ``likelihood``; :func:`~quadshank.model._likelihood.resolve_objective`).
     """
     model = build_model(model, sampling_period_s=cohort.sampling_period_s) if isinstance(model, str) else model
     legs = tuple(legs) if legs is not None else cohort.legs
@@ -271,10 +274,10 @@ def rank_effects(
         have = {e.name for e in model.effects}
         offered = set(candidates(model)) | {e for e in effects if not known[e].candidate and e not in have}
         effects = [e for e in effects if e in offered]  # not those the model has (a later round of discover)
-    inapplicable = not_applicable(model, cohort, effects, legs, trials)
+    inapplicable = not_applicable(model, cohort, effects, legs, trials, objective)
     effects = [e for e in effects if e not in inapplicable]
 
-    kw = dict(n_draws=n_draws, seed=seed, n_starts=n_starts)
+    kw = dict(n_draws=n_draws, seed=seed, n_starts=n_starts, objective=objective)
     if base is None:
         base = laplace_fit(cohort, model, trials, legs, **kw)
     J0 = j_draws(base, cohort, eval_trials, n_draws=n_j_draws, start_stride=start_stride)
