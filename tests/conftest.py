@@ -6,6 +6,9 @@ built-in effect.
 """
 
 import dataclasses
+import os
+import shutil
+import tempfile
 
 from quadshank import Effect, Param, register_effect
 
@@ -71,3 +74,37 @@ LONGEST_FIRST = (
 def pytest_collection_modifyitems(items):
     rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: order within a file kept
+
+
+#: Programs that took at least this long to compile [s] are kept in the run's compilation cache.
+XLA_CACHE_MIN_COMPILE_S = "0.2"
+
+
+def pytest_configure(config):
+    """One persistent XLA compilation cache for the whole run, shared by both workers, every test
+    file and the command-line subprocesses: a program that one test compiled (the same model on
+    data of the same shape, under a new closure or in another process) is loaded, not compiled
+    again.  Compilation is most of the suite's time.  The cache starts empty in a temporary
+    folder (a run never inherits another's) and is removed at the end; a cache the caller set
+    (``JAX_COMPILATION_CACHE_DIR``) is used as it is."""
+    if hasattr(config, "workerinput") or os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return  # a worker: its environment, the cache included, is the controller's
+    folder = tempfile.mkdtemp(prefix="quadshank-xla-cache-")
+    config.stash[_CACHE] = folder
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = folder  # read by workers and subprocesses at import
+    os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = XLA_CACHE_MIN_COMPILE_S
+    os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "-1"
+    import jax  # already imported here (the effect above): without workers, this process compiles
+
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(XLA_CACHE_MIN_COMPILE_S))
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+
+
+def pytest_unconfigure(config):
+    folder = config.stash.get(_CACHE, None)
+    if folder:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+_CACHE = pytest.StashKey[str]()
