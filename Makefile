@@ -42,4 +42,4 @@ bench: $(BIN)/.installed
 	$(BIN)/python benchmarks/bench_jphi.py
 
 clean:
-	rm -rf $(VENV) results/demo notebooks/_work .jax-cache
+	rm -rf $(VENV) results/demo notebooks/_work

@@ -33,11 +33,13 @@ def write_section(path: str | Path, name: str, text: str) -> None:
 def run_quadshank(*args: str, env: dict | None = None) -> float:
     """Run ``quadshank -q ARGS`` in a fresh process, as a user runs it; its wall time [s].  Exit code 3
     (a fit that ran and failed its checks, which the benchmark's record shows) is not an error.
-    ``env``: variables set for that process on top of this one's."""
+    ``env``: variables set for that process on top of this one's.  The command line's compilation
+    cache is off unless ``env`` sets it (``QUADSHANK_XLA_CACHE``): a time measured with compilation
+    included must not depend on what earlier commands left on disk."""
     cli = "import sys; from quadshank.cli import main; sys.exit(main())"
     t = time.perf_counter()
     proc = subprocess.run([sys.executable, "-c", cli, "-q", *args], capture_output=True, text=True,
-                          env={**os.environ, **(env or {})})
+                          env={**os.environ, "QUADSHANK_XLA_CACHE": "off", **(env or {})})
     seconds = time.perf_counter() - t
     if proc.returncode not in (0, 3):
         raise RuntimeError(f"quadshank {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")

@@ -162,3 +162,30 @@ def test_a_truth_json_of_another_kind_is_left_aside(data, tmp_path, capsys):
     assert "truth.json: not the simulator's truth" in capsys.readouterr().err
     s = json.loads((tmp_path / "id" / "summary.json").read_text())["legs"]
     assert all("recovery" not in v for v in s.values())
+
+
+def test_the_command_line_keeps_compiled_programs_in_a_cache_on_disk(tmp_path):
+    """``QUADSHANK_XLA_CACHE`` names the cache's folder and ``off`` turns it off; without it the
+    cache is under ``$XDG_CACHE_HOME``; a cache the caller chose for JAX is kept."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import jax; from quadshank.common import _xla_cache as c; c.MIN_COMPILE_S = 0.0; "
+            "f = c.use_compilation_cache(); jax.jit(lambda x: jax.numpy.sin(x) * 2.0)(1.0).block_until_ready(); "
+            "print(f)")
+    base = {k: v for k, v in os.environ.items()
+            if not k.startswith(("JAX_COMPILATION_CACHE", "JAX_PERSISTENT_CACHE", "QUADSHANK_XLA_CACHE"))}
+
+    def run(**env) -> str:
+        proc = subprocess.run([sys.executable, "-c", code], env={**base, **env}, capture_output=True, text=True)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        return proc.stdout.strip()
+
+    folder = tmp_path / "cache"
+    assert run(QUADSHANK_XLA_CACHE=str(folder)) == str(folder) and any(folder.iterdir())
+    assert run(QUADSHANK_XLA_CACHE="off") == "None"
+    xdg = tmp_path / "xdg"
+    assert run(XDG_CACHE_HOME=str(xdg)) == str(xdg / "quadshank" / "xla") and any((xdg / "quadshank" / "xla").iterdir())
+    mine = tmp_path / "mine"
+    assert run(QUADSHANK_XLA_CACHE=str(folder), JAX_COMPILATION_CACHE_DIR=str(mine)) == str(mine)

@@ -24,6 +24,7 @@ from .commands.recovery import run_likelihood_calibration, run_recovery
 from .commands.report import Report, run_report
 from .commands.reproduce import Reproduction, run_reproduce
 from .common._io import read_json
+from .common._xla_cache import use_compilation_cache
 from .data._interchange import DataWarning, convert, load_cohort, write_interchange
 from .data._paper import LEGS
 from .data._simulate import simulate_cohort, write_truth
@@ -796,6 +797,7 @@ def main(argv: list[str] | None = None) -> int:
     args.argv = argv
     # the command line draws only into files: no window, whatever the display
     matplotlib.use("Agg")
+    use_compilation_cache()  # a program compiled by an earlier command is loaded, not compiled again
     mark = None
     try:
         if args.command == "convert":
