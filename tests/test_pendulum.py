@@ -309,11 +309,29 @@ def test_the_residual_figures_of_a_pendulum_fit_leave_out_what_has_no_pulses(tmp
     from quadshank.outputs import residual_figures
     from quadshank.outputs._loop import screen_residuals
 
+    import warnings
+
     t = _realistic(PASSIVE, 0, gravity_angle=8.0)
     screen = laplace_fit(Cohort((t,)), build_model("passive"), n_draws=20)
     assert screen.data.objective == "angle"
-    paths, notes = residual_figures(screen_residuals(screen), tmp_path, "baseline", DT)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no division by a stimulation that is all zero, no empty legend
+        paths, notes = residual_figures(screen_residuals(screen), tmp_path, "baseline", DT)
     assert paths and all(p.exists() for p in paths) and "PT-left" in notes
+    assert not any(p.name.startswith("twitch_average") for p in paths)  # no pulse to average over
+
+
+def test_discover_starts_from_the_pendulum_alone_on_the_command_line(tmp_path):
+    """`discover --model passive`: the loop on pendulum tests finds the rest off the vertical, and
+    names the muscle's candidates as not applicable."""
+    data = write_interchange(Cohort((_realistic(PASSIVE, 0, gravity_angle=8.0),)), tmp_path / "data")
+    out = tmp_path / "loop"
+    assert main(["-q", "discover", str(data), "--model", "passive", "--max-rounds", "1",
+                 "--effects", "gravity_offset,goniometer_offset,potentiation", "--out", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["rounds"][0]["model"] == "passive" and s["added"][0] in ("gravity_offset", "goniometer_offset")
+    r1 = json.loads((out / "round-1" / "summary.json").read_text())
+    assert [x["effect"] for x in r1["not_applicable"]] == ["potentiation"]
 
 
 def test_the_loop_on_pendulum_tests_lists_the_muscle_candidates_as_not_applicable(tmp_path):

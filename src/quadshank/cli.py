@@ -34,7 +34,7 @@ from .inference._fitio import FitResult, read_summary
 from .inference._identify import Identification, load_identification
 from .inference._nuts import SEQUENTIAL_FROM_SAMPLES, STARTS, FitSettings
 from .loop._diagnose import Diagnosis, Discovery
-from .model._model import FIT_MODELS, MODELS
+from .model._model import FIT_MODELS
 from .model._plugins import load_effects_file, load_entry_point_effects
 
 __all__ = ["main"]
@@ -690,7 +690,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     dc = sub.add_parser("discover", help="the modelling loop in one command: diagnose, add the leading effect, repeat")
     dc.add_argument("data", help="interchange folder or .nc cohort file")
-    dc.add_argument("--model", choices=list(MODELS), default="model3s")
+    dc.add_argument("--model", choices=list(FIT_MODELS), default="model3s",
+                    help="the model the loop starts from (default model3s; passive for pendulum tests)")
     dc.add_argument("--trials", default="1", help="identification trials, comma-separated (default 1)")
     dc.add_argument("--legs", default="", help="legs, comma-separated (default: all in the data)")
     dc.add_argument("--effects", default="", help="candidate effects, comma-separated (default: every registered candidate)")

@@ -382,7 +382,7 @@ def loo_pit_summary(pit, n_independent: int) -> dict:
     return {"distance": distance, "band": band, "tail_share": tails, "mean": mean, "n": n, "notes": notes}
 
 
-def findings(trends: dict[str, dict], acf_result: dict, ccf_result: dict, alpha: float = 0.01) -> list[str]:
+def findings(trends: dict[str, dict], acf_result: dict, ccf_result: dict | None, alpha: float = 0.01) -> list[str]:
     """Plain sentences for what stands out; ``[]`` when nothing does.
 
     One sentence per feature whose trend has ``p_value < alpha`` (naming the
@@ -392,6 +392,7 @@ def findings(trends: dict[str, dict], acf_result: dict, ccf_result: dict, alpha:
     (binomial probability below ``alpha`` at 5 % per lag: ≥ 9 of 50 at
     alpha = 0.01) or one lag leaves the Bonferroni band at ``alpha``; the
     literal "any lag outside the 95 % band" would flag most white residuals.
+    ``ccf_result`` is ``None`` where the trials hold no pulse.
     """
     out = []
     for key, t in trends.items():
@@ -413,7 +414,7 @@ def findings(trends: dict[str, dict], acf_result: dict, ccf_result: dict, alpha:
             f"the residual is autocorrelated beyond the 95 % band at {acf_result['n_outside']} of {n_lags} lags: "
             "the model misses dynamics"
         )
-    flagged, lags = _significant_lags(ccf_result, alpha)
+    flagged, lags = _significant_lags(ccf_result, alpha) if ccf_result is not None else (False, ())
     if flagged:
         out.append(
             f"the residual is correlated with the stimulation at lag{'s' if len(lags) > 1 else ''} "

@@ -33,15 +33,18 @@ def residual_figures(residuals: dict[str, dict], out, label: str, dt: float) -> 
         trends = {k: R.binned_trend(r["residual"], v, r["sample_mask"]) for k, v in feats.items()
                   if np.count_nonzero(np.isfinite(v) & np.asarray(r["sample_mask"], bool)) >= 2}
         ac = R.acf(r["residual"], r["sample_mask"])
-        cc = R.ccf(r["residual"], r["stimulation"], r["sample_mask"])
+        # a pendulum test: no stimulation to correlate with, no twitch to average over
+        pulses = bool(np.any(np.nan_to_num(np.asarray(r["stimulation"], float)) > 0))
+        cc = R.ccf(r["residual"], r["stimulation"], r["sample_mask"]) if pulses else None
         found = R.findings(trends, ac, cc)
         notes[leg] = found
         stem = f"{label}_{leg}"
         paths.append(F.plot_trends(trends, out / f"residual_trends_{stem}.png", notes=found))
         paths.append(F.plot_correlations(ac, cc, out / f"residual_correlation_{stem}.png", notes=found))
-        groups = np.where(r["angle"] < -20.0, "pulse below -20°", "pulse above -20°")
-        tta = R.twitch_triggered_average(r["residual"], r["stimulation"], r["sample_mask"], groups=groups)
-        paths.append(F.plot_twitch_average(tta, out / f"twitch_average_{stem}.png", dt, notes=found))
+        if pulses:
+            groups = np.where(r["angle"] < -20.0, "pulse below -20°", "pulse above -20°")
+            tta = R.twitch_triggered_average(r["residual"], r["stimulation"], r["sample_mask"], groups=groups)
+            paths.append(F.plot_twitch_average(tta, out / f"twitch_average_{stem}.png", dt, notes=found))
         spec = R.spectrum(r["residual"], r["sample_mask"], dt)
         peak = R.spectrum_finding(spec)
         found.extend(peak)

@@ -70,13 +70,19 @@ def _stems(ax, result, title):
 
 
 def plot_correlations(acf_result: dict, ccf_result: dict, path, notes: list[str] | None = None):
-    """Autocorrelation of the residual and its cross-correlation with the stimulation, with 95 % bands."""
+    """Autocorrelation of the residual and its cross-correlation with the stimulation, with 95 % bands
+    (``ccf_result`` ``None``: no pulses, the panel says so)."""
     fig, axes = _figure(1, 2, 5.5, 3.6, notes)
     band = f"shaded: ±1.96/√N, N = {acf_result['n']}, 95 % of a white residual's lags"
     _stems(axes[0, 0], acf_result, f"residual autocorrelation\n({band})")
     axes[0, 0].set_ylabel("autocorrelation")
-    _stems(axes[0, 1], ccf_result, f"stimulation(k) vs residual(k + lag)\n({band})")
-    axes[0, 1].set_ylabel("cross-correlation")
+    if ccf_result is None:  # a pendulum test
+        axes[0, 1].text(0.5, 0.5, "no pulses in these trials:\nno stimulation to correlate with", ha="center",
+                        va="center", transform=axes[0, 1].transAxes)
+        axes[0, 1].set_axis_off()
+    else:
+        _stems(axes[0, 1], ccf_result, f"stimulation(k) vs residual(k + lag)\n({band})")
+        axes[0, 1].set_ylabel("cross-correlation")
     return _save(fig, path, notes)
 
 
