@@ -157,7 +157,7 @@ def test_candidates_that_cannot_change_the_likelihood_are_named_with_the_reason(
     muscle = {e for e in offered if known[e].kind in MUSCLE_KINDS}
     assert muscle and set(found) == muscle | {"accel_resonance"}
     assert {"gravity_offset", "goniometer_offset"} <= set(offered) - set(found)
-    assert "passive has none" in found["torque_angle_peak"] and "compares angles" in found["accel_resonance"]
+    assert "passive is the pendulum alone" in found["torque_angle_peak"] and "compares angles" in found["accel_resonance"]
 
     model3 = build_model("model3")
     offered = candidates(model3)
@@ -166,3 +166,12 @@ def test_candidates_that_cannot_change_the_likelihood_are_named_with_the_reason(
     assert "hold no pulse" in found["potentiation"]
     one_pulse = Cohort((t.replace(stimulation=(np.arange(t.n_samples) == 200).astype(float)),))
     assert not_applicable(model3, one_pulse, offered, one_pulse.legs, (1,)) == {}
+
+
+def test_nothing_found_names_the_features_the_residuals_were_screened_against():
+    """A pendulum test has no interpulse interval or pulse count: the sentence does not claim them."""
+    from quadshank.evaluation._structure import NOTHING_FOUND, nothing_found
+
+    said = nothing_found({"screened": {"angle": {}, "velocity": {}, "time": {}}})
+    assert said == "The residuals change with none of knee angle, angular velocity and time in trial beyond chance."
+    assert nothing_found({"screened": {}}) == NOTHING_FOUND

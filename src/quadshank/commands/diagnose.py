@@ -11,7 +11,7 @@ from ..common._progress import progress_bar
 from ..data._cohort import Cohort
 from ..evaluation._blackbox import blackbox_j
 from ..evaluation._posterior import LoadedFit, load_fits, psis_loo
-from ..evaluation._structure import NOTHING_FOUND, residual_structure, structure_sentence
+from ..evaluation._structure import nothing_found, residual_structure, structure_sentence
 from ..inference._nuts import FitSettings
 from ..inference._screen import LaplaceFit, paired_difference
 from ..loop._diagnose import (
@@ -187,7 +187,7 @@ def run_diagnose(
     result.unexplained = residual_structure(residuals, dt, ranking.base.data.response_length)
     left = structure_sentence(result.unexplained)
     if ranking.verdict == "none":
-        result.sentence += " " + (left or NOTHING_FOUND)
+        result.sentence += " " + (left or nothing_found(result.unexplained))
     if figures:
         paths, result.predictive_checks = predictive_checks(ranking.base, cohort, out, "baseline")
         more, result.residual_findings = residual_figures(residuals, out, "baseline", dt)

@@ -40,7 +40,7 @@ from ..evaluation._prediction import (
     table_v,
 )
 from ..evaluation._residuals import fit_residuals
-from ..evaluation._structure import NOTHING_FOUND, residual_structure, structure_sentence
+from ..evaluation._structure import nothing_found, residual_structure, structure_sentence
 from ..inference._fitio import posterior_models
 from ..inference._summaries import INTERVAL
 from ..model._likelihood import prepare
@@ -159,7 +159,7 @@ def _residual_section(fits: list[LoadedFit], cohort: Cohort, out: Path, md: list
         md.append("")
         for leg, lines in notes.items():
             md.append(f"- {leg}: " + (" ".join(lines) if lines else "nothing stands out."))
-        md.append("- " + (words or NOTHING_FOUND))
+        md.append("- " + (words or nothing_found(left)))
         md += ["", *[f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in paths], ""]
     return findings, structure
 

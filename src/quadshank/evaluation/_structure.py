@@ -47,7 +47,7 @@ from scipy import stats
 
 from . import _residuals as R
 
-__all__ = ["residual_structure", "structure_sentence", "KIND_HINTS", "NOTHING_FOUND"]
+__all__ = ["residual_structure", "structure_sentence", "KIND_HINTS", "NOTHING_FOUND", "nothing_found"]
 
 #: Feature -> (where the structure shows) -> the kind of effect that would describe it, in words.
 #: "passive": as strong between twitches as during them; "active": during twitches only.
@@ -92,9 +92,20 @@ OFFSET_HINTS = {
     "active": "twitches too large or too small on average: the twitch's gain or its shape (kind 'gain' or "
               "'activation')",
 }
-#: What is said when no feature is named and the residual is not locked to the stimulation.
+#: What is said when no feature is named and the residual is not locked to the stimulation, where
+#: the features screened are not known (:func:`nothing_found` names them).
 NOTHING_FOUND = ("The residuals change with none of knee angle, velocity, time in trial, interpulse interval, pulse "
                  "count and recruitment level beyond chance.")
+
+
+def nothing_found(structure: dict) -> str:
+    """What is said when :func:`residual_structure` named no feature: the features the residuals
+    were screened against, those the data have (a pendulum test has no pulse count)."""
+    words = [R.FEATURE_WORDS.get(k, (k, ""))[0] for k in structure.get("screened", {})]
+    if not words:
+        return NOTHING_FOUND
+    listed = words[0] if len(words) == 1 else f"{', '.join(words[:-1])} and {words[-1]}"
+    return f"The residuals change with none of {listed} beyond chance."
 TWITCH_LOCKED_HINT = "the twitch's shape or timing: an effect of kind 'activation' or 'delay'"
 
 #: Fewer masked-in samples than this on one side (quiet, during twitches) and the side is not judged.

@@ -112,7 +112,7 @@ def not_applicable(model: Model, cohort: Cohort, effects, legs, trials, objectiv
     for name in effects:
         cls = known[name]
         if cls.kind in MUSCLE_KINDS and not muscle:
-            out[name] = f"acts through the muscle, and {model.name} has none (the pendulum alone)"
+            out[name] = f"acts through the muscle, and {model.name} is the pendulum alone"
         elif cls.kind in MUSCLE_KINDS and not pulses:
             out[name] = f"acts through the stimulation, and trial(s) {', '.join(map(str, trials))} hold no pulse"
         elif not cls.predicts_angle and cls.kind == "measurement" and by_angle:
