@@ -30,6 +30,7 @@ from ..model._model import Model, equivalent_acceleration
 __all__ = [
     "FEATURE_LABELS", "features", "binned_trend", "acf", "ccf", "twitch_triggered_average", "spectrum",
     "findings", "spectrum_finding", "loo_pit_summary", "point_residuals", "fit_residuals", "leg_residuals",
+    "has_pulses",
 ]  # fmt: skip
 
 FEATURE_LABELS = {
@@ -126,6 +127,12 @@ def _significant_lags(result: dict, alpha: float) -> tuple[bool, np.ndarray]:
 
 
 # ----------------------------------------------------------------------------- numerics
+
+
+def has_pulses(stimulation) -> bool:
+    """Whether a residual's stimulation holds a pulse; without one (a pendulum test) there is nothing
+    to correlate the residual with or to average it over."""
+    return bool(np.any(np.nan_to_num(np.asarray(stimulation, float)) > 0))
 
 
 def features(angle, velocity, stimulation, sample_mask, trial_start, dt: float = 0.01) -> dict[str, np.ndarray]:

@@ -244,7 +244,7 @@ def residual_structure(residuals: dict[str, dict], dt: float, response_samples: 
         remaining.remove(key)
     locked = []
     for leg, r in residuals.items():
-        if not np.any(np.nan_to_num(np.asarray(r["stimulation"], float)) > 0):
+        if not R.has_pulses(r["stimulation"]):
             continue  # a pendulum test: nothing to correlate with
         cc = R.ccf(r["residual"], r["stimulation"], r["sample_mask"])
         if R._significant_lags(cc, alpha)[0]:

@@ -33,8 +33,7 @@ def residual_figures(residuals: dict[str, dict], out, label: str, dt: float) -> 
         trends = {k: R.binned_trend(r["residual"], v, r["sample_mask"]) for k, v in feats.items()
                   if np.count_nonzero(np.isfinite(v) & np.asarray(r["sample_mask"], bool)) >= 2}
         ac = R.acf(r["residual"], r["sample_mask"])
-        # a pendulum test: no stimulation to correlate with, no twitch to average over
-        pulses = bool(np.any(np.nan_to_num(np.asarray(r["stimulation"], float)) > 0))
+        pulses = R.has_pulses(r["stimulation"])
         cc = R.ccf(r["residual"], r["stimulation"], r["sample_mask"]) if pulses else None
         found = R.findings(trends, ac, cc)
         notes[leg] = found
