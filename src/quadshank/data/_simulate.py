@@ -20,13 +20,12 @@ Passive system, eq. (8) with φ in degrees (the sine takes φ·π/180)::
     φ̈ = M/I − D'·φ̇ − G'·sin φ + k1'·(exp(−k2·φ) − 1)
 
 The knee has no end of range in extension: the rare large swings of random
-stimulation are free to pass full extension (see the extremes below).  A
-steep passive stop past 75° (or 90°) was tried and left out: the models'
-passive part is eq. (8), and fits that see the stop's rare, large
-accelerations bend their passive parameters to absorb them (classical
-identification put k2 near 0 and k1 at 1000–8000 deg/s²; the modelling
-loop's model3s on one minute of JM-left with potentiation went from 3.5°
-to 14–16° at 500 ms).
+stimulation are free to pass full extension (see the extremes below).  The models' passive part
+is eq. (8), and a steep passive stop in the data is a misfit every model shares: a stop past 85°
+(and below −60°) that touches 14 of the 30 000 samples of a trial puts JM-left's classical k1'
+at 1 instead of 20, and in the cohort with hidden potentiation (0.25 % of samples) a model
+with potentiation predicts the stopped swings too large, so that the loop rejects the hidden
+effect although its evidence is the largest (docs/limits.md).
 
 Active system: every pulse j (time t_j, recruitment u_j) adds a twitch of
 equivalent acceleration ``u_j·A·h(t − t_j − τ)`` with
