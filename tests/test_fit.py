@@ -535,3 +535,34 @@ def test_auto_chain_method_runs_large_data_one_chain_after_another():
     assert chain_method(FitSettings(chain_method="sequential"), small) == "sequential"
     with pytest.raises(ValueError, match="chain_method must be one of"):
         FitSettings(chain_method="threads")
+
+
+def test_the_noise_starts_at_the_fits_own_density_where_the_screen_held_a_threshold(monkeypatch):
+    """The screen optimises a step delay effect's threshold that the fit sums out, and the pulses
+    it places on the wrong side look like outliers to it: on 30 s of TN-left (model3s +
+    angle_delay) its ν is about 4 with a Laplace sd of 0.07 in log ν, where the fit's posterior
+    has ν near 37 and an sd near 0.3.  The chains' start and metric for σ and ν come from the
+    fit's own density instead."""
+    import quadshank.inference._nuts as nuts
+
+    seen = {}
+    moved = nuts._noise_at_the_fits_density
+
+    def spy(conditioned, arrays, names, shapes, offsets, noise, inits, imm, seed):
+        seen["before"] = inits[:, noise].copy(), np.sqrt(np.diag(imm)[noise])
+        moved(conditioned, arrays, names, shapes, offsets, noise, inits, imm, seed)
+        seen["after"] = inits[:, noise].copy(), np.sqrt(np.diag(imm)[noise])
+        rest = np.setdiff1d(np.arange(imm.shape[0]), noise)
+        assert np.all(imm[np.ix_(noise, rest)] == 0.0)  # uncorrelated with the rest
+
+    monkeypatch.setattr(nuts, "_noise_at_the_fits_density", spy)
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.5, seed=2, effects=["angle_delay"], trials=(1,))
+    fit(cohort, build_model("model3s", ["angle_delay"]), FitSettings(chains=2, warmup=5, draws=5, seed=2), progress=False)
+    (start0, sd0), (start1, sd1) = seen["before"], seen["after"]  # columns: log σ, log ν
+    assert start0[:, 1].mean() < 2.0 and sd0[1] < 0.1  # the screen's
+    assert start1[:, 1].mean() > 2.3 and 0.2 < sd1[1] < 0.6  # the fit's
+    assert abs(start1[:, 0].mean() - start0[:, 0].mean()) < 0.2  # σ moves little
+
+    seen.clear()  # without a summed-out threshold the screen's density is the fit's: nothing moves
+    fit(cohort, build_model("model3s"), FitSettings(chains=1, warmup=5, draws=5, seed=2), progress=False)
+    assert not seen
