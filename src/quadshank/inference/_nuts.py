@@ -31,6 +31,7 @@ from numpyro.infer import MCMC, NUTS, init_to_median, init_to_uniform
 from numpyro.infer.util import potential_energy
 from scipy import optimize
 
+from ..common._random import numpy_rng
 from ..data._cohort import Cohort
 from ..model._likelihood import (
     N_DELAYS,
@@ -329,7 +330,7 @@ def _noise_at_the_fits_density(conditioned, arrays, names, shapes, offsets, nois
     imm[noise, :] = 0.0
     imm[:, noise] = 0.0
     imm[np.ix_(noise, noise)] = cov
-    rng = np.random.default_rng([seed, 7])
+    rng = numpy_rng(seed, "noise start")
     inits[:, noise] = mode[None, :] + (rng.standard_normal((inits.shape[0], n)) / np.sqrt(w)[None, :]) @ V.T
 
 
