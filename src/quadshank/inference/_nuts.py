@@ -43,7 +43,7 @@ from ..model._model import Model
 from ._density import numpyro_model
 from ._draws import hyper_draws
 from ._priors import model_params, step_param
-from ._screen import delay_modes, laplace_fit, restart_screen
+from ._screen import _hessian, delay_modes, laplace_fit, restart_screen
 from ._starts import _init_near, classical_start
 from ._summaries import THRESHOLDS
 
@@ -317,13 +317,9 @@ def _noise_at_the_fits_density(conditioned, arrays, names, shapes, offsets, nois
     res = optimize.minimize(f, base[noise], jac=True, method="L-BFGS-B")
     if not np.isfinite(res.fun):
         return
-    mode, n, h = np.asarray(res.x, np.float64), noise.size, 1e-4
-    H = np.empty((n, n))
-    for j in range(n):  # central differences of the exact gradient (a Hessian of a few entries)
-        e = np.zeros(n)
-        e[j] = h
-        H[:, j] = (f(mode + e)[1] - f(mode - e)[1]) / (2.0 * h)
-    w, V = np.linalg.eigh(0.5 * (H + H.T))
+    mode, n = np.asarray(res.x, np.float64), noise.size
+    H = _hessian(lambda v, _: value_and_grad(v), mode, None, step=1e-4)  # a Hessian of a few entries
+    w, V = np.linalg.eigh(H)
     if not (np.all(np.isfinite(w)) and np.all(w > 0)):
         return
     cov = (V / w[None, :]) @ V.T
