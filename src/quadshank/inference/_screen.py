@@ -222,6 +222,11 @@ def _leg_arrays64(data: LikelihoodData) -> dict:
 
 _COMPILED: dict = {}
 
+#: Whether a screen started from another one seeks its modes in the coordinates that screen's
+#: Laplace covariance whitens (:func:`_start_whitening`); ``False`` (the plain standardised
+#: coordinates) is kept for ``benchmarks/bench_discover.py``, which measures the difference.
+WHITEN_FROM_START = True
+
 
 def _compiled(model: Model, specs: list[_Spec], R: int, K: int, n_segments: int, objective: str = "acceleration"):
     """The jitted functions of one model structure and its priors, made once per process
@@ -360,7 +365,8 @@ def _laplace_fit(
             known = {k: v for k, v in start.z_values(leg).items() if any(s.name == k for s in specs)}
             zs = start.z_values(leg)
             log_sigma, log_nu = float(zs["log_sigma"]), float(zs["log_nu"])
-            S = _start_whitening(start, leg, specs)
+            if WHITEN_FROM_START:
+                S = _start_whitening(start, leg, specs)
         else:
             known = {k[: -len("_s_leg")]: (v[..., i] if np.ndim(v) > 1 else v[i]) for k, v in classical.items()}
             sizes = {sp.name: sp.size for sp in specs}
@@ -372,7 +378,7 @@ def _laplace_fit(
         for j in range(n_try):
             v0 = _start_vector(specs, known, log_sigma, log_nu, rng, draw_unknown=j > 0)
 
-            def f(u, x=x, v0=v0):
+            def f(u, x=x, v0=v0, S=S):
                 val, g = value_and_grad(jnp.asarray(v0 + S @ u, jnp.float64), x)
                 return float(val), S.T @ np.asarray(g, np.float64)
 
