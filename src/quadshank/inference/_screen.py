@@ -323,7 +323,9 @@ def laplace_fit(cohort: Cohort, model: Model, trials=(1,), legs=None, **kw) -> L
     ``n_draws``, ``seed``, ``max_iter``, ``loo`` (False: no pointwise
     log-likelihood and PSIS-LOO, whose ELPD fields are then NaN; the posterior
     alone, for a quicker look), ``objective`` (what the likelihood compares,
-    :func:`quadshank.model._likelihood.resolve_objective`).  Runs in double precision: the log
+    :func:`quadshank.model._likelihood.resolve_objective`), ``whiten`` (False: from ``start``,
+    L-BFGS in the plain standardised coordinates, not those :func:`_start_whitening`
+    gives).  Runs in double precision: the log
     posterior of thousands of samples is ~1e5, and single precision leaves
     L-BFGS and the Hessian with a noise of order one at the mode.
     """
@@ -344,6 +346,7 @@ def _laplace_fit(
     max_iter: int = 400,
     loo: bool = True,
     objective: str = "auto",
+    whiten: bool = True,
 ) -> LaplaceFit:
     data = prepare(cohort, model, trials=trials, legs=legs, objective=objective)
     specs = _specs(model)
@@ -365,7 +368,7 @@ def _laplace_fit(
             known = {k: v for k, v in start.z_values(leg).items() if any(s.name == k for s in specs)}
             zs = start.z_values(leg)
             log_sigma, log_nu = float(zs["log_sigma"]), float(zs["log_nu"])
-            if WHITEN_FROM_START:
+            if WHITEN_FROM_START and whiten:
                 S = _start_whitening(start, leg, specs)
         else:
             known = {k[: -len("_s_leg")]: (v[..., i] if np.ndim(v) > 1 else v[i]) for k, v in classical.items()}
@@ -533,8 +536,11 @@ def restart_screen(screen: LaplaceFit, cohort: Cohort, starts: dict[str, np.ndar
     mode = screen.mode.copy()
     for leg, v in starts.items():
         mode[screen.legs.index(leg)] = v
+    # the plain coordinates: the start is already a mode, one delay's, found whitened by
+    # delay_modes; L-BFGS only carries it to the mode of the posterior with d summed out
     return laplace_fit(cohort, screen.model, trials=trials, legs=screen.legs, start=dataclasses.replace(screen, mode=mode),
-                       n_starts=0, n_draws=screen.draws.shape[1], seed=seed, loo=False, objective=screen.data.objective)
+                       n_starts=0, n_draws=screen.draws.shape[1], seed=seed, loo=False, objective=screen.data.objective,
+                       whiten=False)
 
 
 def delta_elpd(a: LaplaceFit, b: LaplaceFit) -> tuple[float, float]:
