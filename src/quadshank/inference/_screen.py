@@ -274,6 +274,15 @@ def _hessian(value_and_grad, mode: np.ndarray, x: dict, step: float = 1e-5) -> n
     return 0.5 * (H + H.T)
 
 
+def _positions(specs: list[_Spec]) -> tuple[dict[str, range], int]:
+    """Where each parameter's components lie in the screen's vector, and where log σ starts."""
+    at, k = {}, 0
+    for sp in specs:
+        at[sp.name] = range(k, k + sp.size)
+        k += sp.size
+    return at, k
+
+
 def _start_whitening(start: LaplaceFit, leg: str, specs: list[_Spec]) -> np.ndarray:
     """The linear map ``S`` (v = v0 + S u) under which L-BFGS seeks a mode started from the
     screen ``start`` of a related model: for the parameters the two share (log σ and log ν
@@ -284,18 +293,11 @@ def _start_whitening(start: LaplaceFit, leg: str, specs: list[_Spec]) -> np.ndar
     its iteration limit short of the mode; started from the baseline's mode, a one-effect
     extension then takes 20–120 (the same whitening as :func:`delay_modes`)."""
     i = start.legs.index(leg)
-    offsets, j = {}, 0
-    for sp in start.specs:
-        offsets[sp.name] = (j, sp.size)
-        j += sp.size
-    mine, theirs, k = [], [], 0
-    for sp in specs:
-        if sp.name in offsets and offsets[sp.name][1] == sp.size:
-            mine += range(k, k + sp.size)
-            theirs += range(offsets[sp.name][0], offsets[sp.name][0] + sp.size)
-        k += sp.size
-    mine += [k, k + 1]  # log σ, log ν
-    theirs += [j, j + 1]
+    at, k = _positions(specs)
+    at_start, j = _positions(start.specs)
+    shared = [name for name in at if len(at_start.get(name, ())) == len(at[name])]
+    mine = [p for name in shared for p in at[name]] + [k, k + 1]  # then log σ, log ν
+    theirs = [p for name in shared for p in at_start[name]] + [j, j + 1]
     w, V = np.linalg.eigh(start.covariance[i][np.ix_(theirs, theirs)])
     S = np.eye(k + 2)
     S[np.ix_(mine, mine)] = V * np.sqrt(np.clip(w, 1e-12, None))[None, :]
