@@ -304,6 +304,18 @@ def _start_whitening(start: LaplaceFit, leg: str, specs: list[_Spec]) -> np.ndar
     return S
 
 
+def _minimize_from(value_and_grad, v0: np.ndarray, S: np.ndarray, x: dict, max_iter: int):
+    """L-BFGS of ``value_and_grad`` (the negative log posterior and its gradient) over
+    v = v0 + S u from u = 0; returns scipy's result (in u) and the v it ends at."""
+
+    def f(u):
+        val, g = value_and_grad(jnp.asarray(v0 + S @ u, jnp.float64), x)
+        return float(val), S.T @ np.asarray(g, np.float64)
+
+    res = optimize.minimize(f, np.zeros(v0.size), jac=True, method="L-BFGS-B", options={"maxiter": max_iter})
+    return res, v0 + S @ res.x
+
+
 def _start_vector(specs, known: dict, log_sigma: float, log_nu: float, rng, draw_unknown: bool) -> np.ndarray:
     parts = []
     for s in specs:
@@ -383,13 +395,9 @@ def _laplace_fit(
         for j in range(n_try):
             v0 = _start_vector(specs, known, log_sigma, log_nu, rng, draw_unknown=j > 0)
 
-            def f(u, x=x, v0=v0, S=S):
-                val, g = value_and_grad(jnp.asarray(v0 + S @ u, jnp.float64), x)
-                return float(val), S.T @ np.asarray(g, np.float64)
-
-            res = optimize.minimize(f, np.zeros(dim), jac=True, method="L-BFGS-B", options={"maxiter": max_iter})
+            res, v = _minimize_from(value_and_grad, v0, S, x, max_iter)
             if np.isfinite(res.fun) and (best is None or res.fun < best[0].fun):
-                best = (res, v0 + S @ res.x)
+                best = (res, v)
         if best is None:
             raise FloatingPointError(f"{leg}: the screen of {model.name} found no finite posterior density")
         best, mode = best[0], np.asarray(best[1], np.float64)
@@ -516,14 +524,10 @@ def _delay_modes(screen: LaplaceFit, max_iter: int) -> DelayModes:
             def vg(v, x, dd=dd):
                 return value_and_grad(jnp.asarray(v, jnp.float64), x, dd)
 
-            def f(u):
-                val, g = vg(mode + S @ u, x)
-                return float(val), S.T @ np.asarray(g, np.float64)
-
-            res = optimize.minimize(f, np.zeros_like(mode), jac=True, method="L-BFGS-B", options={"maxiter": max_iter})
+            res, v = _minimize_from(vg, mode, S, x, max_iter)
             if not np.isfinite(res.fun):
                 continue
-            modes[i, d] = mode + S @ res.x
+            modes[i, d] = v
             w_d = np.linalg.eigvalsh(_hessian(vg, modes[i, d], x))
             log_ev[i, d] = -res.fun - 0.5 * np.sum(np.log(np.maximum(w_d, 1.0)))
         if not np.isfinite(log_ev[i]).any():
