@@ -31,6 +31,7 @@ from ..loop._diagnose import (
 from ..model._effects import registered_effects
 from ..model._model import Model
 from ..outputs._loop import (
+    copy_figures,
     predictive_checks,
     ranking_markdown,
     residual_figures,
@@ -111,19 +112,27 @@ def confirm_leaders(cohort: Cohort, ranking: Ranking, base_folder, out, *, n_con
     return next((r["effect"] for r in leaders if r["nuts"]["clears_bar"]), "none")
 
 
-def blackbox_beside(cohort: Cohort, legs: list, trials, J_base: dict) -> dict:
+def blackbox_beside(cohort: Cohort, legs: list, trials, J_base: dict, known: dict | None = None) -> dict:
     """The ARX yardstick (:mod:`quadshank.evaluation._blackbox`) on the legs and trials the diagnosis
     scores the baseline on, at its horizons: J of the mean over legs and trials, the horizons where
-    it predicts better than the baseline's median, and a sentence where it does."""
-    sub = cohort.select(legs=legs, trials=[int(t) for t in trials])
-    try:
-        bb = blackbox_j(sub, {leg: int(trials[0]) for leg in legs}, horizons_ms=J_HORIZONS_MS)
-    except ValueError as e:  # a trial too short to validate one
-        return {"skipped": str(e)}
-    J = {str(h): float(np.mean([v[str(h)] for trials_ in bb["J_per_leg"].values() for v in trials_.values()]))
-         for h in J_HORIZONS_MS}
+    it predicts better than the baseline's median, and a sentence where it does.  ``known``: this
+    function's result for the same data, legs and trials against another baseline (the yardstick
+    does not depend on the model: its J and orders are reused)."""
+    if known is not None and "skipped" in known:
+        return {"skipped": known["skipped"]}
+    if known is not None:
+        J, orders = known["J_ms"], known["orders"]
+    else:
+        sub = cohort.select(legs=legs, trials=[int(t) for t in trials])
+        try:
+            bb = blackbox_j(sub, {leg: int(trials[0]) for leg in legs}, horizons_ms=J_HORIZONS_MS)
+        except ValueError as e:  # a trial too short to validate one
+            return {"skipped": str(e)}
+        J = {str(h): float(np.mean([v[str(h)] for trials_ in bb["J_per_leg"].values() for v in trials_.values()]))
+             for h in J_HORIZONS_MS}
+        orders = bb["orders"]
     better = [h for h, v in J.items() if v < J_base[h]["median"]]
-    out = {"J_ms": J, "orders": bb["orders"], "better_at_ms": better}
+    out = {"J_ms": J, "orders": orders, "better_at_ms": better}
     if better:
         out["sentence"] = (
             f"A black box (a linear ARX model of the angle, orders chosen by validation) predicts better than "
@@ -151,6 +160,7 @@ def run_diagnose(
     confirm_from=None,
     n_confirm: int = 1,
     objective: str = "auto",
+    previous: Diagnosis | None = None,
 ) -> Diagnosis:
     """Rank the candidate effects for ``model``; writes figures, report.md and summary.json (last).
 
@@ -159,12 +169,18 @@ def run_diagnose(
     the screen's bar are refitted with NUTS (``out/confirm/fit-EFFECT``, the same
     settings) and the verdict is the best that clears the bar under NUTS too
     (:func:`confirm_leaders`); the screen's own is kept as ``screen_verdict``.  ``objective``: what
-    the screens' likelihood compares (the saved fit's ``likelihood``)."""
+    the screens' likelihood compares (the saved fit's ``likelihood``).  ``previous``: the diagnosis
+    (the previous round of discover, on the same data, legs and trials) whose verdict's screen is
+    ``base``: what it computed of that screen (its J draws, its residual figures) and the black-box
+    yardstick are reused, not computed again."""
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    carried = previous is not None and previous.verdict != "none" and previous.screened is not None \
+        and base is previous.screened.fits.get(previous.verdict)
     ranking = rank_effects(cohort, model, trials=trials, legs=legs, effects=effects, base=base, seed=seed,
-                           n_starts=n_starts, progress=progress, progress_label=progress_label, objective=objective)
+                           n_starts=n_starts, progress=progress, progress_label=progress_label, objective=objective,
+                           base_J=previous.screened.J_draws.get(previous.verdict) if carried else None)
     screen_verdict = ranking.verdict
     if confirm_from is not None:
         ranking.verdict = confirm_leaders(cohort, ranking, confirm_from, out / "confirm", n_confirm=n_confirm,
@@ -179,7 +195,9 @@ def run_diagnose(
             result.sentence = f"The screen's leader, {screen_verdict}, is not confirmed by NUTS. {said}"
         elif said:
             result.sentence += " " + said
-    result.blackbox = blackbox_beside(cohort, list(ranking.base.legs), trials, ranking.J_base)
+    result.folder = out
+    result.blackbox = blackbox_beside(cohort, list(ranking.base.legs), trials, ranking.J_base,
+                                      known=previous.blackbox if carried else None)
     if result.blackbox.get("sentence"):
         result.sentence += " " + result.blackbox["sentence"]
     dt = ranking.base.model.sampling_period_s
@@ -190,7 +208,12 @@ def run_diagnose(
         result.sentence += " " + (left or nothing_found(result.unexplained))
     if figures:
         paths, result.predictive_checks = predictive_checks(ranking.base, cohort, out, "baseline")
-        more, result.residual_findings = residual_figures(residuals, out, "baseline", dt)
+        if carried and previous.folder is not None and previous.residual_findings_after is not None:
+            # the previous round drew this screen's residuals as its verdict's, "with_EFFECT"
+            more = copy_figures(previous.folder, previous.figures or [], f"with_{previous.verdict}", out, "baseline")
+            result.residual_findings = previous.residual_findings_after
+        else:
+            more, result.residual_findings = residual_figures(residuals, out, "baseline", dt)
         paths += more
         if result.unexplained["found"]:
             paths.append(plot_structure(result.unexplained, out / "unexplained_structure.png", notes=[left]))

@@ -77,11 +77,11 @@ def run_discover(
         nuts_folder = out / "confirm" / "fit-start"
         s = run_fit(cohort, nuts_folder, base_name, adds, confirm, legs=legs, progress=progress, data_source=data_source)
         fits["start"] = fits["final"] = _fit_entry("confirm/fit-start", s.model, s.banner, s.diagnostics)
-    rounds, base = [], None
+    rounds, base, s = [], None, None
     for k in range(1, max_rounds + 1):
         s = run_diagnose(
             cohort, current, out / f"round-{k}", trials=trials, legs=legs, effects=effects, base=base, progress=progress,
-            confirm_from=nuts_folder, progress_label=f"round {k} of at most {max_rounds}: ",
+            confirm_from=nuts_folder, progress_label=f"round {k} of at most {max_rounds}: ", previous=s,
         )
         rounds.append({"model": current.name, "verdict": s.verdict, "sentence": s.sentence, "J_ms": s.J_ms, "elpd": s.elpd})
         if s.screen_verdict is not None:

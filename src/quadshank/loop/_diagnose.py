@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
@@ -170,6 +171,8 @@ class Ranking:
     failed: dict = dataclasses.field(default_factory=dict)
     #: candidates that cannot change the likelihood on these data (:func:`not_applicable`): effect -> why
     not_applicable: dict = dataclasses.field(default_factory=dict)
+    #: the J draws (draws, horizons) behind the bands: of the base model (key ``""``) and of each extension
+    J_draws: dict = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {
@@ -217,6 +220,8 @@ class Diagnosis(Result):
     #: structure left in the baseline's residuals (:func:`quadshank.evaluation._structure.residual_structure`)
     unexplained: dict | None = None
     screened: Ranking | None = dataclasses.field(default=None, repr=False, metadata={"json": False})
+    #: the folder it was written to (not in the JSON form: the folder holds it)
+    folder: Path | None = dataclasses.field(default=None, repr=False, metadata={"json": False})
 
 
 @dataclasses.dataclass
@@ -249,6 +254,7 @@ def rank_effects(
     progress: bool = False,
     progress_label: str = "",
     objective: str = "auto",
+    base_J: np.ndarray | None = None,
 ) -> Ranking:
     """Screen every one-effect extension of ``model``; returns a :class:`Ranking`.
 
@@ -259,6 +265,8 @@ def rank_effects(
     ``progress``: a progress bar over the candidates, naming the one being screened, its
     description prefixed by ``progress_label`` (discover: the round).  ``objective``: what the
     screens' likelihood compares (a saved fit's ``likelihood``; :func:`~quadshank.model._likelihood.resolve_objective`).
+    ``base_J``: ``base``'s J draws on ``eval_trials``, where they were computed already (a round
+    of discover: the previous round's, :attr:`Ranking.J_draws`).
     """
     model = build_model(model, sampling_period_s=cohort.sampling_period_s) if isinstance(model, str) else model
     legs = tuple(legs) if legs is not None else cohort.legs
@@ -280,8 +288,10 @@ def rank_effects(
     kw = dict(n_draws=n_draws, seed=seed, n_starts=n_starts, objective=objective)
     if base is None:
         base = laplace_fit(cohort, model, trials, legs, **kw)
-    J0 = j_draws(base, cohort, eval_trials, n_draws=n_j_draws, start_stride=start_stride)
-    fits, rows, failed = {}, [], {}
+    if base_J is None:
+        base_J = j_draws(base, cohort, eval_trials, n_draws=n_j_draws, start_stride=start_stride)
+    J0 = base_J
+    fits, rows, failed, J_draws = {}, [], {}, {}
     bar = progress_bar(effects, desc=f"{progress_label}screening effects", enabled=progress)
     for name in bar:
         if hasattr(bar, "set_postfix_str"):
@@ -297,6 +307,7 @@ def rank_effects(
                           RuntimeWarning, stacklevel=2)
             continue
         fits[name] = ext
+        J_draws[name] = J1
         row = {
             "effect": name,
             **evidence_bar(d, se, J0, J1, known[name].predicts_angle, known[name].acts_at_ms, checked),
@@ -314,7 +325,7 @@ def rank_effects(
     verdict = next((r["effect"] for r in rows if r["clears_bar"]), "none")
     J_base = {f"{h}": interval(J0[:, j]) for j, h in enumerate(J_HORIZONS_MS)}
     return Ranking(base=base, fits=fits, rows=rows, verdict=verdict, J_base=J_base, failed=failed,
-                   not_applicable=inapplicable)
+                   not_applicable=inapplicable, J_draws={"": J0, **J_draws})
 
 
 def k_checked_difference(a_i, b_i, k_b) -> tuple[float, float, float]:

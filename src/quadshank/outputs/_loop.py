@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
-from ..common._io import save_figure
+from ..common._io import atomic_write_bytes, save_figure
 from ..data._cohort import Cohort
 from ..evaluation import _residuals as R
 from ..evaluation._checks import elpd_in_time, loo_pit, worst_seconds_sentence
@@ -49,6 +51,18 @@ def residual_figures(residuals: dict[str, dict], out, label: str, dt: float) -> 
         found.extend(peak)
         paths.append(F.plot_spectrum(spec, out / f"residual_spectrum_{stem}.png", notes=peak))
     return paths, notes
+
+
+def copy_figures(src, names, label: str, out, new_label: str) -> list:
+    """The figures ``names`` in ``src`` drawn with ``label`` (:func:`residual_figures`: the label is
+    in the file name, not in the figure), copied to ``out`` under ``new_label``; returns their paths."""
+    paths = []
+    for name in names:
+        if f"_{label}_" not in name:
+            continue
+        data = (Path(src) / name).read_bytes()
+        paths.append(atomic_write_bytes(Path(out) / name.replace(f"_{label}_", f"_{new_label}_", 1), data))
+    return paths
 
 
 def predictive_checks(fit: LaplaceFit, cohort: Cohort, out, label: str) -> tuple[list, dict]:
