@@ -202,6 +202,13 @@ def empty_manifest(folder: Path):
     return [MAN, "empty"]
 
 
+def stray_quote(folder: Path):
+    lines = (folder / T1).read_text().splitlines()
+    lines[50] = '"' + lines[50]  # line 51 opens a quote nothing closes
+    (folder / T1).write_text("\n".join(lines) + "\n")
+    return [T1, "row 51", "quote"]
+
+
 CSV_CASES = {
     "text in a cell": cell(T1, "angle_deg", 17, "abc"),
     "digit separators": cell(T1, "acceleration_deg_s2", 5, "1_000"),
@@ -243,6 +250,9 @@ CSV_CASES = {
     "unlisted CSV": unlisted,
     "no manifest": no_manifest,
     "empty manifest": empty_manifest,
+    "stray quote": stray_quote,
+    "period in milliseconds": manifest_cell(2, "sampling_period_s", "10", "milliseconds"),
+    "subject with a control character": manifest_cell(2, "subject", "T\tN", "control character"),
 }
 
 

@@ -273,6 +273,8 @@ def test_convert_rejects_wrong_targets(folder, tmp_path):
     other.write_text("a")
     with pytest.raises(ValueError, match="x.csv"):
         convert(other, tmp_path / "y.nc")
+    with pytest.raises(NotADirectoryError, match="x.csv is a file, not a folder"):
+        convert(folder, other / "sub" / "y.nc")  # a path under a file
 
 
 # --------------------------------------------------------------------------- error objects

@@ -110,3 +110,18 @@ def test_a_pendulum_test_released_from_flexion_asks_about_the_sign():
     u = np.zeros(t.n_samples)
     u[300] = 1.0
     assert not any("flipped" in f for f in plausibility(t.replace(stimulation=u)))
+
+
+def test_a_glitch_in_the_angle_is_named_with_its_time():
+    t = _trial()
+    angle = t.angle_deg.copy()
+    angle[[300, 700]] = [1e6, -400.0]  # two samples far off, each back at the next sample
+    found = plausibility(t.replace(angle_deg=angle))
+    assert any("jumps by" in f and "time_s = 3.0 and 1 more such sample" in f and "exclude" in f for f in found), found
+    # marked in exclude, neither is named again
+    exclude = np.zeros(t.n_samples, bool)
+    exclude[[300, 700]] = True
+    assert not any("jumps by" in f for f in plausibility(t.replace(angle_deg=angle, exclude=exclude)))
+    # a fast but continuous swing (2000 deg/s peak) is no glitch
+    fast = 400 * np.sin(2 * np.pi * 0.8 * np.arange(t.n_samples) * DT)
+    assert not any("jumps by" in f for f in plausibility(t.replace(angle_deg=fast)))

@@ -23,7 +23,7 @@ editor shows them, the header being line 1).
 | `leg`               | `left` or `right`                                           |
 | `trial`             | trial number, a positive integer; per leg numbered 1..n     |
 | `file`              | path of the trial's CSV, relative to the folder (`/`-separated) |
-| `sampling_period_s` | optional column; sampling period in s, > 0 (default 0.01)   |
+| `sampling_period_s` | optional column; sampling period in s, > 0, ≤ 0.1 (default 0.01) |
 | `start_s`, `end_s`  | optional columns; keep only the samples with start_s <= time_s <= end_s (an empty cell: no bound), to leave out a release, a spasm or an artefact at either end |
 
 Trial CSV — one row per sample, columns in any order, names exact:
@@ -59,7 +59,9 @@ All files are checked and all problems are collected; if there is any, an
 
 1. **Manifest**: `manifest.csv` exists; required columns present, no unknown
    column; `trial` a positive integer; `leg` is `left` or `right`; `subject`
-   non-empty; `sampling_period_s` a finite number > 0.
+   non-empty, without control characters (a line break in a name would break
+   every table it is written to); `sampling_period_s` a finite number > 0 and at
+   most 0.1 s.
 2. **Listing**: no (subject, leg, trial) twice; no file listed twice; every
    listed file exists (inside the folder); per leg the trials are numbered
    1..n without gaps; every CSV file in the folder (recursively; hidden files
@@ -75,7 +77,8 @@ All files are checked and all problems are collected; if there is any, an
    least two samples of a trial not excluded.
 6. **Units**: an angle whose samples lie within ±pi (3.2), the 1 % at each end
    left out (glitches), while the angle moves (by more than 0.05 in a trial
-   with pulses, 0.5 in one without) is taken to be in radians and rejected.
+   with pulses, 0.5 in one without) is taken to be in radians and rejected
+   (trials of at least 100 samples: a few samples say nothing of the units).
 7. **Numbers** are ASCII decimals with an optional sign, decimal point and
    exponent (``1_000``, other digits, ``nan`` and ``inf`` are rejected).
 8. **Links**: a listed file (or the manifest) that resolves to a place outside
@@ -152,6 +155,12 @@ RADIAN_MIN_RANGE = 0.05
 RADIAN_MIN_RANGE_PASSIVE = 0.5
 #: The fraction of samples left out at each end before the radian test (glitches).
 RADIAN_QUANTILE = 0.01
+#: The radian test needs this many samples: a few samples of a trial say nothing of its units.
+RADIAN_MIN_SAMPLES = 100
+#: The longest sampling period [s] accepted: slower than this cannot follow a knee's swing
+#: (about one period a second) or a twitch (about 100 ms); a longer one is usually milliseconds
+#: written as seconds.
+MAX_SAMPLING_PERIOD_S = 0.1
 
 #: Individual problems reported per file, column and kind before they are summarised.
 _MAX_PER_KIND = 5
@@ -241,6 +250,9 @@ STILL_RANGE_DEG = 2.0
 REST_TOLERANCE_DEG = 5.0
 #: A trial without pulses that starts this far [deg] into flexion gets a warning about the sign.
 RELEASE_FLEXION_DEG = 20.0
+#: An angle that jumps away and back within one sample faster than this [deg/s] (a knee swings
+#: at a few hundred, kicks at about 1500) is taken for a sensor glitch.
+GLITCH_SPEED_DEG_S = 5000.0
 
 
 def plausibility(trial: Trial) -> list[str]:
@@ -254,10 +266,11 @@ def plausibility(trial: Trial) -> list[str]:
     dt = trial.sampling_period_s
     if trial.n_samples > 1 and np.ptp(trial.angle_deg) == 0:
         return [f"angle_deg is constant ({float(trial.angle_deg[0])!r}° throughout): no movement was recorded"]
+    glitches = _glitches(trial)
     window = max(7, int(round(PLAUSIBILITY_WINDOW_S / dt)) | 1)
     if trial.n_samples < 3 * window:
-        return []
-    found = _pendulum_plausibility(trial) if not np.any(trial.stimulation > 0) else []
+        return glitches
+    found = glitches + (_pendulum_plausibility(trial) if not np.any(trial.stimulation > 0) else [])
     checks = [("acceleration_deg_s2", 2, "deg/s²")] if trial.acceleration_measured else []
     if trial.velocity_measured:
         checks.append(("velocity_deg_s", 1, "deg/s"))
@@ -284,6 +297,27 @@ def plausibility(trial: Trial) -> list[str]:
             found.append(f"{column} hardly follows the angle's {what} (correlation {corr:.2f}): is it the "
                          "signal of this trial, in this column?")
     return found
+
+
+def _glitches(trial: Trial) -> list[str]:
+    """Samples not excluded where the angle jumps away and back within one sample, faster than
+    :data:`GLITCH_SPEED_DEG_S` both ways (a sensor glitch), in words: the first, and how many."""
+    a = trial.angle_deg
+    if a.size < 3:
+        return []
+    jump = GLITCH_SPEED_DEG_S * trial.sampling_period_s
+    out, back = a[1:-1] - a[:-2], a[2:] - a[1:-1]
+    spike = (np.abs(out) > jump) & (np.abs(back) > jump) & (np.sign(out) != np.sign(back)) \
+        & (np.abs(a[2:] - a[:-2]) < 0.5 * np.minimum(np.abs(out), np.abs(back)))
+    at = np.flatnonzero(spike) + 1
+    at = at[~trial.exclude[at]]
+    if not at.size:
+        return []
+    i = int(at[0])
+    more = f" and {at.size - 1} more such sample{'s' if at.size > 2 else ''}" if at.size > 1 else ""
+    return [f"angle_deg jumps by {float(a[i] - a[i - 1]):+.4g}° and back at time_s = {float(trial.time_s[i])!r}{more}, "
+            f"faster than a knee moves (over {GLITCH_SPEED_DEG_S:g} deg/s): a sensor glitch? Correct it, or set "
+            "exclude = 1 there (the fit then leaves the sample out)"]
 
 
 def _pendulum_plausibility(trial: Trial) -> list[str]:
@@ -330,6 +364,7 @@ def _read_table(
 
     ``alternatives``: a required column that other (optional) columns may stand in for; a
     file must hold the column or its stand-ins, not both."""
+    spanning = False
     header: list[str] | None = None
     header_line = 1
     rows: list[list[str]] = []
@@ -338,7 +373,16 @@ def _read_table(
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:
             reader = csv.reader(fh)
+            end = 0
             for row in reader:
+                start, end = end + 1, reader.line_num
+                if end > start and any("\n" in c or "\r" in c for c in row):
+                    # a quote left open swallows the lines after it into one field
+                    problems.append(Problem(file, None, start, f"a quote (\") opened in this row is closed only on "
+                                            f"line {end}: the rows between are read as one field; remove the "
+                                            "stray quote"))
+                    spanning = True
+                    continue
                 if not row or (len(row) == 1 and not row[0].strip()):
                     continue  # blank line
                 if header is None:
@@ -391,7 +435,7 @@ def _read_table(
         return None
 
     n_fields = len(header)
-    well_formed = True
+    well_formed = not spanning
     bad_rows = [(line, row) for line, row in zip(lines, rows) if len(row) != n_fields]
     if bad_rows:
         well_formed = False
@@ -521,7 +565,7 @@ def _check_signals(
                                     "samples not excluded; at least 2 are needed"))
 
     angle = signals.get("angle_deg")
-    if angle is not None and stim is not None and angle.size:
+    if angle is not None and stim is not None and angle.size >= RADIAN_MIN_SAMPLES:
         # the bulk of the samples, so that a glitch or two cannot hide radians
         lo, hi = np.quantile(angle, [RADIAN_QUANTILE, 1 - RADIAN_QUANTILE])
         magnitude = max(abs(float(lo)), abs(float(hi)))
@@ -536,6 +580,26 @@ def _check_signals(
 
 
 # --------------------------------------------------------------------------- manifest
+def _subject_problem(subject: str) -> str | None:
+    """What is wrong with a subject's name, or None."""
+    if not subject or subject.strip() != subject:
+        return f"subject {subject!r} is empty or has leading/trailing white space"
+    if any(ord(ch) < 32 or ord(ch) == 127 for ch in subject):
+        return (f"subject {subject!r} holds a control character (a line break, a tab); the name is written into "
+                "tables and file names")
+    return None
+
+
+def _period_problem(text: str, period: float) -> str | None:
+    """What is wrong with a sampling period [s] (``text`` as written), or None."""
+    if not (math.isfinite(period) and period > 0):
+        return f"{text!r} is not a positive finite number of seconds"
+    if period > MAX_SAMPLING_PERIOD_S:
+        return (f"{text} s is longer than {MAX_SAMPLING_PERIOD_S:g} s: too slow to follow a knee's swing or a "
+                "twitch; is it in milliseconds? (give seconds, and time_s in seconds)")
+    return None
+
+
 @dataclasses.dataclass
 class _Entry:
     """One manifest row; a field is ``None`` when it is invalid (already reported)."""
@@ -601,6 +665,9 @@ def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry],
         if not subject:
             bad("subject", "empty subject")
             subject = None
+        elif _subject_problem(subject):
+            bad("subject", _subject_problem(subject))
+            subject = None
 
         leg: str | None = row[col["leg"]].strip()
         if leg not in _LEGS:
@@ -620,10 +687,9 @@ def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry],
                 bad("sampling_period_s", f"{text!r} is not a positive finite number of seconds")
             elif period is None:
                 bad("sampling_period_s", f"non-numeric value {text!r}; expected the sampling period in s")
-            else:
-                if not (math.isfinite(period) and period > 0):
-                    bad("sampling_period_s", f"{text!r} is not a positive finite number of seconds")
-                    period = None
+            elif _period_problem(text, period):
+                bad("sampling_period_s", _period_problem(text, period))
+                period = None
 
         span: dict[str, float | None] = {"start_s": None, "end_s": None}
         span_ok = True
@@ -954,20 +1020,19 @@ def _check_cohort(cohort: Cohort, names: Sequence[str], *, listing: str = MANIFE
     entries = []
     for i, (t, name) in enumerate(zip(cohort.trials, names)):
         line = i + first_row
-        subject = t.subject if t.subject.strip() == t.subject and t.subject else None
+        subject = None if _subject_problem(t.subject) else t.subject
         if subject is None:
-            problems.append(Problem(listing, "subject", line, f"subject {t.subject!r} is empty or "
-                                    "has leading/trailing white space"))
+            problems.append(Problem(listing, "subject", line, _subject_problem(t.subject)))
         leg = t.leg if t.leg in _LEGS else None
         if leg is None:
             problems.append(Problem(listing, "leg", line, f"{t.leg!r} is not 'left' or 'right'"))
         trial = t.trial if t.trial >= 1 else None
         if trial is None:
             problems.append(Problem(listing, "trial", line, f"non-positive trial number {t.trial}"))
-        period = t.sampling_period_s if math.isfinite(t.sampling_period_s) and t.sampling_period_s > 0 else None
-        if period is None:
-            problems.append(Problem(listing, "sampling_period_s", line,
-                                    f"{t.sampling_period_s!r} is not a positive finite number of seconds"))
+        said = _period_problem(repr(float(t.sampling_period_s)), float(t.sampling_period_s))
+        period = None if said else t.sampling_period_s
+        if said:
+            problems.append(Problem(listing, "sampling_period_s", line, said))
         entries.append(_Entry(line, subject, leg, trial, name, name, None, period))
     complete = all(e.subject is not None and e.leg is not None and e.trial is not None for e in entries)
     _check_listing(entries, complete, listing, problems)
@@ -1173,6 +1238,9 @@ def convert(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: bool =
             raise ValueError(f"{dst}: inside the data folder {src}; write the NetCDF file elsewhere")
         if dst.exists() and not overwrite:
             raise FileExistsError(f"{dst}: exists; give a new name (or --overwrite to replace it)")
+        above = next((p for p in dst.parents if p.exists()), None)
+        if above is not None and not above.is_dir():
+            raise NotADirectoryError(f"{dst}: {above} is a file, not a folder")
         return read_interchange(src, resample_s=resample_s).save_netcdf(dst)
     if src.is_file() and _is_netcdf_name(src):
         if _is_netcdf_name(dst):

@@ -56,8 +56,9 @@ def resample_trial(trial: Trial, period_s: float) -> Trial:
     long = np.flatnonzero(steps > MAX_STEP_RATIO * step)
     if long.size:
         i = int(long[0])
-        raise ValueError(f"{where}: a gap of {steps[i]:.6g} s after {time[i]!r} s, more than {MAX_STEP_RATIO:g} times "
-                         f"the median step {step:.6g} s: samples are missing there, and resampling would invent them")
+        raise ValueError(f"{where}, column 'time_s': a gap of {steps[i]:.6g} s from {float(time[i])!r} s to "
+                         f"{float(time[i + 1])!r} s, more than {MAX_STEP_RATIO:g} times the median step {step:.6g} s: "
+                         "samples are missing there, and resampling would invent them")
     grid = time[0] + period_s * np.arange(int(np.floor((time[-1] - time[0]) / period_s + 1e-9)) + 1)
     if grid.size < 2:
         raise ValueError(f"{where}: {time[-1] - time[0]:.6g} s long, shorter than one new period of {period_s:g} s")
@@ -73,7 +74,7 @@ def resample_trial(trial: Trial, period_s: float) -> Trial:
     clash = np.flatnonzero(np.diff(slots) == 0)
     if clash.size:
         i = int(clash[0])
-        raise ValueError(f"{where}: the pulses at {time[pulses[i]]!r} s and {time[pulses[i + 1]]!r} s fall on one sample "
+        raise ValueError(f"{where}: the pulses at {float(time[pulses[i]])!r} s and {float(time[pulses[i + 1]])!r} s fall on one sample "
                          f"of the new period {period_s:g} s; resample to a shorter period")
     stimulation = np.zeros(grid.size)
     stimulation[slots] = trial.stimulation[pulses]
