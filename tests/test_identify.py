@@ -1,13 +1,16 @@
 """Classical identification (eqs. 8-11) against known truths."""
 
+import warnings
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from quadshank import Trial
+from quadshank import Cohort, Trial
 from quadshank.inference._identify import (
     IdentificationError,
     fit_darma,
+    identify_cohort,
     identify_leg,
     identify_passive,
     isolated_twitches,
@@ -16,6 +19,7 @@ from quadshank.inference._identify import (
 from quadshank.model._model import paper_model, passive_effects, simulate_angles
 from quadshank.data._paper import LEGS
 from quadshank.evaluation._classical_recovery import DELAY_TOLERANCE, TOLERANCES, recovery
+from quadshank.data import DataWarning, simulate_pendulum_test
 from quadshank.data._simulate import simulate_cohort
 
 
@@ -144,3 +148,48 @@ def test_recovery_of_the_simulated_cohort():
         assert abs(ident[leg].delay - truth["legs"][leg]["active"]["delay_samples"]) <= DELAY_TOLERANCE
     # and the tolerances are not vacuous: a wrong gain would fail them
     assert TOLERANCES["G2"] < 0.5
+
+
+def test_twitches_that_flex_the_knee_ask_about_the_sign():
+    """An angle (and acceleration) recorded with the opposite sign makes the twitches flex the
+    knee; the identification names that instead of failing inside the optimiser."""
+    cohort, _ = simulate_cohort(legs=("OT-left",), minutes=1.5, seed=5, trials=(1,))
+    t = cohort.get("OT-left", 1)
+    flipped = Trial.from_signals("OT", "left", 1, t.sampling_period_s, -t.angle_deg, -t.acceleration_deg_s2,
+                                 t.stimulation, time_s=t.time_s)
+    identify_leg(t)  # the same data the right way round identify
+    with pytest.raises(IdentificationError, match="OT-left trial 1: .*not a positive twitch.*sign of angle_deg"):
+        identify_leg(flipped)
+
+
+def test_an_angle_that_does_not_move_is_named():
+    n = 1000
+    trial = Trial.from_signals("X", "left", 1, 0.01, np.full(n, 3.0), np.zeros(n), np.zeros(n))
+    with pytest.raises(IdentificationError, match="X-left trial 1: the angle does not move .*3.0° throughout"):
+        identify_passive([trial])
+
+
+def test_a_trial_without_pulses_is_named_as_taken_for_a_pendulum_test():
+    """A short pulse-free trial beside a stimulated one is a pendulum test to the
+    identification; where it cannot serve as one, the message says why it was asked."""
+    cohort, _ = simulate_cohort(legs=("OT-left",), minutes=1.5, seed=5, trials=(1,))
+    t = cohort.get("OT-left", 1)
+    fragment = Trial.from_signals("OT", "left", 2, t.sampling_period_s, t.angle_deg[:5], t.acceleration_deg_s2[:5],
+                                  np.zeros(5), time_s=t.time_s[:5])
+    with pytest.raises(IdentificationError, match="trial 2 holds no pulse and so is taken as pendulum tests"):
+        identify_cohort(Cohort((t, fragment)))
+
+
+def test_trials_without_pulses_that_are_no_pendulum_tests_are_named():
+    """A stimulated trial with its pulses missing is taken for a pendulum test; the free runs of
+    the pendulum identified from it miss its swing by about its whole spread, which is named.
+    A real pendulum test (released from extension, noise, the examiner's hand) is not."""
+    cohort, _ = simulate_cohort(legs=("OT-left",), minutes=1.0, seed=5, trials=(1,))
+    t = cohort.get("OT-left", 1)
+    no_pulses = t.replace(stimulation=np.zeros(t.n_samples))
+    with pytest.warns(DataWarning, match=r"OT-left: the pendulum .* misses their free swings by .* are they pendulum tests"):
+        identify_cohort(Cohort((no_pulses,)))
+    pendulum = simulate_pendulum_test({"damping": 1.3, "gravity": 1950.0, "k1": 30.0, "k2": 0.05}, subject="PT")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DataWarning)
+        identify_cohort(Cohort((pendulum,)))

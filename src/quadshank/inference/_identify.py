@@ -75,6 +75,9 @@ MIN_TWITCHES = 8
 PASSIVE_OBJECTIVES = ("acceleration", "angle")
 #: Shortest stretch of usable samples [s] a free run is compared on.
 FREE_RUN_MIN_S = 1.0
+#: A pendulum whose free runs miss the swings by more than this share of the swing's spread (the
+#: standard deviation of the angle compared) is named: those trials may not be pendulum tests.
+POOR_SWING_SHARE = 0.3
 
 
 #: Shortest longest-delay [s] the delays considered (0 … MAX_DELAY samples) should reach: the
@@ -221,13 +224,16 @@ def identify_passive(trials: list[Trial] | tuple[Trial, ...], gravity_offset: bo
         vel.append(t.velocity_deg_s[m])
         acc.append(t.acceleration_deg_s2[m])
     angle, velocity, accel = (np.concatenate(x) for x in (ang, vel, acc))
+    where = ", ".join(f"{t.key} trial {t.trial}" + (f" ({t.source})" if t.source else "") for t in trials)
     if angle.size < 200:
-        where = ", ".join(f"{t.key} trial {t.trial}" + (f" ({t.source})" if t.source else "") for t in trials)
         raise IdentificationError(
             f"{where}: only {angle.size} quiet samples (no pulse in the preceding {QUIET_AFTER_PULSE}, knee at "
             f"most {PASSIVE_MAX_ANGLE_DEG:g}° extended); the passive system needs at least 200, stretches without "
             "stimulation"
         )
+    if np.ptp(angle) == 0:
+        raise IdentificationError(f"{where}: the angle does not move in the {angle.size} quiet samples "
+                                  f"({float(angle[0])!r}° throughout): no swing to identify the passive system from")
 
     best = None
     for k2 in np.geomspace(1e-3, 0.3, 61):
@@ -413,6 +419,13 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
     epochs = pulses[:, None] + np.arange(TWITCH_SAMPLES)[None, :]
     integrated = mi[epochs].sum(axis=1) / u[pulses]
     g1 = float(mi[epochs].sum() / u[pulses].sum())
+    if not g1 > 0:  # also NaN
+        raise IdentificationError(
+            f"{where}: after the {pulses.size} isolated pulses the knee's equivalent acceleration sums to "
+            f"{g1:.3g} deg/s² per unit stimulation, not a positive twitch: the quadriceps extends the knee. Is the "
+            "sign of angle_deg flipped (positive must be extension), or are the pulses at other samples than the "
+            "movement they cause?"
+        )
     phi = trial.angle_deg[pulses + d]
     dphi = trial.velocity_deg_s[pulses + d]
 
@@ -446,6 +459,20 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
         g1_std=float(np.std(integrated, ddof=1)),
         rms_error_pct={"model1": rms1, "model3": rms3},
     )
+
+
+def _warn_poor_swing(leg: str, trials, rms: float) -> None:
+    """Warn where the free runs of the identified pendulum miss the swings of ``trials`` by more
+    than :data:`POOR_SWING_SHARE` of the swing's spread (``rms``: their RMS angle error [deg])."""
+    kept = [t.angle_deg[a:b][t.angle_deg[a:b] <= PASSIVE_MAX_ANGLE_DEG] for t in trials for a, b in free_run_segments(t)]
+    spread = float(np.std(np.concatenate(kept))) if kept else 0.0
+    if spread > 0 and rms > POOR_SWING_SHARE * spread:
+        numbers = ", ".join(str(t.trial) for t in trials)
+        warnings.warn(
+            f"{leg}: the pendulum of eq. (8) identified from trial(s) {numbers} (no pulses: pendulum tests) misses "
+            f"their free swings by {rms:.3g}° RMS, {rms / spread:.0%} of the swing's spread ({spread:.3g}°): are they "
+            "pendulum tests (not a stimulated trial whose pulses are missing)? A rest off the vertical is fitted "
+            "with --gravity-offset; a release left in, with start_s or exclude", DataWarning, stacklevel=3)
 
 
 def identify_cohort(
@@ -486,11 +513,19 @@ def identify_cohort(
             out[leg] = identify_leg(chosen)
             continue
         objective = "acceleration" if passive_objective == "acceleration" else "angle"
-        if objective == "angle":
-            passive, p_rms, n_quiet = identify_passive_free_run(passive_trials, gravity_offset=gravity_offset)
-        else:
-            passive, p_rms, n_quiet = identify_passive(passive_trials, gravity_offset=gravity_offset)
         numbers = tuple(t.trial for t in passive_trials)
+        try:
+            if objective == "angle":
+                passive, p_rms, n_quiet = identify_passive_free_run(passive_trials, gravity_offset=gravity_offset)
+            else:
+                passive, p_rms, n_quiet = identify_passive(passive_trials, gravity_offset=gravity_offset)
+        except IdentificationError as err:  # say why these trials were asked
+            raise IdentificationError(
+                f"{err}. {leg}: its trial{'s' if len(numbers) > 1 else ''} {', '.join(map(str, numbers))} hold"
+                f"{'' if len(numbers) > 1 else 's'} no pulse and so {'are' if len(numbers) > 1 else 'is'} taken as "
+                "pendulum tests, the source of its passive system; leave out a trial that is not one") from err
+        if objective == "angle":
+            _warn_poor_swing(leg, passive_trials, p_rms)
         if not np.any(chosen.stimulation > 0):
             out[leg] = PassiveIdentification(leg, trial, {k: float(v) for k, v in passive.items()}, p_rms, n_quiet,
                                              numbers, chosen.sampling_period_s, objective)
