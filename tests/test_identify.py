@@ -193,3 +193,10 @@ def test_trials_without_pulses_that_are_no_pendulum_tests_are_named():
     with warnings.catch_warnings():
         warnings.simplefilter("error", DataWarning)
         identify_cohort(Cohort((pendulum,)))
+
+
+def test_too_few_quiet_samples_from_an_angle_zeroed_elsewhere_say_so():
+    cohort, _ = simulate_cohort(legs=("OT-left",), minutes=1.0, seed=5, trials=(1,))
+    t = cohort.get("OT-left", 1)
+    with pytest.raises(IdentificationError, match=r"only \d+ quiet samples.*Most quiet samples lie above 60°.*zero"):
+        identify_leg(t.replace(angle_deg=t.angle_deg + 150.0))

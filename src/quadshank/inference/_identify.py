@@ -226,10 +226,14 @@ def identify_passive(trials: list[Trial] | tuple[Trial, ...], gravity_offset: bo
     angle, velocity, accel = (np.concatenate(x) for x in (ang, vel, acc))
     where = ", ".join(f"{t.key} trial {t.trial}" + (f" ({t.source})" if t.source else "") for t in trials)
     if angle.size < 200:
+        quiet = np.concatenate([t.angle_deg[quiet_mask(t.stimulation) & ~t.exclude] for t in trials])
+        high = quiet.size >= 200 and np.count_nonzero(quiet > PASSIVE_MAX_ANGLE_DEG) > quiet.size / 2
         raise IdentificationError(
             f"{where}: only {angle.size} quiet samples (no pulse in the preceding {QUIET_AFTER_PULSE}, knee at "
             f"most {PASSIVE_MAX_ANGLE_DEG:g}° extended); the passive system needs at least 200, stretches without "
             "stimulation"
+            + (f". Most quiet samples lie above {PASSIVE_MAX_ANGLE_DEG:g}° (median {float(np.median(quiet)):.1f}°): "
+               "is angle_deg zero with the shank hanging at rest, positive in extension?" if high else "")
         )
     if np.ptp(angle) == 0:
         raise IdentificationError(f"{where}: the angle does not move in the {angle.size} quiet samples "
