@@ -209,6 +209,13 @@ def stray_quote(folder: Path):
     return [T1, "row 51", "quote"]
 
 
+def quoted_line_break(folder: Path):
+    text = (folder / MAN).read_text().splitlines()
+    text[1] = '"T\nN"' + text[1][len("TN"):]  # row 2's subject holds a line break
+    (folder / MAN).write_text("\n".join(text) + "\n")
+    return [MAN, "row 2", "line break"]
+
+
 CSV_CASES = {
     "text in a cell": cell(T1, "angle_deg", 17, "abc"),
     "digit separators": cell(T1, "acceleration_deg_s2", 5, "1_000"),
@@ -251,6 +258,7 @@ CSV_CASES = {
     "no manifest": no_manifest,
     "empty manifest": empty_manifest,
     "stray quote": stray_quote,
+    "line break in a quoted subject": quoted_line_break,
     "period in milliseconds": manifest_cell(2, "sampling_period_s", "10", "milliseconds"),
     "subject with a control character": manifest_cell(2, "subject", "T\tN", "control character"),
 }

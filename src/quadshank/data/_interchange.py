@@ -378,9 +378,9 @@ def _read_table(
                 start, end = end + 1, reader.line_num
                 if end > start and any("\n" in c or "\r" in c for c in row):
                     # a quote left open swallows the lines after it into one field
-                    problems.append(Problem(file, None, start, f"a quote (\") opened in this row is closed only on "
-                                            f"line {end}: the rows between are read as one field; remove the "
-                                            "stray quote"))
+                    problems.append(Problem(file, None, start, f"a quoted field holds a line break (the row runs "
+                                            f"on to line {end}): is a quote (\") left open here? A value may not "
+                                            "hold a line break"))
                     spanning = True
                     continue
                 if not row or (len(row) == 1 and not row[0].strip()):

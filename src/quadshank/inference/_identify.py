@@ -427,8 +427,8 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
         raise IdentificationError(
             f"{where}: after the {pulses.size} isolated pulses the knee's equivalent acceleration sums to "
             f"{g1:.3g} deg/s² per unit stimulation, not a positive twitch: the quadriceps extends the knee. Is the "
-            "sign of angle_deg flipped (positive must be extension), or are the pulses at other samples than the "
-            "movement they cause?"
+            "sign of angle_deg flipped (positive must be extension), is a glitch in the angle in the way, or are the "
+            "pulses at other samples than the movement they cause?"
         )
     phi = trial.angle_deg[pulses + d]
     dphi = trial.velocity_deg_s[pulses + d]
