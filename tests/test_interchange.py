@@ -761,3 +761,22 @@ def test_a_stimulators_pulse_width_and_current_give_the_relative_charge(folder):
 def test_a_stimulators_columns_are_checked(folder, change, column, row, text):
     change(folder / TN1)
     assert_problem(problems_of(folder), TN1, column, row, text)
+
+
+def test_a_small_swing_in_degrees_is_not_taken_for_radians_where_the_accelerometer_agrees(tmp_path):
+    """Weak twitches of a knee at rest may keep the angle within ±pi degrees. Where the measured
+    acceleration follows the angle's second derivative at its size, both are in degrees; without
+    an accelerometer nothing tells the units apart, and the radian rule stands."""
+    t = make_trial("TN", "left", 1, 0.0)
+    small = t.replace(angle_deg=t.angle_deg / 15.0, acceleration_deg_s2=t.acceleration_deg_s2 / 15.0)  # ±2°
+    write_interchange(Cohort((small,)), tmp_path / "small")
+    read_interchange(tmp_path / "small")
+    (tmp_path / "radians").mkdir()
+    shutil.copytree(tmp_path / "small", tmp_path / "radians", dirs_exist_ok=True)
+    set_column(tmp_path / "radians" / "TN-left-trial1.csv", "acceleration_deg_s2",
+               column(tmp_path / "radians" / "TN-left-trial1.csv", "acceleration_deg_s2") * 180 / np.pi)
+    with pytest.raises(InterchangeError, match="radians"):  # an angle in radians beside an acceleration in deg/s²
+        read_interchange(tmp_path / "radians")
+    drop_column(tmp_path / "small" / "TN-left-trial1.csv", "acceleration_deg_s2")
+    with pytest.raises(InterchangeError, match="radians"):
+        read_interchange(tmp_path / "small")

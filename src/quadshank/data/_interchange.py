@@ -78,7 +78,10 @@ All files are checked and all problems are collected; if there is any, an
 6. **Units**: an angle whose samples lie within ±pi (3.2), the 1 % at each end
    left out (glitches), while the angle moves (by more than 0.05 in a trial
    with pulses, 0.5 in one without) is taken to be in radians and rejected
-   (trials of at least 100 samples: a few samples say nothing of the units).
+   (trials of at least 100 samples: a few samples say nothing of the units),
+   unless, in a trial with pulses, a measured acceleration follows the angle's
+   second derivative at about its size (then both are in degrees: weak
+   twitches).
 7. **Numbers** are ASCII decimals with an optional sign, decimal point and
    exponent (``1_000``, other digits, ``nan`` and ``inf`` are rejected).
 8. **Links**: a listed file (or the manifest) that resolves to a place outside
@@ -570,13 +573,35 @@ def _check_signals(
         lo, hi = np.quantile(angle, [RADIAN_QUANTILE, 1 - RADIAN_QUANTILE])
         magnitude = max(abs(float(lo)), abs(float(hi)))
         moves = hi - lo > (RADIAN_MIN_RANGE if np.any(stim > 0) else RADIAN_MIN_RANGE_PASSIVE)
-        if magnitude <= RADIAN_LIMIT and moves:
+        small_swing = np.any(stim > 0) and _same_units(angle, signals.get("acceleration_deg_s2"), time)
+        if magnitude <= RADIAN_LIMIT and moves and not small_swing:
             peak = int(np.argmax(np.where((angle >= lo) & (angle <= hi), np.abs(angle), -1.0)))
             problems.append(
                 Problem(file, "angle_deg", int(lines[peak]),
                         f"values look like radians ({1 - 2 * RADIAN_QUANTILE:.0%} of the samples lie within "
                         f"[{lo:.3g}, {hi:.3g}], inside ±pi, and the angle moves); convert to degrees")
             )
+
+
+def _same_units(angle: np.ndarray, acceleration: np.ndarray | None, time: np.ndarray | None) -> bool:
+    """Whether a measured acceleration [deg/s²] follows the angle's second derivative at about its
+    size (as :func:`plausibility` compares them): then, in a trial with pulses, the angle is in
+    degrees however small its swing (weak twitches of a knee at rest), and the radian rule does
+    not apply.  A pendulum test swings far beyond pi degrees: there the rule stands, since an
+    angle and an acceleration both in radians agree with each other too."""
+    if acceleration is None or time is None or time.size < 2 or not np.all(np.diff(time) > 0):
+        return False
+    dt = float(np.median(np.diff(time)))
+    window = max(7, int(round(PLAUSIBILITY_WINDOW_S / dt)) | 1)
+    if angle.size < 3 * window:
+        return False
+    derived = savgol_filter(angle, window, 3, deriv=2, delta=dt)
+    measured = savgol_filter(acceleration, window, 3)
+    if np.std(derived) == 0 or np.std(measured) == 0:
+        return False
+    corr = float(np.corrcoef(measured, derived)[0, 1])
+    ratio = float(np.std(measured) / np.std(derived))
+    return corr > PLAUSIBLE_CORRELATION and PLAUSIBLE_RATIO[0] <= ratio <= PLAUSIBLE_RATIO[1]
 
 
 # --------------------------------------------------------------------------- manifest
