@@ -275,6 +275,8 @@ def test_convert_rejects_wrong_targets(folder, tmp_path):
         convert(other, tmp_path / "y.nc")
     with pytest.raises(NotADirectoryError, match="x.csv is a file, not a folder"):
         convert(folder, other / "sub" / "y.nc")  # a path under a file
+    # a folder named by its manifest, as every other command takes it
+    assert_same_trials(load_cohort(convert(folder / "manifest.csv", tmp_path / "m.nc")), load_cohort(folder))
 
 
 # --------------------------------------------------------------------------- error objects

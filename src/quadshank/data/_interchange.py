@@ -1252,6 +1252,8 @@ def convert(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: bool =
     (:func:`~quadshank.data._resample.resample_trial`).
     """
     src, dst = Path(src), Path(dst)
+    if src.is_file() and src.name == MANIFEST_NAME:  # the folder named by its manifest, as load_cohort takes it
+        src = src.parent
     if src.exists() and dst.exists() and src.resolve() == dst.resolve():
         raise ValueError(f"{dst}: the destination is the source")
     if src.is_dir():
