@@ -137,6 +137,22 @@ def test_identify_a_cohort_with_subjects_beyond_the_paper(data, tmp_path, capsys
     assert "paper d [ms]" in table[0] and any(row.startswith("AB-left,") for row in table[1:])
 
 
+def test_a_character_the_figures_font_lacks_is_named_once(data, tmp_path, capsys):
+    """Subjects named in a script the figures' font lacks: matplotlib warns at every figure; the
+    command says it once per character, in one line."""
+    from quadshank.data import Cohort, write_interchange
+
+    cohort = load_cohort(data)
+    named = tuple(t.replace(subject="患者", source="") for t in cohort.trials_of("TN-left"))
+    write_interchange(Cohort(named), tmp_path / "cjk")
+    capsys.readouterr()
+    assert main(["--quiet", "identify", str(tmp_path / "cjk"), "--out", str(tmp_path / "id")]) == 0
+    err = capsys.readouterr().err
+    assert "Glyph" not in err
+    warned = [line for line in err.splitlines() if "font has no" in line]
+    assert len(warned) == 2 and "'患'" in warned[0] and "'者'" in warned[1], warned
+
+
 def test_implausible_units_are_warned_about_in_one_line(data, tmp_path, capsys):
     from quadshank.data import Cohort, write_interchange
 

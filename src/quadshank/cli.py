@@ -8,6 +8,7 @@ import re
 import shlex
 import sys
 import time
+import unicodedata
 import warnings
 from pathlib import Path
 
@@ -778,13 +779,29 @@ def _error_text(exc: BaseException) -> str:
     return str(exc) or type(exc).__name__
 
 
+#: matplotlib's warning that the font lacks a character ("Glyph 24739 (\\N{CJK ...}) missing from font(s) ...").
+_MISSING_GLYPH = re.compile(r"Glyph \d+ \(\\N\{(.*?)\}\) missing from font")
+
+
 def _one_line_warnings(previous):
     """A ``warnings.showwarning`` that prints a quadshank warning about the data as one line,
     ``quadshank: warning: ...``, and hands any other warning to ``previous``."""
 
+    missing: set[str] = set()
+
     def show(message, category, filename, lineno, file=None, line=None) -> None:
+        glyph = _MISSING_GLYPH.match(str(message))
         if issubclass(category, DataWarning):
             print(f"quadshank: warning: {message}", file=sys.stderr)
+        elif glyph:  # matplotlib warns at every figure; one line per character is enough
+            if glyph.group(1) not in missing:
+                missing.add(glyph.group(1))
+                try:
+                    char = repr(unicodedata.lookup(glyph.group(1)))
+                except KeyError:
+                    char = glyph.group(1)
+                print(f"quadshank: warning: the figures' font has no {char} ({glyph.group(1)}, in a subject's "
+                      "name?); it shows as a box", file=sys.stderr)
         else:
             previous(message, category, filename, lineno, file, line)
 
