@@ -441,3 +441,29 @@ def test_pulse_level_path_only_where_a_twitch_stays_in_its_window(cohort_truth):
     assert L.pulse_tables(window, mask, pulse, u, 2, n) == {}  # a response of two samples leaves it at d = MAX_DELAY
     mask[0, p + 3] = False
     assert L.pulse_tables(window, mask, pulse, u, 1, n) == {}  # a sample it reaches is not compared
+
+
+def test_psis_loo_units_are_seconds_that_hold_a_compared_window(cohort_truth):
+    """A segment is a second of a trial at any sampling period, and one with nothing compared in it
+    (every sample excluded) is no PSIS-LOO unit: its log-likelihood would be 0 in every draw."""
+    cohort, truth = cohort_truth
+    leg = "TN-left"
+    model = _true_model(3, truth, leg)
+    dirty = _excluding(cohort, leg, [(1, 2900, 3100)])  # 29.00–31.00 s of trial 1: segments 29 and 30
+    data = L.prepare(dirty, model, trials=(1,), legs=[leg])
+    assert data.n_segments == 60
+    mask = data.segment_mask[0]
+    assert not mask[29] and not mask[30] and mask[28] and mask[31] and mask.sum() == 58
+    x = {k: v[0] for k, v in data.leg_arrays().items()}
+    seg = np.asarray(L.leg_pointwise(model, {"sigma": 40.0, "nu": 8.0}, x, 4, data.response_length, data.n_segments))
+    assert np.all(seg[~mask] == 0.0) and np.all(seg[mask] != 0.0)
+    assert L.segment_samples(0.02) == 50 and L.segment_samples(0.005) == 200 and L.segment_samples(0.01) == 100
+
+
+def test_a_leg_without_a_requested_trial_is_refused(cohort_truth):
+    """Fitting trials 1 and 2 where one leg has only trial 1 would fit that leg to trial 1 and say
+    both: refused, naming the leg and the trial."""
+    cohort, truth = cohort_truth
+    short = type(cohort)(tuple(t for t in cohort.trials if not (t.key == "JM-right" and t.trial == 2)), cohort.attrs)
+    with pytest.raises(KeyError, match=r"leg JM-right has no trial 2 \(it has \[1\]\)"):
+        L.prepare(short, _true_model(3, truth, "TN-left"), trials=(1, 2))

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..data._cohort import Cohort
 from ..inference._screen import LaplaceFit, leg_draw_models
-from ..model._likelihood import SEGMENT_SAMPLES, leg_window_cdf
+from ..model._likelihood import leg_window_cdf, segment_samples
 from ..model._model import Model
 
 
@@ -63,8 +63,9 @@ def elpd_in_time(fit: LaplaceFit, cohort: Cohort, leg: str) -> list[dict]:
     rows = []
     for t in cohort.trials_of(leg):
         if t.trial in fit.data.trials:
-            n_seg = -(-t.n_samples // SEGMENT_SAMPLES)
-            rows += [{"trial": t.trial, "start_s": k * SEGMENT_SAMPLES * t.sampling_period_s} for k in range(n_seg)]
+            seg = segment_samples(t.sampling_period_s)
+            n_seg = -(-t.n_samples // seg)
+            rows += [{"trial": t.trial, "start_s": k * seg * t.sampling_period_s} for k in range(n_seg)]
     for r, e in zip(rows, fit.elpd_i[i]):
         r["elpd"] = float(e)
     return [r for r in rows if np.isfinite(r["elpd"])]

@@ -39,7 +39,7 @@ from ._effects import (
 )
 from ._likelihood import (
     N_DELAYS,
-    SEGMENT_SAMPLES,
+    SEGMENT_S,
     LikelihoodData,
     LikelihoodError,
     leg_active_output,
@@ -47,6 +47,7 @@ from ._likelihood import (
     leg_pointwise,
     leg_window_cdf,
     prepare,
+    segment_samples,
 )
 from ._model import (
     FIT_MODELS,
@@ -73,5 +74,5 @@ __all__ = [
     "Model", "paper_model", "passive_effects", "MODELS", "FIT_MODELS", "PAPER_MODELS", "equivalent_acceleration",
     "simulate_angles", "predict_ahead", "active_output", "measure", "passive_acceleration",
     "LikelihoodData", "LikelihoodError", "prepare", "leg_loglik_by_delay", "leg_pointwise", "leg_active_output",
-    "leg_window_cdf", "SEGMENT_SAMPLES", "N_DELAYS",
+    "leg_window_cdf", "SEGMENT_S", "segment_samples", "N_DELAYS",
 ]  # fmt: skip

@@ -84,7 +84,7 @@ The angle, for the pendulum alone
     when there is no accelerometer) weighs the noise of its derivative.
 
 Units for PSIS-LOO
-    Windows are summed into segments of SEGMENT_SAMPLES (1 s) per trial: the
+    Windows are summed into segments of SEGMENT_S (1 s) per trial: the
     residual's correlation (twitch-shape misfit, resonance) dies out within a
     twitch (250 ms), so 1-s segments are close to conditionally independent,
     and leaving one out asks how well the model predicts a new second of
@@ -131,7 +131,8 @@ __all__ = [
     "window_noise",
     "max_shift",
     "response_length",
-    "SEGMENT_SAMPLES",
+    "SEGMENT_S",
+    "segment_samples",
     "N_DELAYS",
     "OBJECTIVES",
     "resolve_objective",
@@ -141,8 +142,14 @@ __all__ = [
 #: What the likelihood can compare: the equivalent acceleration (equation error, every model) or
 #: the angle of free runs from the measured state (output error, the pendulum alone).
 OBJECTIVES = ("acceleration", "angle")
-#: Samples per PSIS-LOO unit (1 s at T_s = 10 ms).
-SEGMENT_SAMPLES = 100
+#: Length [s] of a PSIS-LOO unit, a segment of a trial.
+SEGMENT_S = 1.0
+
+
+def segment_samples(sampling_period_s: float) -> int:
+    """Samples per PSIS-LOO unit at ``sampling_period_s``: :data:`SEGMENT_S` in whole samples
+    (100 at the paper's 10 ms)."""
+    return max(1, int(round(SEGMENT_S / sampling_period_s)))
 #: Delays considered: 0 .. MAX_DELAY samples.
 N_DELAYS = MAX_DELAY + 1
 #: Longest twitch window: the largest delay plus the twitch duration.
@@ -352,9 +359,13 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None, objective: str
         raise KeyError(f"no leg {', '.join(unknown)} in the data (it has {', '.join(cohort.legs)})")
     for leg in legs:
         chosen = [t for t in cohort.trials_of(leg) if t.trial in trials]
+        have = sorted(t.trial for t in cohort.trials_of(leg))
         if not chosen:
-            have = sorted(t.trial for t in cohort.trials_of(leg))
             raise KeyError(f"leg {leg} has no trial {', '.join(map(str, trials))} (it has {have})")
+        missing = [tr for tr in trials if tr not in have]
+        if missing:  # a leg fitted to fewer trials than asked for would be recorded as fitted to all
+            raise KeyError(f"leg {leg} has no trial {', '.join(map(str, missing))} (it has {have}); ask for the "
+                           "trials every leg has, or leave this leg out")
         cols = {k: [] for k in ("angle", "velocity", "acceleration", "stimulation", "mask", "pulse_ok", "start", "segment",
                                  "trial_start")}
         offset = 0
@@ -372,7 +383,7 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None, objective: str
             cols["mask"] += [compared, np.zeros(gap, bool)]
             cols["pulse_ok"] += [uncut, np.zeros(gap, bool)]
             cols["start"] += [starts, np.ones(gap, bool)]
-            seg = seg0 + np.arange(n) // SEGMENT_SAMPLES
+            seg = seg0 + np.arange(n) // segment_samples(t.sampling_period_s)
             cols["segment"] += [seg, np.full(gap, -1)]
             cols["trial_start"] += [np.full(n + gap, offset)]
             offset += n + gap
@@ -432,8 +443,11 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None, objective: str
         multi_mask[i, : m.size] = True
     S = max(x["n_segments"] for x in per_leg)
     segment_mask = np.zeros((L, S), bool)
-    for i, x in enumerate(per_leg):
-        segment_mask[i, : x["n_segments"]] = True
+    for i in range(L):
+        # a segment is a PSIS-LOO unit where a compared window starts in it: one whose samples are
+        # all excluded, cut off or inside a window credited to the segment before holds nothing
+        first = np.flatnonzero(starts[i] & sample_mask[i])
+        segment_mask[i, sample_segment[i][first]] = True
 
     pulse_ok = pad("pulse_ok", False, bool)
     delivered = [np.flatnonzero((stimulation[i] > 0) & pulse_ok[i]) for i in range(L)]
