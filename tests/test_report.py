@@ -381,3 +381,15 @@ def test_predict_rolls_the_posterior_through_a_plan_as_evaluate_does(made, capsy
     assert main(["-q", "predict", str(made["fit"]), "--stimulation", str(bad), "--out", str(made["root"] / "p2")]) == 2
     err = capsys.readouterr().err
     assert "bad-plan.csv, column 'stimulation', row 3" in err.splitlines()[0]
+
+
+def test_names_that_meet_as_file_names_keep_files_of_their_own():
+    """Subjects whose names differ only in letters a file name cannot hold (Müller, Möller) or in
+    case must not overwrite each other's page and leg files."""
+    from quadshank.outputs._report import _stems
+
+    stems = _stems(["Müller-left", "Möller-left", "MULLER-left", "患者-left", "患者-right", "A B-left"])
+    assert stems["Müller-left"] == "Muller-left" and stems["Möller-left"] == "Moller-left"
+    assert stems["MULLER-left"] == "MULLER-left-2"  # meets Muller-left on a case-insensitive file system
+    assert stems["患者-left"] == "__-left" and stems["患者-right"] == "__-right" and stems["A B-left"] == "A_B-left"
+    assert len({v.lower() for v in stems.values()}) == len(stems)

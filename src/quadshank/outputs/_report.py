@@ -38,6 +38,7 @@ import csv
 import html
 import io
 import re
+import unicodedata
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -372,8 +373,21 @@ def _delay_angle_html(da: dict) -> str:
 # ============================================================================ the command
 
 
-def _safe(name: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]", "_", name)
+def _stems(names) -> dict[str, str]:
+    """A file-name stem for each of ``names``: ASCII letters (accents dropped: Müller → Muller),
+    digits and ``._-``, any other character ``_``; distinct even on a case-insensitive file system
+    (``-2``, ``-3`` … where two would meet), so that no subject's page or leg's files overwrite
+    another's."""
+    out, taken = {}, set()
+    for name in names:
+        letters = "".join(unicodedata.normalize("NFKD", ch).encode("ascii", "ignore").decode() or "_" for ch in name)
+        base = re.sub(r"[^A-Za-z0-9._-]", "_", letters).lstrip(".") or "_"
+        stem, k = base, 2
+        while stem.lower() in taken:
+            stem, k = f"{base}-{k}", k + 1
+        taken.add(stem.lower())
+        out[name] = stem
+    return out
 
 
 def _leg_csv(rows: dict) -> str:
@@ -416,7 +430,8 @@ def write_report(
     dt = desc.get("sampling_period_s", SAMPLING_PERIOD_S)
     subjects = list(dict.fromkeys(params[leg]["subject"] for leg in legs))
     subject_legs = {s: [leg for leg in legs if params[leg]["subject"] == s] for s in subjects}
-    pages = {s: f"subject-{_safe(s)}.html" for s in subjects}
+    pages = {s: f"subject-{stem}.html" for s, stem in _stems(subjects).items()}
+    leg_stem = _stems(legs)
     diag_ok = bool(fs.diagnostics.get("ok"))
     fitted_trials = ", ".join(map(str, desc["trials"]))
     base, paper = _paper_table_v(label)
@@ -437,9 +452,9 @@ def write_report(
         }
         if "delay_angle" in s:
             doc["delay_angle"] = s["delay_angle"]
-        atomic_write_text(out / "legs" / f"{_safe(leg)}.csv", _leg_csv(params[leg]["params"]))
-        write_json(out / "legs" / f"{_safe(leg)}.json", doc)
-        files += [f"legs/{_safe(leg)}.csv", f"legs/{_safe(leg)}.json"]
+        atomic_write_text(out / "legs" / f"{leg_stem[leg]}.csv", _leg_csv(params[leg]["params"]))
+        write_json(out / "legs" / f"{leg_stem[leg]}.json", doc)
+        files += [f"legs/{leg_stem[leg]}.csv", f"legs/{leg_stem[leg]}.json"]
 
     warning = _warning_box(fs.diagnostics)
     diag_html = _diagnostics_section(fs.diagnostics)
@@ -478,11 +493,11 @@ def write_report(
         for leg in sl:
             s = fs.legs[leg]
             u = (fs.uninformed or {}).get(leg)
-            body.append(f'<h2 id="leg-{_e(_safe(leg))}">Leg {_e(leg)}</h2>')
+            body.append(f'<h2 id="leg-{_e(leg_stem[leg])}">Leg {_e(leg)}</h2>')
             delay = (f"Delay: {_e(_delay_text(s, dt))}{' (prior only)' if u else ''}" if muscle else
                      "No muscle, so no delay: the pendulum alone")
             body.append(f"<p>{delay}. Files: "
-                        f'<a href="legs/{_e(_safe(leg))}.csv">CSV</a>, <a href="legs/{_e(_safe(leg))}.json">JSON</a>.</p>')
+                        f'<a href="legs/{_e(leg_stem[leg])}.csv">CSV</a>, <a href="legs/{_e(leg_stem[leg])}.json">JSON</a>.</p>')
             if u:
                 body.append(f'<p class="note prior-only-note">{_e(leg)}: {_e(u["why"])} in the fitted trials. Its delay '
                             f"and {_e(', '.join(u['params']))} are not estimates from its data: their values are the "
@@ -513,7 +528,7 @@ def write_report(
         j = J_legs.get(leg, {})
         tr = sorted(j, key=int)[-1] if j else None
         rows.append([
-            _e(subject), f'<a href="{_e(pages[subject])}#leg-{_e(_safe(leg))}">{_e(leg)}</a>', _e(_delay_text(s, dt)) if muscle else "– (no muscle)",
+            _e(subject), f'<a href="{_e(pages[subject])}#leg-{_e(leg_stem[leg])}">{_e(leg)}</a>', _e(_delay_text(s, dt)) if muscle else "– (no muscle)",
             (f"trial {_e(tr)}: {_q(j[tr].get('1000'))}" if tr else "–"),
             '<span class="ok">passed</span>' if diag_ok else '<span class="fail">FAILED</span>',
         ])
@@ -555,7 +570,7 @@ def write_report(
         "pages": {"index": "index.html", **{f"subject {s}": p for s, p in pages.items()}},
         "figures": figures_per_page,
         "legs": {leg: {"subject": params[leg]["subject"], "page": pages[params[leg]["subject"]],
-                       "csv": f"legs/{_safe(leg)}.csv", "json": f"legs/{_safe(leg)}.json"} for leg in legs},
+                       "csv": f"legs/{leg_stem[leg]}.csv", "json": f"legs/{leg_stem[leg]}.json"} for leg in legs},
         "files": files,
         "diagnostics_ok": diag_ok,
     }
