@@ -78,3 +78,18 @@ def test_trials_at_different_periods_have_no_common_period():
 
 def test_the_simulator_refuses_a_period_off_its_millisecond_grid():
     assert main(["-q", "simulate", "--out", "unused", "--minutes", "0.1", "--sampling-period-ms", "7.5"]) == 2
+
+
+@pytest.mark.parametrize("period_ms", [5, 20])
+def test_the_zero_order_model_finds_the_delay_at_another_period(period_ms):
+    """Model 3 compares whole twitches (windows of 250 ms besides the longest delay). Counted in
+    samples, a window at 5 ms held half a twitch, and the screen put a 43-ms delay at 5 ms."""
+    from quadshank.inference._screen import laplace_fit
+
+    dt = period_ms / 1000.0
+    cohort, truth = simulate_cohort(legs=["TN-left"], minutes=1.0, trials=(1,), seed=1, sampling_period_s=dt)
+    active = truth["legs"]["TN-left"]["active"]
+    fit = laplace_fit(cohort, build_model("model3", sampling_period_s=dt), loo=False)
+    assert abs(int(np.argmax(fit.delay_posterior[0])) - active["delay_s"] / dt) < 1.0
+    # the twitch's sum over its samples grows as the samples shorten: 10 ms / T_s times the paper's
+    assert float(fit.values("TN-left")["gain"]) == pytest.approx(active["sampled_twitch_sum"] * 0.01 / dt, rel=0.1)

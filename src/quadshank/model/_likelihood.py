@@ -17,7 +17,7 @@ At what resolution
     models 1 and 3 puts a whole twitch into one sample; compared sample by
     sample it would fit the twitch's peak, not its integral, so it is compared
     on *twitch windows* (``resolution = "twitch"``): a window runs from a pulse
-    until MAX_DELAY + TWITCH_SAMPLES samples after the last pulse of its burst
+    until MAX_DELAY samples and 250 ms (TWITCH_S) after the last pulse of its burst
     (pulses closer than that share a window), data and model summed over it,
     so every twitch lies whole inside one window for any d (a window that the
     end of a trial cuts short is left out).  This is the paper's
@@ -102,7 +102,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..data._cohort import Cohort
-from ..data._paper import MAX_DELAY, TWITCH_SAMPLES
+from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S, TWITCH_SAMPLES
 from ._effects import FIRST_IPI_S, Effect, PulseContext, StepContext
 from ._model import (
     Model,
@@ -150,10 +150,23 @@ def segment_samples(sampling_period_s: float) -> int:
     """Samples per PSIS-LOO unit at ``sampling_period_s``: :data:`SEGMENT_S` in whole samples
     (100 at the paper's 10 ms)."""
     return max(1, int(round(SEGMENT_S / sampling_period_s)))
+
+
 #: Delays considered: 0 .. MAX_DELAY samples.
 N_DELAYS = MAX_DELAY + 1
-#: Longest twitch window: the largest delay plus the twitch duration.
+#: Longest twitch window at the paper's 10 ms: the largest delay plus the twitch duration.
 TWITCH_WINDOW = MAX_DELAY + TWITCH_SAMPLES
+#: How long a twitch acts [s]: the paper's 25 samples of 10 ms.
+TWITCH_S = TWITCH_SAMPLES * SAMPLING_PERIOD_S
+
+
+def twitch_window(sampling_period_s: float) -> int:
+    """Samples of a twitch window at ``sampling_period_s``: the largest delay (in samples, as the
+    delays are counted) plus :data:`TWITCH_S` in whole samples (35 at the paper's 10 ms).  Counted
+    in samples alone, a window at 5 ms would hold half a twitch, and the zero-order model would
+    take the rest for a misfit that only its delay could move (its fit chose 5 ms for a 43-ms
+    delay)."""
+    return MAX_DELAY + max(1, int(round(TWITCH_S / sampling_period_s)))
 #: The pulse-level path's tables (:func:`pulse_tables`, :func:`pulse_step_tables`): given
 #: arrays without them, the likelihood takes the (pulse, lag) path.
 PULSE_LEVEL_FIELDS = ("pulse_slot", "slot_window", "slot_mask", "step_slot_order", "step_slot_first", "step_rank_pos")
@@ -258,25 +271,26 @@ def _bucket(n: int) -> int:
     return -(-int(n) // step) * step
 
 
-def _windows(stim: np.ndarray, resolution: str) -> np.ndarray:
-    """Window start flags for one trial: True where a new window begins."""
+def _windows(stim: np.ndarray, resolution: str, window: int = TWITCH_WINDOW) -> np.ndarray:
+    """Window start flags for one trial: True where a new window begins (``window``: a twitch
+    window's samples, :func:`twitch_window`)."""
     n = stim.size
     if resolution == "sample":
         return np.ones(n, bool)
     if resolution != "twitch":
         raise LikelihoodError(f"unknown likelihood resolution {resolution!r}; use 'sample' or 'twitch'")
     pulses = np.flatnonzero(stim > 0)
-    # covered: a pulse at most TWITCH_WINDOW - 1 samples earlier (or now) may still act
-    hits = np.zeros(n + TWITCH_WINDOW, int)
+    # covered: a pulse at most window - 1 samples earlier (or now) may still act
+    hits = np.zeros(n + window, int)
     np.add.at(hits, pulses, 1)
-    np.add.at(hits, pulses + TWITCH_WINDOW, -1)
+    np.add.at(hits, pulses + window, -1)
     covered = np.cumsum(hits)[:n] > 0
     previous = np.concatenate([[False], covered[:-1]])
     starts = ~covered | (covered & ~previous)
     return starts
 
 
-def _uncut(stim: np.ndarray, starts: np.ndarray, resolution: str) -> np.ndarray:
+def _uncut(stim: np.ndarray, starts: np.ndarray, resolution: str, window: int = TWITCH_WINDOW) -> np.ndarray:
     """Samples the likelihood compares: all, but for a twitch window cut short by the end of the trial.
 
     A zero-order twitch lies whole inside its window for every delay only if
@@ -289,7 +303,7 @@ def _uncut(stim: np.ndarray, starts: np.ndarray, resolution: str) -> np.ndarray:
     if resolution != "twitch":
         return mask
     pulses = np.flatnonzero(stim > 0)
-    if pulses.size and pulses[-1] + TWITCH_WINDOW > stim.size:
+    if pulses.size and pulses[-1] + window > stim.size:
         mask[np.flatnonzero(starts[: pulses[-1] + 1])[-1] :] = False
     return mask
 
@@ -377,8 +391,9 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None, objective: str
             cols["velocity"] += [t.velocity_deg_s, np.zeros(gap)]
             cols["acceleration"] += [t.acceleration_deg_s2, np.zeros(gap)]
             cols["stimulation"] += [t.stimulation, np.zeros(gap)]
-            starts = _windows(t.stimulation, resolution)
-            uncut = _uncut(t.stimulation, starts, resolution)
+            window = twitch_window(t.sampling_period_s)
+            starts = _windows(t.stimulation, resolution, window)
+            uncut = _uncut(t.stimulation, starts, resolution, window)
             compared = uncut & ~_excluded_windows(t.exclude, starts)
             cols["mask"] += [compared, np.zeros(gap, bool)]
             cols["pulse_ok"] += [uncut, np.zeros(gap, bool)]
