@@ -176,7 +176,7 @@ def test_a_trial_without_pulses_is_named_as_taken_for_a_pendulum_test():
     t = cohort.get("OT-left", 1)
     fragment = Trial.from_signals("OT", "left", 2, t.sampling_period_s, t.angle_deg[:5], t.acceleration_deg_s2[:5],
                                   np.zeros(5), time_s=t.time_s[:5])
-    with pytest.raises(IdentificationError, match="trial 2 holds no pulse and so is taken as pendulum tests"):
+    with pytest.raises(IdentificationError, match="OT-left: its trial 2 holds no pulse and so is taken as a pendulum test, the source of its passive"):
         identify_cohort(Cohort((t, fragment)))
 
 

@@ -524,10 +524,10 @@ def identify_cohort(
             else:
                 passive, p_rms, n_quiet = identify_passive(passive_trials, gravity_offset=gravity_offset)
         except IdentificationError as err:  # say why these trials were asked
-            raise IdentificationError(
-                f"{err}. {leg}: its trial{'s' if len(numbers) > 1 else ''} {', '.join(map(str, numbers))} hold"
-                f"{'' if len(numbers) > 1 else 's'} no pulse and so {'are' if len(numbers) > 1 else 'is'} taken as "
-                "pendulum tests, the source of its passive system; leave out a trial that is not one") from err
+            which = (f"trials {', '.join(map(str, numbers))} hold no pulse and so are taken as pendulum tests"
+                     if len(numbers) > 1 else f"trial {numbers[0]} holds no pulse and so is taken as a pendulum test")
+            raise IdentificationError(f"{err}. {leg}: its {which}, the source of its passive system; leave out a "
+                                      "trial that is not one") from err
         if objective == "angle":
             _warn_poor_swing(leg, passive_trials, p_rms)
         if not np.any(chosen.stimulation > 0):
