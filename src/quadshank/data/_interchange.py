@@ -270,7 +270,7 @@ def plausibility(trial: Trial) -> list[str]:
     if trial.n_samples > 1 and np.ptp(trial.angle_deg) == 0:
         return [f"angle_deg is constant ({float(trial.angle_deg[0])!r}° throughout): no movement was recorded"]
     glitches = _glitches(trial)
-    window = max(7, int(round(PLAUSIBILITY_WINDOW_S / dt)) | 1)
+    window = _smoothing_window(dt)
     if trial.n_samples < 3 * window:
         return glitches
     found = glitches + (_pendulum_plausibility(trial) if not np.any(trial.stimulation > 0) else [])
@@ -281,12 +281,10 @@ def plausibility(trial: Trial) -> list[str]:
     if np.count_nonzero(kept) < 3 * window:
         return []
     for column, order, unit in checks:
-        derived = savgol_filter(trial.angle_deg, window, 3, deriv=order, delta=dt)[kept]
-        measured = savgol_filter(getattr(trial, column), window, 3)[kept]
-        if np.std(derived) == 0 or np.std(measured) == 0:
+        agreement = _agreement(trial.angle_deg, getattr(trial, column), order, dt, kept)
+        if agreement is None:
             continue
-        corr = float(np.corrcoef(measured, derived)[0, 1])
-        ratio = float(np.std(measured) / np.std(derived))
+        corr, ratio = agreement
         what = "second derivative" if order == 2 else "derivative"
         if corr < -PLAUSIBLE_CORRELATION:
             found.append(f"{column} runs against the angle's {what} (correlation {corr:.2f}): is the sign of one "
@@ -583,6 +581,26 @@ def _check_signals(
             )
 
 
+def _smoothing_window(dt: float) -> int:
+    """Samples of the Savitzky–Golay window of :data:`PLAUSIBILITY_WINDOW_S` (odd, at least 7)."""
+    return max(7, int(round(PLAUSIBILITY_WINDOW_S / dt)) | 1)
+
+
+def _agreement(angle: np.ndarray, measured: np.ndarray, order: int, dt: float, kept=None) -> tuple[float, float] | None:
+    """The correlation and the size ratio (standard deviations, measured over derived) of a
+    measured signal with the angle's ``order``-th derivative, both smoothed by the same
+    Savitzky–Golay filter of :data:`PLAUSIBILITY_WINDOW_S`, on the samples ``kept``; None where
+    either is flat."""
+    window = _smoothing_window(dt)
+    derived = savgol_filter(angle, window, 3, deriv=order, delta=dt)
+    smooth = savgol_filter(measured, window, 3)
+    if kept is not None:
+        derived, smooth = derived[kept], smooth[kept]
+    if np.std(derived) == 0 or np.std(smooth) == 0:
+        return None
+    return float(np.corrcoef(smooth, derived)[0, 1]), float(np.std(smooth) / np.std(derived))
+
+
 def _same_units(angle: np.ndarray, acceleration: np.ndarray | None, time: np.ndarray | None) -> bool:
     """Whether a measured acceleration [deg/s²] follows the angle's second derivative at about its
     size (as :func:`plausibility` compares them): then, in a trial with pulses, the angle is in
@@ -592,16 +610,11 @@ def _same_units(angle: np.ndarray, acceleration: np.ndarray | None, time: np.nda
     if acceleration is None or time is None or time.size < 2 or not np.all(np.diff(time) > 0):
         return False
     dt = float(np.median(np.diff(time)))
-    window = max(7, int(round(PLAUSIBILITY_WINDOW_S / dt)) | 1)
-    if angle.size < 3 * window:
+    if angle.size < 3 * _smoothing_window(dt):
         return False
-    derived = savgol_filter(angle, window, 3, deriv=2, delta=dt)
-    measured = savgol_filter(acceleration, window, 3)
-    if np.std(derived) == 0 or np.std(measured) == 0:
-        return False
-    corr = float(np.corrcoef(measured, derived)[0, 1])
-    ratio = float(np.std(measured) / np.std(derived))
-    return corr > PLAUSIBLE_CORRELATION and PLAUSIBLE_RATIO[0] <= ratio <= PLAUSIBLE_RATIO[1]
+    agreement = _agreement(angle, acceleration, 2, dt)
+    return agreement is not None and agreement[0] > PLAUSIBLE_CORRELATION \
+        and PLAUSIBLE_RATIO[0] <= agreement[1] <= PLAUSIBLE_RATIO[1]
 
 
 # --------------------------------------------------------------------------- manifest

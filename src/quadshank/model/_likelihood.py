@@ -167,6 +167,8 @@ def twitch_window(sampling_period_s: float) -> int:
     take the rest for a misfit that only its delay could move (its fit chose 5 ms for a 43-ms
     delay)."""
     return MAX_DELAY + max(1, int(round(TWITCH_S / sampling_period_s)))
+
+
 #: The pulse-level path's tables (:func:`pulse_tables`, :func:`pulse_step_tables`): given
 #: arrays without them, the likelihood takes the (pulse, lag) path.
 PULSE_LEVEL_FIELDS = ("pulse_slot", "slot_window", "slot_mask", "step_slot_order", "step_slot_first", "step_rank_pos")
