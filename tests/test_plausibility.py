@@ -125,3 +125,14 @@ def test_a_glitch_in_the_angle_is_named_with_its_time():
     # a fast but continuous swing (2000 deg/s peak) is no glitch
     fast = 400 * np.sin(2 * np.pi * 0.8 * np.arange(t.n_samples) * DT)
     assert not any("jumps by" in f for f in plausibility(t.replace(angle_deg=fast)))
+
+
+def test_a_glitch_is_named_where_most_of_the_trial_is_excluded():
+    """Too few samples kept to compare the signals: what was found before (a glitch in a kept
+    sample) is still said."""
+    t = _trial()
+    angle, exclude = t.angle_deg.copy(), np.ones(t.n_samples, bool)
+    exclude[:20] = False
+    angle[10] = 1e6
+    found = plausibility(t.replace(angle_deg=angle, exclude=exclude))
+    assert any("jumps by" in f and "time_s = 0.1" in f for f in found), found

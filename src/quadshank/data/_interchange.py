@@ -279,7 +279,7 @@ def plausibility(trial: Trial) -> list[str]:
         checks.append(("velocity_deg_s", 1, "deg/s"))
     kept = ~trial.exclude  # an excluded artefact is not evidence of a wrong unit or sign
     if np.count_nonzero(kept) < 3 * window:
-        return []
+        return found
     for column, order, unit in checks:
         agreement = _agreement(trial.angle_deg, getattr(trial, column), order, dt, kept)
         if agreement is None:
