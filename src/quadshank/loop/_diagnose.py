@@ -171,7 +171,7 @@ class Ranking:
     failed: dict = dataclasses.field(default_factory=dict)
     #: candidates that cannot change the likelihood on these data (:func:`not_applicable`): effect -> why
     not_applicable: dict = dataclasses.field(default_factory=dict)
-    #: the J draws (draws, horizons) behind the bands: of the base model (key ``""``) and of each extension
+    #: each extension's J draws (draws, horizons) behind its bands (the next round's base J, in discover)
     J_draws: dict = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict:
@@ -288,9 +288,8 @@ def rank_effects(
     kw = dict(n_draws=n_draws, seed=seed, n_starts=n_starts, objective=objective)
     if base is None:
         base = laplace_fit(cohort, model, trials, legs, **kw)
-    if base_J is None:
-        base_J = j_draws(base, cohort, eval_trials, n_draws=n_j_draws, start_stride=start_stride)
-    J0 = base_J
+    J0 = base_J if base_J is not None else j_draws(base, cohort, eval_trials, n_draws=n_j_draws,
+                                                     start_stride=start_stride)
     fits, rows, failed, J_draws = {}, [], {}, {}
     bar = progress_bar(effects, desc=f"{progress_label}screening effects", enabled=progress)
     for name in bar:
@@ -325,7 +324,7 @@ def rank_effects(
     verdict = next((r["effect"] for r in rows if r["clears_bar"]), "none")
     J_base = {f"{h}": interval(J0[:, j]) for j, h in enumerate(J_HORIZONS_MS)}
     return Ranking(base=base, fits=fits, rows=rows, verdict=verdict, J_base=J_base, failed=failed,
-                   not_applicable=inapplicable, J_draws={"": J0, **J_draws})
+                   not_applicable=inapplicable, J_draws=J_draws)
 
 
 def k_checked_difference(a_i, b_i, k_b) -> tuple[float, float, float]:
