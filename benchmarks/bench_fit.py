@@ -120,10 +120,19 @@ def _start_at(compiled, starts: dict, chains: int):
     return dataclasses.replace(compiled, initial_point_func=start)
 
 
-def run_peer(cohort, model_name: str, effects, settings, starts: dict | None = None) -> dict:
+PEER_METRICS = {
+    "low_rank": "its low-rank modified mass matrix (`--peer-metric low_rank`)",
+    "diag": "its diagonal mass matrix (`--peer-metric diag`)",
+}
+
+
+def run_peer(cohort, model_name: str, effects, settings, starts: dict | None = None, metric: str = "low_rank") -> dict:
     """The same model in PyMC sampled by nutpie: timings and diagnostics, or the reason it could not run.
 
-    ``starts``: the fit's starting points (see :func:`_start_at`); None leaves nutpie's own start."""
+    ``starts``: the fit's starting points (see :func:`_start_at`); None leaves nutpie's own start.
+    ``metric``: the mass matrix nutpie adapts in warm-up, a key of :data:`PEER_METRICS` (low_rank:
+    a diagonal metric updated along the directions where draws and gradients show correlation, nutpie's
+    answer to a dense metric)."""
     try:
         import nutpie
         import pymc
@@ -156,7 +165,8 @@ def run_peer(cohort, model_name: str, effects, settings, starts: dict | None = N
         compiled = _start_at(compiled, starts, settings.chains)
     t0 = time.perf_counter()
     trace = nutpie.sample(compiled, draws=settings.draws, tune=settings.warmup, chains=settings.chains,
-                          seed=settings.seed, progress_bar=False)  # fmt: skip
+                          seed=settings.seed, progress_bar=False,
+                          low_rank_modified_mass_matrix=metric == "low_rank")  # fmt: skip
     sampling_s = time.perf_counter() - t0
     names = [v.name for v in pm_model.free_RVs]
     post = trace.posterior[names]
@@ -174,6 +184,7 @@ def run_peer(cohort, model_name: str, effects, settings, starts: dict | None = N
         "divergences": int(trace.sample_stats["diverging"].sum()),
         "ess_bulk_min_per_s": ess / sampling_s,
         "start": "nutpie" if starts is None else "fit",
+        "metric": metric,
         "steps_per_draw": float(trace.sample_stats["n_steps"].mean()),
     }
 
@@ -235,7 +246,9 @@ def render(record: dict, section: str) -> str:
         ratio = ess_per_s / peer["ess_bulk_min_per_s"] if peer["ess_bulk_min_per_s"] > 0 else float("nan")
         t += [
             f"Peer: the same model in PyMC {peer['pymc']} sampled by nutpie {peer['nutpie']} ({peer['backend']} backend, "
-            f"chains in parallel threads), same data, chains, warm-up and draws, "
+            f"chains in parallel threads"
+            + f", {PEER_METRICS[peer.get('metric', 'diag')]}"  # records from before the option: diag
+            + "), same data, chains, warm-up and draws, "
             + ("its chains started at the points the fit's chains started at (`--peer-start fit`). "
                if peer.get("start") == "fit" else "its chains started at nutpie's own jittered defaults (`--peer-start nutpie`). ")
             + "Log densities at a common point: "
@@ -289,6 +302,8 @@ def main(argv=None) -> int:
     ap.add_argument("--peer-start", default="fit", choices=("fit", "nutpie"),
                     help="where the peer's chains start: where the fit's chains started (fit: with --start screen), "
                          "or nutpie's own jittered default")
+    ap.add_argument("--peer-metric", default="low_rank", choices=tuple(PEER_METRICS),
+                    help="the mass matrix nutpie adapts: low_rank (its best for correlated posteriors) or diag")
     ap.add_argument("--start", default="screen", choices=STARTS,
                     help="where the chains start (quadshank fit --start); each start has its own section")
     ap.add_argument("--chain-method", default=FitSettings.chain_method, choices=CHAIN_METHODS)
@@ -351,7 +366,7 @@ def main(argv=None) -> int:
             fits = load_fits([fit_dir])
             _, j_wall, j_compile = clock.timed(posterior_j, fits, cohort, n_draws=args.j_draws, progress=True)
     starts = fit_starts if args.peer_start == "fit" else None
-    peer = None if args.no_peer else run_peer(cohort, args.model, effects, settings, starts)
+    peer = None if args.no_peer else run_peer(cohort, args.model, effects, settings, starts, args.peer_metric)
     n_trials = len(cohort.trials)
     ess_per_s = diag["ess_bulk_min"] / sampling if sampling > 0 else float("nan")
     record = {

@@ -70,6 +70,16 @@ def test_peer_start_and_steps_are_rendered():
     assert "| leapfrog steps per draw (after warm-up) | 11.9 | 63.2 |" in text
 
 
+def test_peer_metric_is_named():
+    """A record from before the metric option ran nutpie's diagonal metric and says so; a record that
+    names the metric gets its own words."""
+    rec = _record(1.003, 2000.0)
+    assert "its diagonal mass matrix (`--peer-metric diag`)" in bench_fit.render(rec, "s")
+    rec["peer"]["metric"] = "low_rank"
+    text = bench_fit.render(rec, "s")
+    assert "its low-rank modified mass matrix (`--peer-metric low_rank`)" in text and "diagonal" not in text
+
+
 def test_peer_chains_start_where_the_fits_did():
     """The start vector follows nutpie's order of unconstrained values (the constrained ones after
     n_dim are left out), PyMC's ``_log__`` names map to numpyro's sites, and chain k's values go
