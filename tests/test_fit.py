@@ -425,6 +425,37 @@ def test_chains_at_different_delays_fail_the_checks_and_name_the_leg():
     assert any("--delay-from" in a for a in split["advice"])
 
 
+def test_one_chain_is_named_as_a_problem_without_arviz_warnings():
+    """One chain has no R-hat: the checks say so in their own words, and arviz logs nothing (its
+    logger is its own, outside the logging tree, so it is listened to directly)."""
+    import logging
+
+    import arviz as az
+
+    from quadshank.inference._fitio import diagnose_sampling
+
+    class Keep(logging.Handler):
+        def __init__(self):
+            super().__init__()
+            self.messages = []
+
+        def emit(self, record):
+            self.messages.append(record.getMessage())
+
+    rng = np.random.default_rng(0)
+    idata = az.from_dict(posterior={"a": rng.standard_normal((1, 217))},
+                         sample_stats={"diverging": np.zeros((1, 217), bool), "energy": rng.standard_normal((1, 217))})
+    keep = Keep()
+    az._log.addHandler(keep)
+    try:
+        diag = diagnose_sampling(idata)
+    finally:
+        az._log.removeHandler(keep)
+    assert keep.messages == []
+    assert np.isnan(diag["rhat_max"]) and diag["chains"] == 1
+    assert "one chain: R-hat cannot be computed" in diag["problems"]
+
+
 def test_a_delay_the_evidence_weighs_but_no_chain_visits_is_a_warning():
     """Chains that agree on one delay while the per-delay Laplace evidence gives a neighbour a
     fifth of the mass (model 3 on a minute of data) draw a warning naming the leg, the delay and

@@ -262,7 +262,6 @@ def diagnose_sampling(idata) -> dict:
     names = sampled_vars(idata)
     post = idata.posterior[names]
     chains = idata.posterior.sizes["chain"]
-    rhat = az.rhat(post)
     ess_bulk = az.ess(post, method="bulk")
     ess_tail = az.ess(post, method="tail")
 
@@ -270,7 +269,8 @@ def diagnose_sampling(idata) -> dict:
         vals = [float(fn(np.asarray(ds[v]))) for v in ds.data_vars if np.isfinite(np.asarray(ds[v])).any()]
         return fn(np.array(vals)) if vals else float("nan")
 
-    rhat_max = float(extreme(rhat, np.nanmax)) if chains > 1 else float("nan")
+    # arviz logs a shape warning for R-hat of one chain, which has none
+    rhat_max = float(extreme(az.rhat(post), np.nanmax)) if chains > 1 else float("nan")
     ess_bulk_min = float(extreme(ess_bulk, np.nanmin))
     ess_tail_min = float(extreme(ess_tail, np.nanmin))
     divergences = int(np.asarray(idata.sample_stats["diverging"]).sum())
