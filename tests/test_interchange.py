@@ -564,6 +564,16 @@ def test_write_uses_default_names_for_unusable_sources(tmp_path):
     assert [r[3] for r in read_rows(out / MAN)[1:]] == [TN1, TN2, "JM/r1.csv"]
 
 
+def test_default_file_names_spell_subjects_as_the_report_does(tmp_path):
+    """Accents are dropped (Müller → Muller) and other characters become ``_``, as in the report's file
+    names; the subject itself is kept whole in the manifest."""
+    trials = [make_trial("Müller", "left", 1, 0.0), make_trial("患者 1", "left", 1, 0.0)]
+    out = write_interchange(Cohort(trials), tmp_path / "out")
+    rows = read_rows(out / MAN)[1:]
+    assert [r[3] for r in rows] == ["Muller-left-trial1.csv", "___1-left-trial1.csv"]
+    assert [t.subject for t in read_interchange(out)] == ["Müller", "患者 1"]
+
+
 def test_writing_into_a_folder_with_data_needs_overwrite_and_deletes_nothing(folder, cohort):
     before = {p.name: p.read_bytes() for p in folder.iterdir()}
     with pytest.raises(FileExistsError, match="not empty"):

@@ -7,7 +7,9 @@ import functools
 import io
 import json
 import os
+import re
 import tempfile
+import unicodedata
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -58,6 +60,13 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     """Write ``text`` (UTF-8) to ``path`` atomically."""
     return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def file_stem(name: str, empty: str = "_") -> str:
+    """``name`` as a portable file-name stem: ASCII letters (accents dropped: Müller → Muller),
+    digits and ``._-``, any other character ``_``, no leading dot; ``empty`` where nothing is left."""
+    letters = "".join(unicodedata.normalize("NFKD", ch).encode("ascii", "ignore").decode() or "_" for ch in name)
+    return re.sub(r"[^A-Za-z0-9._-]", "_", letters).lstrip(".") or empty
 
 
 def _json_default(o):

@@ -110,7 +110,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 from scipy.signal import savgol_filter
 
-from ..common._io import temp_sibling
+from ..common._io import file_stem, temp_sibling
 from ._cohort import Cohort, Trial, leg_key
 from ._resample import resample_cohort, resample_trial
 
@@ -1020,8 +1020,7 @@ def _usable_source(source: str) -> str | None:
 
 
 def _default_name(t: Trial) -> str:
-    subject = re.sub(r"[^A-Za-z0-9_.-]", "_", t.subject).lstrip(".") or "subject"
-    return f"{subject}-{t.leg}-trial{t.trial}.csv"
+    return f"{file_stem(t.subject, 'subject')}-{t.leg}-trial{t.trial}.csv"
 
 
 def _file_names(cohort: Cohort) -> list[str]:

@@ -37,14 +37,12 @@ import base64
 import csv
 import html
 import io
-import re
-import unicodedata
 from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ..common._io import atomic_write_text, figure_bytes, write_json
+from ..common._io import atomic_write_text, figure_bytes, file_stem, write_json
 from ..common._progress import progress_bar
 from ..data._paper import SAMPLING_PERIOD_S, TABLE_V
 from ..inference._summaries import INTERVAL, interval
@@ -380,8 +378,7 @@ def _stems(names) -> dict[str, str]:
     another's."""
     out, taken = {}, set()
     for name in names:
-        letters = "".join(unicodedata.normalize("NFKD", ch).encode("ascii", "ignore").decode() or "_" for ch in name)
-        base = re.sub(r"[^A-Za-z0-9._-]", "_", letters).lstrip(".") or "_"
+        base = file_stem(name)
         stem, k = base, 2
         while stem.lower() in taken:
             stem, k = f"{base}-{k}", k + 1
