@@ -89,7 +89,10 @@ def main(argv=None) -> int:
     ap.add_argument("--record", default="results/bench_scale.json")
     args = ap.parse_args(argv)
     command = "python benchmarks/bench_scale.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
-    rows = []
+    record = {
+        "command": command, "minutes": args.minutes, "chains": args.chains, "target_ess": args.target_ess,
+        "time_limit_s": args.time_limit, "rows": [],
+    }
     for replicas in (int(x) for x in args.replicas.split(",") if x):
         with tempfile.TemporaryDirectory() as tmp:
             tmp = Path(tmp)
@@ -102,13 +105,9 @@ def main(argv=None) -> int:
             )  # fmt: skip
             row = _row(f"{len(cohort.legs)} legs", tmp / "fit", seconds)
             row.update(legs=len(cohort.legs), samples=int(sum(t.n_samples for t in cohort)))
-            rows.append(row)
-            print(f"{row['legs']} legs: {seconds:.0f} s, passes its checks: {row['ok']}", flush=True)
-    record = {
-        "command": command, "minutes": args.minutes, "chains": args.chains, "target_ess": args.target_ess,
-        "time_limit_s": args.time_limit, "rows": rows,
-    }
-    publish(record, args.record, args.out, SECTION, render)
+        record["rows"].append(row)
+        # written after every size, so that a run stopped during a larger cohort keeps the smaller ones
+        publish(record, args.record, args.out, SECTION, render)
     return 0
 
 
