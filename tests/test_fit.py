@@ -5,6 +5,7 @@ is the machinery: the fit folder, its reload, the summary, the loud failure
 and reproducibility.  Recovery and coverage at full size are benchmarks.
 """
 
+import dataclasses
 import json
 
 import jax
@@ -528,7 +529,7 @@ def test_a_screen_stuck_at_a_minor_delay_restarts_at_the_best_one():
     assert stuck.delay_posterior[0, 6] > 0.5 and dm.probability[0, 6] < 1e-6
     assert stuck.neg_logpost[0] > scr.neg_logpost[0] + 10.0
 
-    new, evidence, moved = delay_start(cohort, settings, stuck)
+    new, evidence, moved, _ = delay_start(cohort, settings, stuck)
     assert moved == {"TN-left": (6, best)}
     assert new.delay_posterior[0, best] > 0.5
     assert new.neg_logpost[0] == pytest.approx(scr.neg_logpost[0], abs=1.0)
@@ -536,8 +537,29 @@ def test_a_screen_stuck_at_a_minor_delay_restarts_at_the_best_one():
 
     prior = np.log(np.full((1, N_DELAYS), 1e-12))
     prior[0, 6] = 0.0
-    same, evidence6, moved6 = delay_start(cohort, settings, stuck, log_delay_prior=prior)
+    same, evidence6, moved6, _ = delay_start(cohort, settings, stuck, log_delay_prior=prior)
     assert moved6 == {} and same is stuck and evidence6[0].argmax() == 6
+
+
+def test_a_fit_jumps_between_the_delay_modes_its_evidence_weighs():
+    """A minute of TN-left under model 3 has one mode of θ at d = 3 and one at d = 4, which the
+    per-delay evidence weighs about 4 : 1 (see above).  The fit's chains jump between them
+    (``mode_jump`` counts the jumps taken), and each chain's P(d = 4) is of the evidence's order."""
+    from quadshank.evaluation._recovery import simulate_matching
+    from quadshank.inference._nuts import run_nuts
+
+    cohort, _ = simulate_matching("model3", ("TN-left",), 1.0, 2)
+    settings = FitSettings(chains=2, warmup=150, draws=300, seed=0, chain_method="vectorized")
+    run = run_nuts(cohort, build_model("model3"), settings, progress=False)
+    assert 0.05 < run.delay_evidence[0, 4] < 0.4
+    p = np.exp(np.asarray(run.mcmc.get_samples(group_by_chain=True)["delay_logp"], np.float64))[:, :, 0]
+    assert np.all(p[..., 3:5].sum(axis=-1).mean(axis=1) > 0.98)
+    p4 = p[..., 4].mean(axis=1)  # each chain's P(d = 4)
+    assert np.all((p4 > 0.03) & (p4 < 0.6)), p4
+    jumped = np.asarray(run.mcmc.get_extra_fields(group_by_chain=True)["mode_jump"])
+    assert np.all(jumped.sum(axis=1) >= 5)
+    no_jumps = dataclasses.replace(settings, mode_jumps=False, warmup=5, draws=5)
+    assert "mode_jump" not in run_nuts(cohort, build_model("model3"), no_jumps, progress=False).mcmc.get_extra_fields()
 
 
 def test_vectorized_and_sequential_chains_give_the_same_draws():

@@ -90,11 +90,18 @@ def numpyro_model(
     arrays: dict | None = None,
     centred: bool = True,
     log_delay_prior=None,
+    part: str = "all",
 ):
     """The hierarchical numpyro model of ``model`` on ``data`` (delay summed out).
 
-    ``log_delay_prior`` (legs, 11): log π(d) per leg; uniform when None.
+    ``log_delay_prior`` (legs, 11): log π(d) per leg; uniform when None.  ``part``: "all";
+    "prior", without the likelihood; "legs", the whole model with each leg's log-likelihood
+    recorded as the deterministic site ``leg_loglik`` (L,).  The potential energy is the
+    prior's minus the legs' log-likelihoods, which is what jumps of one leg at a time
+    (:class:`quadshank.inference._jumps.ModeJumpNUTS`) evaluate.
     """
+    if part not in ("all", "prior", "legs"):
+        raise ValueError(f"part must be 'all', 'prior' or 'legs', not {part!r}")
     x = arrays if arrays is not None else data.leg_arrays()
     n_legs, n_subjects = data.n_legs, len(data.subjects)
     leg_subject = np.asarray(data.leg_subject)  # a constant: the spread grid is built from it
@@ -105,6 +112,8 @@ def numpyro_model(
     with numpyro.plate("legs", n_legs):
         sigma = numpyro.sample("sigma", dist.LogNormal(*SIGMA_PRIORS[data.objective]))
         nu = numpyro.sample("nu", dist.Gamma(*NU_PRIOR))
+    if part == "prior":
+        return
     stacked = _with_discrete_axes(model.with_params(values), (n_legs,))
     R, K = data.response_length, data.max_shift
     d_prior = jnp.full((n_legs, N_DELAYS), -math.log(N_DELAYS)) if log_delay_prior is None else jnp.asarray(log_delay_prior)
@@ -113,6 +122,8 @@ def numpyro_model(
     numpyro.deterministic("delay_logp", delay_logp)
     if K:
         numpyro.deterministic("delay_shift_logp", joint)
+    if part == "legs":
+        numpyro.deterministic("leg_loglik", total)
     numpyro.factor("likelihood", jnp.sum(total))
 
 

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from numpyro import handlers
 from numpyro.infer import MCMC, NUTS, init_to_median, init_to_uniform
-from numpyro.infer.util import potential_energy
+from numpyro.infer.util import constrain_fn, potential_energy
 from scipy import optimize
 
 from ..common._random import numpy_rng
@@ -43,7 +43,8 @@ from ..model._model import Model
 from ._density import numpyro_model
 from ._draws import hyper_draws
 from ._priors import model_params, step_param
-from ._screen import _hessian, delay_modes, laplace_fit, restart_screen
+from ._jumps import JumpBlocks, ModeJumpNUTS, refine_blocks
+from ._screen import DelayModes, _hessian, delay_modes, laplace_fit, restart_screen
 from ._starts import _init_near, classical_start
 from ._summaries import THRESHOLDS
 
@@ -65,6 +66,9 @@ STARTS = ("screen", "classical", "prior")
 CHAIN_METHODS = ("auto", "vectorized", "sequential", "parallel")
 #: Compared samples (all legs) from which chain_method "auto" runs the chains one after another.
 SEQUENTIAL_FROM_SAMPLES = 100_000
+#: The least P(d | data) (a leg alone, per-delay Laplace) of a delay whose mode the chains jump to
+#: (:func:`jump_blocks`): below it a mode's share of the draws is too small to matter for the checks.
+JUMP_MODE_FLOOR = 0.01
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,6 +107,11 @@ class FitSettings:
     #: missed it, and the weights, stored in the fit, are checked against the chains' P(d):
     #: a delay holding ≥ 0.1 of that weight that no chain visits draws a warning.
     delay_evidence: bool = True
+    #: With ``delay_evidence``: where a leg's delay evidence holds two delays or more, each NUTS
+    #: transition is followed by a Metropolis–Hastings jump between their modes in θ
+    #: (:class:`quadshank.inference._jumps.ModeJumpNUTS`, :func:`jump_blocks`), which NUTS alone
+    #: does not cross.
+    mode_jumps: bool = True
     #: Draw to an effective sample size rather than a number of draws: after ``warmup`` and a first
     #: block of ``draws`` per chain, further blocks of ``draws`` follow until every check of the
     #: fit's R-hat and ESS passes with bulk and tail ESS at least this (and at least
@@ -181,7 +190,7 @@ def fit_screen(cohort: Cohort, model: Model, settings: FitSettings, legs=None, n
 
 def delay_start(cohort: Cohort, settings: FitSettings, screen, log_delay_prior=None, progress: bool = False):
     """Each leg's delays weighed by a Laplace approximation per delay, and the screen restarted
-    where it missed the best of them.  Returns ``(screen, evidence, moved)``.
+    where it missed the best of them.  Returns ``(screen, evidence, moved, modes)``.
 
     The screen's L-BFGS of the marginal posterior settles in the basin it starts in, and
     where each delay has its own mode in θ (model 3) that basin can be a delay's that
@@ -213,7 +222,7 @@ def delay_start(cohort: Cohort, settings: FitSettings, screen, log_delay_prior=N
             print("fit: the screen restarted at the delay the evidence weighs most: "
                   + ", ".join(f"{leg} d = {a} -> {b}" for leg, (a, b) in moved.items()), file=sys.stderr, flush=True)
         screen = restart_screen(screen, cohort, starts, trials=settings.trials, seed=settings.seed)
-    return screen, evidence, moved
+    return screen, evidence, moved, dm
 
 
 def screen_start(model: Model, data: LikelihoodData, settings: FitSettings, conditioned, arrays, scr):
@@ -237,31 +246,8 @@ def screen_start(model: Model, data: LikelihoodData, settings: FitSettings, cond
     if scr.legs != data.legs or scr.draws.shape[1] < chains:
         raise ValueError(f"the screen is of legs {', '.join(scr.legs)} with {scr.draws.shape[1]} draws; "
                          f"the fit needs {', '.join(data.legs)} and {chains}: make it with fit_screen()")
-    def latent_values(arrays):
-        trace = handlers.trace(handlers.seed(conditioned, settings.seed)).get_trace(arrays)
-        return {k: v["value"] for k, v in trace.items() if v["type"] == "sample" and not v["is_observed"]}
-
-    # the latent sites' shapes, traced abstractly: nothing drawn, nothing compiled
-    shapes = {k: tuple(v.shape) for k, v in jax.eval_shape(latent_values, arrays).items()}
-    names = sorted(shapes)  # numpyro's order of the flattened latent vector
-    offsets, n = {}, 0
-    for k in names:
-        offsets[k] = n
-        n += math.prod(shapes[k])
-    L = data.n_legs
-
-    # a parameter the fit sums out (a step delay effect's threshold) has no site: its entries
-    # of the screen's vector are dropped, and the Laplace covariance of the rest is the block of it
-    kept = np.concatenate([np.full(s.size, f"{s.name}_s_leg" in offsets) for s in scr.specs] + [np.ones(2, bool)])
-
-    def positions(i):
-        """Where leg i's screen vector (z per parameter, log σ, log ν; kept entries) sits in the latent vector."""
-        out = []
-        for s in scr.specs:
-            site = f"{s.name}_s_leg"
-            if site in offsets:
-                out += [offsets[site] + (c * L + i if s.shape else i) for c in range(s.size)]
-        return np.asarray(out + [offsets["sigma"] + i, offsets["nu"] + i])
+    names, shapes, offsets, kept, positions = _latent_layout(data, settings, conditioned, arrays, scr)
+    n, L = sum(math.prod(s) for s in shapes.values()), data.n_legs
 
     inits = np.zeros((chains, n))
     imm = np.zeros((n, n))
@@ -283,6 +269,127 @@ def screen_start(model: Model, data: LikelihoodData, settings: FitSettings, cond
         v = inits[:, offsets[k] : offsets[k] + math.prod(shape)].reshape((chains, *shape))
         init_params[k] = jnp.asarray(v if chains > 1 else v[0], jnp.result_type(float))
     return init_params, {tuple(names): jnp.asarray(imm, jnp.result_type(float))}
+
+
+def _latent_layout(data: LikelihoodData, settings: FitSettings, conditioned, arrays, scr):
+    """Where the screen's vectors sit in numpyro's flattened latent vector.
+
+    Returns ``(names, shapes, offsets, kept, positions)``: the latent sites in numpyro's order
+    (sorted by name), their shapes and offsets; ``kept`` (the screen's dim,) the entries of the
+    screen's vector the fit samples (a parameter the fit sums out, a step delay effect's
+    threshold, has no site); ``positions(i)``: where leg i's kept entries lie.
+    """
+
+    def latent_values(arrays):
+        trace = handlers.trace(handlers.seed(conditioned, settings.seed)).get_trace(arrays)
+        return {k: v["value"] for k, v in trace.items() if v["type"] == "sample" and not v["is_observed"]}
+
+    # the latent sites' shapes, traced abstractly: nothing drawn, nothing compiled
+    shapes = {k: tuple(v.shape) for k, v in jax.eval_shape(latent_values, arrays).items()}
+    names = sorted(shapes)  # numpyro's order of the flattened latent vector
+    offsets, n = {}, 0
+    for k in names:
+        offsets[k] = n
+        n += math.prod(shapes[k])
+    L = data.n_legs
+    # a parameter the fit sums out (a step delay effect's threshold) has no site: its entries of
+    # the screen's vector are dropped, and the Laplace covariance of the rest is the block of it
+    kept = np.concatenate([np.full(s.size, f"{s.name}_s_leg" in offsets) for s in scr.specs] + [np.ones(2, bool)])
+
+    def positions(i):
+        """Where leg i's screen vector (z per parameter, log σ, log ν; kept entries) sits in the latent vector."""
+        out = []
+        for s in scr.specs:
+            site = f"{s.name}_s_leg"
+            if site in offsets:
+                out += [offsets[site] + (c * L + i if s.shape else i) for c in range(s.size)]
+        return np.asarray(out + [offsets["sigma"] + i, offsets["nu"] + i])
+
+    return names, shapes, offsets, kept, positions
+
+
+def jump_blocks(data: LikelihoodData, settings: FitSettings, conditioned, arrays, scr, modes: DelayModes,
+                evidence: np.ndarray, floor: float = JUMP_MODE_FLOOR) -> JumpBlocks | None:
+    """The legs whose chains jump between delay modes (:class:`ModeJumpNUTS`), or None.
+
+    A leg's modes are those of the delays that hold at least ``floor`` of its P(d | data)
+    (``evidence``, the per-delay Laplace weights of :func:`delay_start`, a leg alone) and
+    the delays next to the best: the fit's posterior can move weight the leg-alone evidence
+    does not see (pooling across legs; a step delay effect whose threshold the fit sums out
+    where the screen holds a smooth one).  On 20 legs × 1 min (model 3 + ``angle_delay``) a
+    leg the evidence gave d = 4 alone settled at d = 4 in one chain and at d = 5, at the same
+    energy, in three.  Each mode's Gaussian is that of
+    :func:`quadshank.inference._screen.delay_modes` over the model's parameters; log σ and
+    log ν stay where the chain has them (delays that fit about equally well leave about the
+    same noise, and the fit's noise can sit away from the screen's, see
+    :func:`_noise_at_the_fits_density`).
+    """
+    if modes is None or modes.covariances is None or evidence is None:
+        return None
+    _, _, _, kept, positions = _latent_layout(data, settings, conditioned, arrays, scr)
+    K = data.max_shift
+    params = kept.copy()
+    params[-2:] = False  # log σ, log ν
+    rows = []
+    for i, leg in enumerate(data.legs):
+        ev = np.asarray(evidence[i], np.float64)
+        best = int(ev.argmax())
+        wanted = (ev >= floor) | (np.abs(np.arange(N_DELAYS) - best) == 1)
+        found = []
+        for d in np.flatnonzero(wanted & np.isfinite(modes.log_evidence[i])):
+            cov = modes.covariances[i, d][np.ix_(params, params)]
+            try:
+                chol = np.linalg.cholesky(0.5 * (cov + cov.T))
+            except np.linalg.LinAlgError:
+                continue
+            # a delay effect that shortens d by a shift: each (d, shift) can hold a mode of its own,
+            # all started from the delay's (refine_blocks moves each to its own)
+            found += [(int(d) * (K + 1) + s, modes.modes[i, d][params], chol) for s in range(min(K, int(d)) + 1)]
+        if len(found) >= 2:
+            rows.append((i, positions(i)[:-2], found))
+    if not rows:
+        return None
+    J, M, k = len(rows), max(len(f) for _, _, f in rows), len(rows[0][1])
+    mean, chol = np.zeros((J, M, k)), np.tile(np.eye(k), (J, M, 1, 1))
+    valid, delays = np.zeros((J, M), bool), np.full((J, M), -1)
+    for j, (_, _, found) in enumerate(rows):
+        for m, (d, mu, c) in enumerate(found):
+            mean[j, m], chol[j, m], valid[j, m], delays[j, m] = mu, c, True, d
+    return JumpBlocks(index=np.stack([idx for _, idx, _ in rows]), mean=mean, chol=chol, valid=valid,
+                      legs=tuple(data.legs[i] for i, _, _ in rows), delays=delays,
+                      leg=np.asarray([i for i, _, _ in rows]))
+
+
+def _split_potential(model: Model, data: LikelihoodData, settings: FitSettings, log_delay_prior):
+    """For :class:`ModeJumpNUTS`: a function of the model's arguments giving ``(leg_loglik,
+    prior_potential)`` of the fit's numpyro model (its parts "legs" and "prior"), and with
+    ``conditional=True`` a third, each leg's log p(y, d, shift | θ) (the labels of :func:`jump_blocks`)."""
+
+    def with_legs(arrays):
+        return numpyro_model(model, data, arrays, settings.centred, log_delay_prior, part="legs")
+
+    def prior_only(arrays):
+        return numpyro_model(model, data, arrays, settings.centred, log_delay_prior, part="prior")
+
+    def split(model_args, model_kwargs, conditional=False):
+        def values(z):
+            return constrain_fn(with_legs, model_args, model_kwargs, z, return_deterministic=True)
+
+        def leg_loglik(z):
+            return values(z)["leg_loglik"]
+
+        def prior_potential(z):
+            return potential_energy(prior_only, model_args, model_kwargs, z)
+
+        def by_delay(z):
+            """log p(y, d, shift | θ) of each leg, (L, 11·(K + 1)): label d·(K + 1) + shift."""
+            v = values(z)
+            joint = v["delay_shift_logp"] if data.max_shift else v["delay_logp"]
+            return v["leg_loglik"][:, None] + joint.reshape(data.n_legs, -1)
+
+        return (leg_loglik, prior_potential, by_delay) if conditional else (leg_loglik, prior_potential)
+
+    return split
 
 
 def _noise_at_the_fits_density(conditioned, arrays, names, shapes, offsets, noise, inits, imm, seed) -> None:
@@ -368,15 +475,16 @@ def run_nuts(
     """
     t0 = time.perf_counter()
     screen = fit_screen(cohort, model, settings, legs=legs, progress=progress)
-    evidence, moved, evidence_seconds = None, {}, None
+    evidence, moved, evidence_seconds, modes = None, {}, None, None
     if screen is not None and settings.delay_evidence:
         if progress:
             print("fit: each leg's delays weighed by a Laplace approximation per delay", file=sys.stderr, flush=True)
         t1 = time.perf_counter()
-        screen, evidence, moved = delay_start(cohort, settings, screen, log_delay_prior, progress=progress)
+        screen, evidence, moved, modes = delay_start(cohort, settings, screen, log_delay_prior, progress=progress)
         evidence_seconds = time.perf_counter() - t1
+    jumps = (modes, evidence) if settings.mode_jumps else None
     with jax.enable_x64(True):
-        mcmc, data = _fit(cohort, model, settings, legs, progress, log_delay_prior, screen, started=t0)
+        mcmc, data = _fit(cohort, model, settings, legs, progress, log_delay_prior, screen, started=t0, jumps=jumps)
     # JAX dispatches asynchronously: the draws may still be computing when the run returns
     jax.block_until_ready(mcmc.get_samples(group_by_chain=True))
     sampling = time.perf_counter() - t0 - (evidence_seconds or 0.0)
@@ -397,7 +505,7 @@ def fit(
     return run.mcmc, run.data
 
 
-def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen, started=None):
+def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen, started=None, jumps=None):
     data = prepare(cohort, model, trials=settings.trials, legs=legs, objective=settings.likelihood)
     arrays = {k: v.astype(jnp.float64) if jnp.issubdtype(v.dtype, jnp.floating) else v for k, v in data.leg_arrays().items()}
     if log_delay_prior is not None:
@@ -411,16 +519,32 @@ def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen, start
         return numpyro_model(model, data, arrays, settings.centred, log_delay_prior)
 
     init = init_to_median(num_samples=15)
-    init_params, imm = None, None
+    init_params, imm, blocks = None, None, None
     if screen is not None:
         init_params, imm = screen_start(model, data, settings, conditioned, arrays, screen)
+        if jumps is not None:
+            blocks = jump_blocks(data, settings, conditioned, arrays, screen, *jumps)
+        if blocks is not None:
+            if progress:
+                print(f"fit: the delay modes of {blocks.n_legs} leg(s) located under the fit's density, for the chains' jumps",
+                      file=sys.stderr, flush=True)
+            split = _split_potential(model, data, settings, log_delay_prior)
+            _, prior_potential, by_delay = split((arrays,), {}, conditional=True)
+            start = {k: v[0] if settings.chains > 1 else v for k, v in init_params.items()}
+            blocks = refine_blocks(blocks, start, by_delay, prior_potential)
+        if blocks is not None and progress:
+            print("fit: the chains jump between delay modes of "
+                  + ", ".join(f"{leg} (d = {', '.join(str(d) for d in np.unique(ds[v] // (data.max_shift + 1)))})"
+                              for leg, ds, v in zip(blocks.legs, blocks.delays, blocks.valid)),
+                  file=sys.stderr, flush=True)
         init = init_to_uniform  # the start numpyro finds is replaced by init_params: no prior draws for it
         if not settings.dense_mass:
             imm = {k: jnp.diagonal(v) for k, v in imm.items()}
     elif settings.start in ("screen", "classical") and settings.centred:
         start = classical_start(cohort, model, data, settings.trials[0])
         init = functools.partial(_init_near, values=start, fallback=init)
-    kernel = NUTS(
+    jumping = {} if blocks is None else {"blocks": blocks, "split": split}
+    kernel = (NUTS if blocks is None else functools.partial(ModeJumpNUTS, **jumping))(
         conditioned,
         target_accept_prob=settings.target_accept,
         max_tree_depth=settings.max_tree_depth,
@@ -449,12 +573,18 @@ def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen, start
     if settings.target_ess is not None:
         started = time.perf_counter() if started is None else started
         return _draw_to_target(mcmc, key, arrays, init_params, model, data, settings, started, progress), data
-    mcmc.run(key, arrays, extra_fields=_FIELDS, init_params=init_params)
+    mcmc.run(key, arrays, extra_fields=_fields(mcmc), init_params=init_params)
     return mcmc, data
 
 
 #: The sampler's statistics kept with every draw.
 _FIELDS = ("diverging", "energy", "num_steps")
+
+
+def _fields(mcmc: MCMC) -> tuple[str, ...]:
+    """The statistics kept with every draw: :data:`_FIELDS`, and whether a mode jump was accepted where the chains jump."""
+    return _FIELDS + (("mode_jump",) if isinstance(mcmc.sampler, ModeJumpNUTS) else ())
+
 #: Sites that are no parameter: each leg's log P(d | θ) (and of (d, shift)), not checked for convergence.
 _NOT_CHECKED = ("delay_logp", "delay_shift_logp")
 
@@ -539,7 +669,7 @@ def _draw_to_target(mcmc, key, arrays, init_params, model, data, settings, start
     def draw(**kw):
         t = time.perf_counter()
         with quiet():
-            mcmc.run(key if not samples else mcmc.post_warmup_state.rng_key, arrays, extra_fields=_FIELDS, **kw)
+            mcmc.run(key if not samples else mcmc.post_warmup_state.rng_key, arrays, extra_fields=_fields(mcmc), **kw)
         samples.append({k: np.asarray(v) for k, v in mcmc.get_samples(group_by_chain=True).items()})
         extra.append({k: np.asarray(v) for k, v in mcmc.get_extra_fields(group_by_chain=True).items()})
         return time.perf_counter() - t

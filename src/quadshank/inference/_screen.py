@@ -477,6 +477,9 @@ class DelayModes:
     probability: np.ndarray  # (L, 11) P(d | data) ∝ p(y, d), uniform prior on d
     log_evidence: np.ndarray  # (L, 11) log p(y, d) up to a constant; -inf where no finite mode
     modes: np.ndarray  # (L, 11, dim) θ̂_d on the screen's unconstrained scale
+    #: (L, 11, dim, dim) the Laplace covariance at θ̂_d (the curvature's eigenvalues floored as in
+    #: the evidence); None where not computed
+    covariances: np.ndarray | None = None
 
 
 def delay_evidence(screen: LaplaceFit, max_iter: int = 400) -> np.ndarray:
@@ -513,6 +516,7 @@ def _delay_modes(screen: LaplaceFit, max_iter: int) -> DelayModes:
     arrays = _leg_arrays64(data)
     log_ev = np.full((data.n_legs, N_DELAYS), -np.inf)
     modes = np.repeat(screen.mode[:, None, :], N_DELAYS, axis=1).astype(np.float64)
+    covariances = np.repeat(np.asarray(screen.covariance, np.float64)[:, None], N_DELAYS, axis=1)
     for i in range(data.n_legs):
         x = {k: v[i] for k, v in arrays.items()}
         w, V = np.linalg.eigh(screen.covariance[i])
@@ -528,12 +532,14 @@ def _delay_modes(screen: LaplaceFit, max_iter: int) -> DelayModes:
             if not np.isfinite(res.fun):
                 continue
             modes[i, d] = v
-            w_d = np.linalg.eigvalsh(_hessian(vg, modes[i, d], x))
-            log_ev[i, d] = -res.fun - 0.5 * np.sum(np.log(np.maximum(w_d, 1.0)))
+            w_d, V_d = np.linalg.eigh(_hessian(vg, modes[i, d], x))
+            w_d = np.maximum(w_d, 1.0)
+            log_ev[i, d] = -res.fun - 0.5 * np.sum(np.log(w_d))
+            covariances[i, d] = (V_d / w_d[None, :]) @ V_d.T
         if not np.isfinite(log_ev[i]).any():
             raise FloatingPointError(f"{data.legs[i]}: no delay has a finite posterior density under {screen.model.name}")
     probability = np.exp(log_ev - special.logsumexp(log_ev, axis=1, keepdims=True))
-    return DelayModes(probability=probability, log_evidence=log_ev, modes=modes)
+    return DelayModes(probability=probability, log_evidence=log_ev, modes=modes, covariances=covariances)
 
 
 def restart_screen(screen: LaplaceFit, cohort: Cohort, starts: dict[str, np.ndarray], trials=(1,), seed: int = 0) -> LaplaceFit:
