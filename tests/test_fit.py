@@ -424,6 +424,13 @@ def test_chains_at_different_delays_fail_the_checks_and_name_the_leg():
     assert split["delay_splits"] == {"B": [4, 5]}
     assert any("B (chain 0: 4, chain 1: 5)" in x for x in split["problems"]), split["problems"]
     assert any("--delay-from" in a for a in split["advice"])
+    assert split["mode_jumps"] is None and any("does not cross" in a for a in split["advice"])
+    # chains that jumped between the modes and still disagree are told to draw more, not that they cannot cross
+    jumped = _two_chain_fit([[0.7 * p(4) + 0.3 * p(6), p(4)], [p(4), p(5)]])
+    jumped.sample_stats["mode_jump"] = (("chain", "draw"), np.ones((2, 400), np.int8))
+    told = diagnose_sampling(jumped)
+    assert not told["ok"] and told["mode_jumps"] == 800
+    assert any("800 jumps" in a for a in told["advice"]) and not any("does not cross" in a for a in told["advice"])
 
 
 def test_one_chain_is_named_as_a_problem_without_arviz_warnings():

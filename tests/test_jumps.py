@@ -160,3 +160,12 @@ def test_refined_blocks_sit_at_each_labels_mode_with_its_covariance():
     np.testing.assert_allclose(new.mean, centres, atol=1e-3)
     np.testing.assert_allclose(np.einsum("lmij,lmkj->lmik", new.chol, new.chol), covs, atol=2e-3)
     assert np.allclose(np.triu(new.chol, 1), 0.0) and new.legs == ("a", "b")
+
+
+def test_the_jumps_can_be_switched_off_from_the_command_line():
+    from quadshank.cli import build_parser
+
+    for command in ("fit", "recovery"):
+        extra = ["d", "--out", "o"] if command == "fit" else ["--out", "o"]
+        assert build_parser().parse_args([command, *extra]).mode_jumps is True
+        assert build_parser().parse_args([command, *extra, "--no-mode-jumps"]).mode_jumps is False

@@ -297,6 +297,7 @@ def cmd_fit(args) -> int:
         start=args.start,
         adapt_metric=args.adapt_metric,
         delay_evidence=args.delay_evidence,
+        mode_jumps=args.mode_jumps,
         max_tree_depth=args.max_tree_depth,
         chain_method=args.chain_method,
         likelihood=args.likelihood,
@@ -320,7 +321,8 @@ def cmd_fit(args) -> int:
     _say(
         args,
         f"R-hat max {diag['rhat_max']:.3f}, bulk ESS min {diag['ess_bulk_min']:.0f}, "
-        f"divergences {diag['divergences']}, E-BFMI min {diag['bfmi_min']:.2f}",
+        f"divergences {diag['divergences']}, E-BFMI min {diag['bfmi_min']:.2f}"
+        + ("" if diag.get("mode_jumps") is None else f", jumps between delay modes {diag['mode_jumps']}"),
     )
     if summary.target is not None:
         t = summary.target
@@ -345,7 +347,7 @@ def cmd_recovery(args) -> int:
     command = _command_line(args)
     settings = FitSettings(
         chains=args.chains, warmup=args.warmup, draws=args.draws, start=args.start, adapt_metric=args.adapt_metric,
-        delay_evidence=args.delay_evidence,
+        delay_evidence=args.delay_evidence, mode_jumps=args.mode_jumps,
     )
     result = run_recovery(
         args.out,
@@ -555,6 +557,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="with --start screen, skip weighing each leg's delays by a Laplace approximation per "
                              "delay (11 optimisations per leg: the screen restarts at the best delay where it missed "
                              "it, and the chains' P(d) is compared with it in a warning)")
+        sp.add_argument("--no-mode-jumps", dest="mode_jumps", action="store_false",
+                        help="with the delays weighed, do not follow each NUTS transition with Metropolis-Hastings "
+                             "jumps between a leg's delay modes (which NUTS alone does not cross)")
 
     def sim_options(sp, minutes_default):
         sp.add_argument("--minutes", type=float, default=minutes_default, help="length of each trial [min]")

@@ -287,13 +287,21 @@ def diagnose_sampling(idata) -> dict:
         problems.append(f"R-hat {rhat_max:.3f} ≥ {THRESHOLDS['rhat_max']}: chains disagree")
         advice.append("run longer (--warmup, --draws) or check for several posterior modes")
     splits = delay_splits(idata)
+    # jumps between delay modes taken after the transitions (None: the chains did not jump)
+    mode_jumps = int(np.asarray(idata.sample_stats["mode_jump"]).sum()) if "mode_jump" in idata.sample_stats else None
     if splits:
         where = "; ".join(f"{leg} ({', '.join(f'chain {c}: {d}' for c, d in enumerate(modes))})" for leg, modes in splits.items())
         problems.append(f"chains settled at different delays [samples]: {where}")
-        advice.append(
-            "the delay has modes the sampler does not cross: fit more data (longer or more trials), or give "
-            "the delay a prior from another fit (--delay-from FITDIR; the paper took d from model 2)"
-        )
+        if mode_jumps:
+            advice.append(
+                f"the chains jump between the delays' modes ({mode_jumps} jumps in the draws) but have not yet mixed: "
+                "draw more (--draws, or --target-ess), or give the delay a prior from another fit (--delay-from FITDIR)"
+            )
+        else:
+            advice.append(
+                "the delay has modes the sampler does not cross: fit more data (longer or more trials), or give "
+                "the delay a prior from another fit (--delay-from FITDIR; the paper took d from model 2)"
+            )
     # a warning, not a problem: the evidence is of each leg alone under the population prior,
     # and the pooled posterior of a leg (its prior narrowed by the other legs) can move mass
     # between neighbouring delays
@@ -330,6 +338,7 @@ def diagnose_sampling(idata) -> dict:
         "bfmi_min": bfmi_min,
         "delay_splits": splits,
         "delay_missed": missed,
+        "mode_jumps": mode_jumps,
         "chains": int(chains),
         "draws": int(idata.posterior.sizes["draw"]),
         "thresholds": {**THRESHOLDS, "ess_min": ess_needed},
