@@ -44,6 +44,7 @@ from jax.flatten_util import ravel_pytree
 from jax.scipy.linalg import solve_triangular
 from numpyro.infer import NUTS
 from numpyro.infer.hmc import HMCState
+from scipy import optimize
 
 __all__ = ["JumpBlocks", "ModeJumpNUTS", "JumpState", "jumps"]
 
@@ -217,8 +218,6 @@ def refine_blocks(blocks: JumpBlocks, z0: dict, conditional_loglik, prior_potent
 
     ``conditional_loglik(z)``: (L, D) log p(y_ℓ, label | θ_ℓ) of every leg and label.
     """
-    from scipy import optimize
-
     flat0, unravel = ravel_pytree(z0)
     flat0 = np.asarray(flat0, np.float64)
     J, M, k = np.shape(blocks.mean)
