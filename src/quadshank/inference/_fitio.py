@@ -163,8 +163,8 @@ def to_inference_data(
     stats = {"diverging": np.asarray(extra["diverging"]), "energy": np.asarray(extra["energy"])}
     if "num_steps" in extra:
         stats["n_steps"] = np.asarray(extra["num_steps"])
-    if "mode_jump" in extra:  # whether the draw's transition ended with an accepted jump between delay modes
-        stats["mode_jump"] = np.asarray(extra["mode_jump"]).astype(np.int8)
+    if "mode_jump" in extra:  # jumps between delay modes taken after the draw's transition
+        stats["mode_jump"] = np.asarray(extra["mode_jump"]).astype(np.int32)
     n = data.angle.shape[1]
     coords["sample"] = np.arange(n)
     coords["segment"] = np.arange(data.n_segments)

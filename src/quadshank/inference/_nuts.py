@@ -107,10 +107,9 @@ class FitSettings:
     #: missed it, and the weights, stored in the fit, are checked against the chains' P(d):
     #: a delay holding ≥ 0.1 of that weight that no chain visits draws a warning.
     delay_evidence: bool = True
-    #: With ``delay_evidence``: where a leg's delay evidence holds two delays or more, each NUTS
-    #: transition is followed by a Metropolis–Hastings jump between their modes in θ
-    #: (:class:`quadshank.inference._jumps.ModeJumpNUTS`, :func:`jump_blocks`), which NUTS alone
-    #: does not cross.
+    #: With ``delay_evidence``: each NUTS transition is followed by Metropolis–Hastings jumps
+    #: between each leg's delay modes in θ (:class:`quadshank.inference._jumps.ModeJumpNUTS`,
+    #: :func:`jump_blocks`), which NUTS alone does not cross.
     mode_jumps: bool = True
     #: Draw to an effective sample size rather than a number of draws: after ``warmup`` and a first
     #: block of ``draws`` per chain, further blocks of ``draws`` follow until every check of the
@@ -582,8 +581,9 @@ _FIELDS = ("diverging", "energy", "num_steps")
 
 
 def _fields(mcmc: MCMC) -> tuple[str, ...]:
-    """The statistics kept with every draw: :data:`_FIELDS`, and whether a mode jump was accepted where the chains jump."""
+    """The statistics kept with every draw: :data:`_FIELDS`, and where the chains jump, how many jumps were taken."""
     return _FIELDS + (("mode_jump",) if isinstance(mcmc.sampler, ModeJumpNUTS) else ())
+
 
 #: Sites that are no parameter: each leg's log P(d | θ) (and of (d, shift)), not checked for convergence.
 _NOT_CHECKED = ("delay_logp", "delay_shift_logp")
