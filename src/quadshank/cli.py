@@ -617,7 +617,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--add-effect", action="append", metavar="NAME", help="extend the model by a registered effect")
     f.add_argument("--likelihood", choices=("auto", "acceleration", "angle"), default="auto",
                    help="what the likelihood compares: the equivalent acceleration (equation error, every model) or "
-                        "the angle of free swings from the measured state (output error, for --model passive); auto "
+                        "the angle of runs from the measured state (output error: free swings for --model passive, "
+                        "1-s shooting segments for a model with a muscle and no delay or noise effect); auto "
                         "(default): the angle for --model passive, the acceleration otherwise")
     f.add_argument("--trials", default="1", help="identification trials, comma-separated (default 1, as the paper)")
     f.add_argument("--legs", default="", help="legs, comma-separated (default: all in the data)")

@@ -363,6 +363,12 @@ def _laplace_fit(
     whiten: bool = True,
 ) -> LaplaceFit:
     data = prepare(cohort, model, trials=trials, legs=legs, objective=objective)
+    if start is None and data.objective == "angle" and model.activation.name != "no_muscle":
+        # Runs of a muscle from a poor start (a prior draw, the classical DARMA) can diverge, and the
+        # angle then holds no gradient; the same model's screen on the acceleration lands near the
+        # angle's mode in a few seconds.
+        start = _laplace_fit(cohort, model, trials, legs, n_starts=n_starts, n_draws=max(n_draws, 2), seed=seed,
+                             max_iter=max_iter, loo=False, objective="acceleration")
     specs = _specs(model)
     R, K = data.response_length, data.max_shift
     joint, value_and_grad, joint_b, prior_b, pw, _ = _compiled(model, specs, R, K, data.n_segments, data.objective)
@@ -382,7 +388,9 @@ def _laplace_fit(
             known = {k: v for k, v in start.z_values(leg).items() if any(s.name == k for s in specs)}
             zs = start.z_values(leg)
             log_sigma, log_nu = float(zs["log_sigma"]), float(zs["log_nu"])
-            if WHITEN_FROM_START and whiten:
+            if start.data.objective != data.objective:  # σ in other units, a curvature of another scale
+                log_sigma, log_nu = SIGMA_PRIORS[data.objective][0], math.log(10.0)
+            elif WHITEN_FROM_START and whiten:
                 S = _start_whitening(start, leg, specs)
         else:
             known = {k[: -len("_s_leg")]: (v[..., i] if np.ndim(v) > 1 else v[i]) for k, v in classical.items()}

@@ -83,6 +83,16 @@ The angle, for the pendulum alone
     buys is a fit that follows the swing, where the acceleration (derived from a noisy angle
     when there is no accelerometer) weighs the noise of its derivative.
 
+The angle, for a model with a muscle (multiple shooting)
+    With ``objective="angle"`` a model with a muscle is compared on the angle too, segment by
+    segment: each stretch of compared samples is cut into shooting segments of SHOOTING_S, and
+    each segment is run from its first sample's measured angle and velocity, the active part
+    carried there by the measured state from the trial's start at rest, exactly as J's
+    rollouts start (:func:`quadshank.model._model.predict_ahead`).  Every later sample of the
+    segment is Student-t about the run's angle; the delay is summed out as with the
+    acceleration, one run per d.  Not for models with a delay effect or a noise effect: those
+    are summed out window by window on the acceleration.
+
 Units for PSIS-LOO
     Windows are summed into segments of SEGMENT_S (1 s) per trial: the
     residual's correlation (twitch-shape misfit, resonance) dies out within a
@@ -107,8 +117,10 @@ from ._effects import FIRST_IPI_S, Effect, PulseContext, StepContext
 from ._model import (
     Model,
     acceleration_response,
+    _active_step,
     _rk4,
     causal_fir,
+    init_active,
     measured_acceleration,
     measured_angle,
     passive_acceleration,
@@ -137,19 +149,35 @@ __all__ = [
     "OBJECTIVES",
     "resolve_objective",
     "PULSE_LEVEL_FIELDS",
+    "SHOOTING_S",
+    "shooting_samples",
 ]
 
 #: What the likelihood can compare: the equivalent acceleration (equation error, every model) or
-#: the angle of free runs from the measured state (output error, the pendulum alone).
+#: the angle of runs from the measured state (output error: free runs for the pendulum alone,
+#: shooting segments of SHOOTING_S for a model with a muscle).
 OBJECTIVES = ("acceleration", "angle")
 #: Length [s] of a PSIS-LOO unit, a segment of a trial.
 SEGMENT_S = 1.0
+#: Length [s] of a shooting segment of the angle objective for a model with a muscle: the longest
+#: horizon of J (eq. 12), and the PSIS-LOO unit's length, so that each unit is one segment's run.
+SHOOTING_S = 1.0
 
 
 def segment_samples(sampling_period_s: float) -> int:
     """Samples per PSIS-LOO unit at ``sampling_period_s``: :data:`SEGMENT_S` in whole samples
     (100 at the paper's 10 ms)."""
     return max(1, int(round(SEGMENT_S / sampling_period_s)))
+
+
+#: Bounds [deg, deg/s] on a shooting run's state (see :func:`_shooting_run`).
+RUN_LIMIT_DEG, RUN_LIMIT_DEG_S = 360.0, 1.0e5
+
+
+def shooting_samples(sampling_period_s: float) -> int:
+    """Samples per shooting segment of the angle objective at ``sampling_period_s``:
+    :data:`SHOOTING_S` in whole samples (100 at the paper's 10 ms), at least 2."""
+    return max(2, int(round(SHOOTING_S / sampling_period_s)))
 
 
 #: Delays considered: 0 .. MAX_DELAY samples.
@@ -244,6 +272,11 @@ class LikelihoodData:
     #: (L, N) bool, with the angle objective: the first sample of each stretch of compared samples,
     #: where a free run starts from the measured angle and velocity (not itself compared); else None
     reset: np.ndarray | None = None
+    #: (L, N) bool, with the angle objective and a muscle: the first sample of each trial, where the
+    #: active part starts at rest; else None
+    begin: np.ndarray | None = None
+    #: (L, S) with ``begin``: the samples where ``reset`` is set, in order (spare entries 0)
+    shoot_start: np.ndarray | None = None
 
     @property
     def n_legs(self) -> int:
@@ -257,7 +290,7 @@ class LikelihoodData:
             "segment_mask pulse_sample pulse_u pulse_ipi_s pulse_count pulse_time_s touch_sample touch_valid touch_pos touch_window touch_mask"
         ).split()
         names += [f.name for f in dataclasses.fields(self) if f.name.startswith("step_") or f.name in PULSE_LEVEL_FIELDS]
-        names.append("reset")
+        names += ["reset", "begin", "shoot_start"]
         return {n: jnp.asarray(getattr(self, n)) for n in names if getattr(self, n) is not None}
 
 
@@ -343,18 +376,22 @@ def resolve_objective(model: Model, objective: str = "auto") -> str:
     """What the likelihood of ``model`` compares (:data:`OBJECTIVES`): ``"auto"`` is the angle for
     the pendulum alone (a model without a muscle: its free swing predicts the angle better than
     the acceleration's fit does, ``benchmarks/bench_pendulum.py``) and the acceleration for a
-    model with a muscle, the only objective that has (its delay and twitches are compared
-    window by window, :mod:`quadshank.model._likelihood`)."""
+    model with a muscle (``benchmarks/bench_angle_objective.py`` compares the two).  The angle
+    of a model with a muscle is compared in shooting segments (:data:`SHOOTING_S`), and not
+    for a model with a delay or noise effect (a :class:`LikelihoodError` says why)."""
     if objective not in OBJECTIVES + ("auto",):
         raise LikelihoodError(f"unknown likelihood {objective!r}; use auto, {' or '.join(OBJECTIVES)}")
     muscle = model.activation.name != "no_muscle"
     if objective == "auto":
         return "acceleration" if muscle else "angle"
     if objective == "angle" and muscle:
-        raise LikelihoodError(
-            f"model {model.name!r} has a muscle: the angle likelihood (free runs from the measured state) is for "
-            "the pendulum alone (--model passive, pendulum tests); a model with a muscle is fitted on the "
-            "acceleration and judged by the angle through J (quadshank evaluate)")
+        why = [f"{e.name!r}, a {e.kind} effect" for e in model.effects if e.kind in ("delay", "noise")]
+        if why:
+            raise LikelihoodError(
+                f"model {model.name!r} has {' and '.join(why)}: the angle likelihood of a model with a muscle "
+                "(shooting segments from the measured state) sums out the delay alone; a delay effect's "
+                "threshold and shift and a noise effect's random twitch gains are summed out window by window "
+                "on the acceleration, so fit this model with --likelihood acceleration")
     return objective
 
 
@@ -422,9 +459,18 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None, objective: str
     acceleration = pad("acceleration", 0.0, np.float32)
     stimulation = pad("stimulation", 0.0, np.float32)
     sample_mask = pad("mask", False, bool)
-    reset = None
+    reset = begin = shoot_start = None
     if objective == "angle":  # each stretch of compared samples starts a free run from its measured state
         reset = sample_mask & ~np.concatenate([np.zeros((L, 1), bool), sample_mask[:, :-1]], axis=1)
+        if act.name != "no_muscle":  # and again every shooting segment, the active part carried from the trial's start
+            at = np.arange(N)
+            since = at - np.maximum.accumulate(np.where(reset, at, 0), axis=1)  # samples since the stretch began
+            reset |= sample_mask & (since % shooting_samples(model.sampling_period_s) == 0)
+            begin = at[None, :] == pad("trial_start", -1, np.int64)
+            counts = reset.sum(axis=1)
+            shoot_start = np.zeros((L, _bucket(int(counts.max()))), np.int64)  # spare runs start at 0, unread
+            for i in range(L):
+                shoot_start[i, : counts[i]] = np.flatnonzero(reset[i])
         sample_mask = sample_mask & ~reset
     starts = pad("start", True, bool)
     sample_segment = pad("segment", -1, np.int64)
@@ -568,6 +614,8 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None, objective: str
         trial_start=pad("trial_start", 0, np.int64),
         objective=objective,
         reset=reset,
+        begin=begin,
+        shoot_start=shoot_start,
     )
 
 
@@ -681,9 +729,59 @@ def step_tables(angle, pulse_sample, pulse_u, touch_valid, touch_pos, RK: int) -
 def free_run_angles(model: Model, x: dict):
     """The goniometer reading that ``model``'s free run predicts at every sample of one leg: a run
     starts afresh from the measured angle and velocity at each ``x["reset"]`` sample and steps
-    eq. (8)'s passive system (no muscle) by RK4 until the next.  Differentiable in the model's
-    parameters (not in the data)."""
+    by RK4 until the next: eq. (8)'s passive system alone, or, for a model with a muscle
+    (``x["begin"]`` present), the whole model at its delay (:func:`_shooting_run`).
+    Differentiable in the model's parameters (not in the data)."""
+    if "begin" in x:
+        return _shooting_run(model, x)
     return _free_run(model, x["angle"], x["velocity"], x["reset"])
+
+
+def _shooting_run(model: Model, x: dict):
+    """The angle of a model with a muscle run from the measured state at every ``x["reset"]``
+    sample (listed in ``x["shoot_start"]``) for at most :func:`shooting_samples`.  The active
+    part is first driven through the leg by the measured angle and velocity, from rest at each
+    ``x["begin"]`` (a trial's first sample); each run takes it over where it starts, as
+    :func:`quadshank.model._model.predict_ahead` does.  The runs are independent, so they go
+    side by side (a scan as long as one segment): in reverse mode this costs about a seventh of
+    one scan through every sample that restarts at each reset."""
+    dt = model.sampling_period_s
+    p = shooting_samples(dt)
+    true = true_angle(model, x["angle"])
+    velocity, stimulation, starts = x["velocity"], x["stimulation"], x["shoot_start"]
+    rest = init_active(model, stimulation.dtype)
+
+    def measured(carry, inputs):
+        begin, u, a, v = inputs
+        carry = jax.tree_util.tree_map(lambda r, c: jnp.where(begin, r, c), rest, carry)
+        new, _ = _active_step(model, carry, u, a, v)
+        return new, carry
+
+    _, carries = jax.lax.scan(measured, rest, (x["begin"], stimulation, true, velocity))
+
+    def run(active, a, v, us):
+        def body(state, u):
+            active, a, v = state
+            active, m = _active_step(model, active, u, a, v)
+            a2, v2 = _rk4(model, a, v, m, dt)
+            # a run that diverges (an unstable twitch, far from the mode) stays finite: a residual of
+            # a turn or more is as unlikely as any, and the optimiser's first steps survive it
+            return (active, jnp.clip(a2, -RUN_LIMIT_DEG, RUN_LIMIT_DEG), jnp.clip(v2, -RUN_LIMIT_DEG_S, RUN_LIMIT_DEG_S)), a
+
+        return jax.lax.scan(body, (active, a, v), us)[1]
+
+    n = stimulation.shape[0]
+    us = jnp.concatenate([stimulation, jnp.zeros(p, stimulation.dtype)])[starts[:, None] + jnp.arange(p)]
+    runs = jax.vmap(run)(jax.tree_util.tree_map(lambda c: c[starts], carries), true[starts], velocity[starts], us)
+    segment = jnp.clip(jnp.cumsum(x["reset"]) - 1, 0, starts.shape[0] - 1)  # the run each sample belongs to
+    offset = jnp.clip(jnp.arange(n) - starts[segment], 0, p - 1)  # within its segment (samples outside are masked)
+    return measured_angle(model, runs[segment, offset])
+
+
+def _at_delay(model: Model, x: dict, d):
+    """``model`` at delay ``d`` where its angle objective runs the muscle (``x["begin"]``);
+    else ``model`` (the pendulum alone has no delay, the acceleration sums it out itself)."""
+    return model.with_params(delay=d) if "begin" in x else model
 
 
 def _free_run_plain(model: Model, angle, velocity, reset):
@@ -1010,6 +1108,9 @@ def leg_loglik_by_delay(model: Model, noise: dict, x: dict, R: int, K: int = 0):
 
     Entries with shift > d are computed but meaningless (the prior excludes them).
     """
+    if "reset" in x and "begin" in x:  # the angle objective with a muscle: one run per delay (K = 0)
+        lp = jax.vmap(lambda d: jnp.sum(_angle_logpdf(_at_delay(model, x, d), noise, x)))(jnp.arange(N_DELAYS))
+        return jnp.broadcast_to(lp[:, None], (N_DELAYS, K + 1))
     if "reset" in x:  # the angle objective: no muscle, so every delay alike
         return jnp.broadcast_to(jnp.sum(_angle_logpdf(model, noise, x)), (N_DELAYS, K + 1))
     if "pulse_slot" in x:
@@ -1283,7 +1384,7 @@ def leg_window_cdf(model: Model, noise: dict, x: dict, d_index, R: int, K: int =
     (θ, d, shift): P(E_rep ≤ E | θ) under the Student-t noise model (the LOO-PIT's ingredient).
     With the angle objective, of each compared sample's angle (its one-sample window)."""
     if "reset" in x:
-        z = (x["angle"] - free_run_angles(model, x)) / noise["sigma"]
+        z = (x["angle"] - free_run_angles(_at_delay(model, x, d_index), x)) / noise["sigma"]
         cdf = jnp.where(x["sample_mask"], student_t_cdf(z, noise["nu"]), 0.0)
         return jax.ops.segment_sum(cdf, x["window"], num_segments=x["window_mask"].shape[-1])
     x = _sensed(model, x)
@@ -1295,7 +1396,7 @@ def leg_window_cdf(model: Model, noise: dict, x: dict, d_index, R: int, K: int =
 def leg_pointwise(model: Model, noise: dict, x: dict, d_index, R: int, n_segments: int, K: int = 0, shift=0):
     """log p(y_segment | θ, d, shift) per PSIS-LOO segment of one leg."""
     if "reset" in x:
-        lp = _angle_logpdf(model, noise, x)
+        lp = _angle_logpdf(_at_delay(model, x, d_index), noise, x)
         seg = jnp.where(x["sample_mask"], x["window_segment"][x["window"]], n_segments)
         return jax.ops.segment_sum(lp, seg, num_segments=n_segments + 1)[:n_segments]
     x = _sensed(model, x)
