@@ -54,7 +54,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=2)
     ap.add_argument("--out", default="results/benchmarks.md")
     args = ap.parse_args(argv)
-    command = "python benchmarks/bench_angle_objective.py " + shlex.join(argv if argv is not None else sys.argv[1:])
+    command = " ".join(["python benchmarks/bench_angle_objective.py", shlex.join(argv if argv is not None else sys.argv[1:])]).rstrip()
 
     legs = LEGS[: args.legs]
     cohort, _ = simulate_cohort(legs=legs, minutes=args.minutes, seed=args.seed, trials=(1, 2))
