@@ -13,6 +13,7 @@ import pytest
 from quadshank.common._arrays import stretches
 from quadshank.data import Cohort, default_truth, simulate_cohort
 from quadshank.inference import laplace_fit
+from quadshank.loop._diagnose import not_applicable
 from quadshank.model import paper_model
 from quadshank.model._likelihood import (
     LikelihoodError,
@@ -94,6 +95,16 @@ def test_models_the_angle_cannot_fit_are_refused_with_the_reason():
     for effect, kind in (("angle_delay", "delay"), ("twitch_variability", "noise")):
         with pytest.raises(LikelihoodError, match=f"'{effect}', a {kind} effect.*--likelihood acceleration"):
             resolve_objective(paper_model(3).add(effect), "angle")
+
+
+def test_the_loop_lists_what_the_angle_cannot_screen_with_the_reason(two_trials):
+    legs, trials = ("JM-left",), (1,)
+    out = not_applicable(paper_model(3), two_trials, ["angle_delay", "twitch_variability", "fatigue"], legs, trials,
+                         "angle")
+    assert set(out) == {"angle_delay", "twitch_variability"}
+    assert "delay effect" in out["angle_delay"] and "noise effect" in out["twitch_variability"]
+    assert not not_applicable(paper_model(3), two_trials, ["angle_delay", "twitch_variability"], legs, trials,
+                              "acceleration")
 
 
 def test_the_screen_on_the_angle_recovers_a_model_with_a_twitch_shape():

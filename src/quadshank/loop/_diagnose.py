@@ -102,7 +102,8 @@ def not_applicable(model: Model, cohort: Cohort, effects, legs, trials, objectiv
     An effect acting through the muscle (:data:`MUSCLE_KINDS`) on a model without one
     (``--model passive``) or on trials that hold no pulse, and an effect on what the
     accelerometer reads alone (``predicts_angle = False``) where the fit compares angles
-    (``objective``, :func:`~quadshank.model._likelihood.resolve_objective`).
+    (``objective``, :func:`~quadshank.model._likelihood.resolve_objective`), and a delay or noise
+    effect there (the angle likelihood of a muscle cannot hold one).
     They are listed, not screened: their ΔELPD could only be noise.
     """
     known = registered_effects()
@@ -118,6 +119,9 @@ def not_applicable(model: Model, cohort: Cohort, effects, legs, trials, objectiv
             out[name] = f"acts through the stimulation, and trial(s) {', '.join(map(str, trials))} hold no pulse"
         elif not cls.predicts_angle and cls.kind == "measurement" and by_angle:
             out[name] = "changes only what the accelerometer reads, and the fit compares angles"
+        elif cls.kind in ("delay", "noise") and by_angle:
+            out[name] = (f"a {cls.kind} effect is summed out window by window on the acceleration alone, and the "
+                         "fit compares angles")
     return out
 
 
