@@ -156,9 +156,12 @@ def test_fit_model_passive_recovers_the_pendulum_with_the_release_excluded(tmp_p
         found = {k: params[k]["median"] for k in ("damping", "gravity", "k1", "k2")}
         _assert_passive_recovered(found, passive, trials[0].angle_deg)
         assert params["nu"]["median"] > 5  # the release, left in, would make the noise heavy-tailed
-    # the angle is for the pendulum alone: refused for a muscle, before anything is written
-    rc = main(["-q", "fit", str(data), "--model", "model3", "--likelihood", "angle", "--out", str(tmp_path / "no")])
-    assert rc != 0 and "--model passive" in capsys.readouterr().err and not (tmp_path / "no").exists()
+    # the angle cannot hold a delay effect: refused with the reason, before anything is written
+    rc = main(["-q", "fit", str(data), "--model", "model3", "--add-effect", "angle_delay", "--likelihood", "angle",
+               "--out", str(tmp_path / "no")])
+    err = capsys.readouterr().err
+    assert rc != 0 and "'angle_delay', a delay effect" in err and "--likelihood acceleration" in err
+    assert not (tmp_path / "no").exists()
 
 
 def _realistic(passive: dict, seed: int, gravity_angle: float = 0.0) -> Trial:
@@ -296,9 +299,9 @@ def test_the_angle_likelihood_is_student_t_about_free_runs_restarted_after_exclu
     for k in values:
         assert float(fast[k]) == pytest.approx(float(slow[k]), rel=1e-3), k
 
-    # the angle is for the pendulum alone
-    with pytest.raises(LikelihoodError, match="--model passive"):
-        prepare(Cohort((t,)), build_model("model3"), objective="angle")
+    # the angle of a muscle holds no delay effect
+    with pytest.raises(LikelihoodError, match="--likelihood acceleration"):
+        prepare(Cohort((t,)), build_model("model3", ["angle_delay"]), objective="angle")
     assert prepare(Cohort((t,)), model, objective="acceleration").objective == "acceleration"
 
 
