@@ -37,7 +37,7 @@ Population means and subject values are drawn afterwards from their Gaussian
 conditional given each draw and its spreads (:func:`hyper_draws`).  A dense mass matrix absorbs the remaining linear correlations
 (k1 with k2, gain with the gain factors).  Noise (Student-t, see
 :mod:`quadshank.model._likelihood`) is per leg: σ ~ LogNormal(log 40 deg/s², 1)
-(on the angle, for the pendulum alone: LogNormal(log 0.5°, 1)),
+(on the angle: LogNormal(log 0.5°, 1)),
 ν ~ Gamma(2, 0.1).  The delay d of each leg has a uniform prior on 0 … 10
 samples (or another fit's posterior, :func:`delay_prior_from`) and is summed
 out exactly, jointly with a delay effect's shift; P(d | data) is the posterior mean of the

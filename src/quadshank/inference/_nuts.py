@@ -121,9 +121,10 @@ class FitSettings:
     #: which no further block is begun; a block that would end past it is not begun either.
     time_limit_s: float = 1800.0
     #: What the likelihood compares: "acceleration" (equation error: the equivalent acceleration,
-    #: every model), "angle" (output error: free runs of the pendulum from the measured state, for
-    #: a model without a muscle) or "auto": the angle for the pendulum alone, the acceleration with
-    #: a muscle (:func:`quadshank.model._likelihood.resolve_objective`).
+    #: every model), "angle" (output error: runs from the measured state, free swings for the
+    #: pendulum alone, 1-s shooting segments for a model with a muscle and no delay or noise
+    #: effect) or "auto": the angle for the pendulum alone, the acceleration with a muscle
+    #: (:func:`quadshank.model._likelihood.resolve_objective`).
     likelihood: str = "auto"
 
     def __post_init__(self):
