@@ -6,6 +6,7 @@ screen on the angle recovers a model with a twitch shape from simulated data."""
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -86,6 +87,23 @@ def test_the_fit_and_psis_loo_see_the_same_angle_likelihood(two_trials):
         np.testing.assert_allclose(seg.sum(), by_delay[d], rtol=1e-4)
     # the delay matters to the angle: the true delay's runs are far likelier than a wrong one's
     assert by_delay[5] > by_delay[9] + 100 and by_delay[5] > by_delay[1] + 100
+
+
+def test_a_run_that_diverges_keeps_the_likelihood_and_its_gradient_finite(two_trials):
+    """An optimiser's trial step can make the twitch filter unstable: its runs then grow without
+    bound, and an overflow would turn the log density and its gradient into NaN."""
+    model = _model3s().with_params(a=jnp.array([-2.6, 1.7]))  # poles outside the unit circle
+    data = prepare(two_trials, model, trials=(1, 2), objective="angle")
+    x = {k: v[0] for k, v in data.leg_arrays().items()}
+
+    def total(values):
+        m = model.with_params(values)
+        return jnp.sum(leg_loglik_by_delay(m, {"sigma": 0.5, "nu": 8.0}, x, data.response_length, data.max_shift))
+
+    values = {k: jnp.asarray(v, jnp.float32) for k, v in model.params().items()}
+    value, grad = jax.value_and_grad(total)(values)
+    assert np.isfinite(float(value)) and float(value) < -1e5
+    assert all(np.all(np.isfinite(np.asarray(g))) for g in grad.values())
 
 
 def test_models_the_angle_cannot_fit_are_refused_with_the_reason():

@@ -170,8 +170,9 @@ def segment_samples(sampling_period_s: float) -> int:
     return max(1, int(round(SEGMENT_S / sampling_period_s)))
 
 
-#: Bounds [deg, deg/s] on a shooting run's state (see :func:`_shooting_run`).
-RUN_LIMIT_DEG, RUN_LIMIT_DEG_S = 360.0, 1.0e5
+#: Bounds [deg, deg/s] on a shooting run's state and on the active part's states (see :func:`_bounded`).
+RUN_LIMIT_DEG, RUN_LIMIT_DEG_S = 360.0, 1.0e4
+CARRY_LIMIT = 1.0e7
 
 
 def shooting_samples(sampling_period_s: float) -> int:
@@ -755,7 +756,7 @@ def _shooting_run(model: Model, x: dict):
         begin, u, a, v = inputs
         carry = jax.tree_util.tree_map(lambda r, c: jnp.where(begin, r, c), rest, carry)
         new, _ = _active_step(model, carry, u, a, v)
-        return new, carry
+        return _bounded(new), carry
 
     _, carries = jax.lax.scan(measured, rest, (x["begin"], stimulation, true, velocity))
 
@@ -764,9 +765,8 @@ def _shooting_run(model: Model, x: dict):
             active, a, v = state
             active, m = _active_step(model, active, u, a, v)
             a2, v2 = _rk4(model, a, v, m, dt)
-            # a run that diverges (an unstable twitch, far from the mode) stays finite: a residual of
-            # a turn or more is as unlikely as any, and the optimiser's first steps survive it
-            return (active, jnp.clip(a2, -RUN_LIMIT_DEG, RUN_LIMIT_DEG), jnp.clip(v2, -RUN_LIMIT_DEG_S, RUN_LIMIT_DEG_S)), a
+            return (_bounded(active), jnp.clip(a2, -RUN_LIMIT_DEG, RUN_LIMIT_DEG),
+                    jnp.clip(v2, -RUN_LIMIT_DEG_S, RUN_LIMIT_DEG_S)), a
 
         return jax.lax.scan(body, (active, a, v), us)[1]
 
@@ -776,6 +776,15 @@ def _shooting_run(model: Model, x: dict):
     segment = jnp.clip(jnp.cumsum(x["reset"]) - 1, 0, starts.shape[0] - 1)  # the run each sample belongs to
     offset = jnp.clip(jnp.arange(n) - starts[segment], 0, p - 1)  # within its segment (samples outside are masked)
     return measured_angle(model, runs[segment, offset])
+
+
+def _bounded(carry):
+    """``carry`` with its floating leaves within ±:data:`CARRY_LIMIT`.  Far from the mode (an
+    optimiser's trial step, an unstable twitch filter) the active part and a run can grow without
+    bound and overflow into NaN, whose gradient no mask removes; bounded, such a run is merely
+    improbable (a residual of a turn or more), and the optimiser steps back."""
+    return jax.tree_util.tree_map(
+        lambda c: jnp.clip(c, -CARRY_LIMIT, CARRY_LIMIT) if jnp.issubdtype(c.dtype, jnp.floating) else c, carry)
 
 
 def _at_delay(model: Model, x: dict, d):
