@@ -744,7 +744,7 @@ def _shooting_run(model: Model, x: dict):
     part is first driven through the leg by the measured angle and velocity, from rest at each
     ``x["begin"]`` (a trial's first sample); each run takes it over where it starts, as
     :func:`quadshank.model._model.predict_ahead` does.  The runs are independent, so they go
-    side by side (a scan as long as one segment): in reverse mode this costs about a seventh of
+    side by side (a scan as long as one segment): in reverse mode this costs about an eighth of
     one scan through every sample that restarts at each reset."""
     dt = model.sampling_period_s
     p = shooting_samples(dt)
