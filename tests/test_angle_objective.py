@@ -106,6 +106,19 @@ def test_a_run_that_diverges_keeps_the_likelihood_and_its_gradient_finite(two_tr
     assert all(np.all(np.isfinite(np.asarray(g))) for g in grad.values())
 
 
+def test_double_precision_parameters_run_on_single_precision_data(two_trials):
+    model = _model3s()
+    data = prepare(two_trials, model, trials=(1, 2), objective="angle")
+    x32 = {k: v[0] for k, v in data.leg_arrays().items()}
+    with jax.enable_x64(True):
+        m64 = model.with_params({k: jnp.asarray(v, jnp.float64) for k, v in model.params().items()})
+        x64 = {k: v.astype(jnp.float64) if jnp.issubdtype(v.dtype, jnp.floating) else v for k, v in x32.items()}
+        noise = {"sigma": jnp.float64(0.5), "nu": jnp.float64(8.0)}
+        mixed = np.asarray(leg_loglik_by_delay(m64, noise, x32, data.response_length, data.max_shift))
+        double = np.asarray(leg_loglik_by_delay(m64, noise, x64, data.response_length, data.max_shift))
+    np.testing.assert_allclose(mixed, double, rtol=1e-9)
+
+
 def test_models_the_angle_cannot_fit_are_refused_with_the_reason():
     assert resolve_objective(paper_model(3), "auto") == "acceleration"
     assert resolve_objective(paper_model(3), "angle") == "angle"

@@ -748,8 +748,9 @@ def _shooting_run(model: Model, x: dict):
     one scan through every sample that restarts at each reset."""
     dt = model.sampling_period_s
     p = shooting_samples(dt)
-    true = true_angle(model, x["angle"])
-    velocity, stimulation, starts = x["velocity"], x["stimulation"], x["shoot_start"]
+    dtype = _run_dtype(model, x["angle"])
+    true = true_angle(model, x["angle"].astype(dtype))
+    velocity, stimulation, starts = x["velocity"].astype(dtype), x["stimulation"].astype(dtype), x["shoot_start"]
     rest = init_active(model, stimulation.dtype)
 
     def measured(carry, inputs):
@@ -778,6 +779,13 @@ def _shooting_run(model: Model, x: dict):
     return measured_angle(model, runs[segment, offset])
 
 
+def _run_dtype(model: Model, data):
+    """The precision a run of ``model`` on ``data`` computes in: that of the parameters and the
+    data together (a scan's carry must keep one type, and double-precision parameters on
+    single-precision data would otherwise start it in single and step it in double)."""
+    return jnp.result_type(data, *(v for v in jax.tree_util.tree_leaves(model) if jnp.issubdtype(jnp.result_type(v), jnp.floating)))
+
+
 def _bounded(carry):
     """``carry`` with its floating leaves within ±:data:`CARRY_LIMIT`.  Far from the mode (an
     optimiser's trial step, an unstable twitch filter) the active part and a run can grow without
@@ -795,7 +803,8 @@ def _at_delay(model: Model, x: dict, d):
 
 def _free_run_plain(model: Model, angle, velocity, reset):
     dt = model.sampling_period_s
-    true = true_angle(model, angle)
+    dtype = _run_dtype(model, angle)
+    true, velocity = true_angle(model, angle.astype(dtype)), velocity.astype(dtype)
 
     def body(state, inputs):
         start, a_meas, v_meas = inputs
