@@ -783,7 +783,7 @@ def _run_dtype(model: Model, data):
     """The precision a run of ``model`` on ``data`` computes in: that of the parameters and the
     data together (a scan's carry must keep one type, and double-precision parameters on
     single-precision data would otherwise start it in single and step it in double)."""
-    return jnp.result_type(data, *(v for v in jax.tree_util.tree_leaves(model) if jnp.issubdtype(jnp.result_type(v), jnp.floating)))
+    return jnp.result_type(data, _float_leaves(model)[3])
 
 
 def _bounded(carry):
