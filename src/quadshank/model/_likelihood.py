@@ -118,9 +118,9 @@ from ._model import (
     Model,
     acceleration_response,
     _active_step,
+    _carries,
     _rk4,
     causal_fir,
-    init_active,
     measured_acceleration,
     measured_angle,
     passive_acceleration,
@@ -751,15 +751,7 @@ def _shooting_run(model: Model, x: dict):
     dtype = _run_dtype(model, x["angle"])
     true = true_angle(model, x["angle"].astype(dtype))
     velocity, stimulation, starts = x["velocity"].astype(dtype), x["stimulation"].astype(dtype), x["shoot_start"]
-    rest = init_active(model, stimulation.dtype)
-
-    def measured(carry, inputs):
-        begin, u, a, v = inputs
-        carry = jax.tree_util.tree_map(lambda r, c: jnp.where(begin, r, c), rest, carry)
-        new, _ = _active_step(model, carry, u, a, v)
-        return _bounded(new), carry
-
-    _, carries = jax.lax.scan(measured, rest, (x["begin"], stimulation, true, velocity))
+    carries = _carries(model, true, velocity, stimulation, begin=x["begin"], bound=_bounded)
 
     def run(active, a, v, us):
         def body(state, u):

@@ -478,17 +478,23 @@ def active_carries(model: Model, angle, velocity, stimulation) -> ActiveCarry:
     return _carries(model, true_angle(model, jnp.asarray(angle)), velocity, stimulation)
 
 
-def _carries(model: Model, angle, velocity, stimulation) -> ActiveCarry:
-    """:func:`active_carries` on the true angle."""
+def _carries(model: Model, angle, velocity, stimulation, begin=None, bound=None) -> ActiveCarry:
+    """:func:`active_carries` on the true angle.  ``begin`` (bool per sample, optional): where the
+    active part starts again from rest (a trial's first sample, where samples of several trials
+    follow one another); ``bound``: applied to the carry after each step (e.g. to keep a filter
+    made unstable by a trial step of an optimiser finite)."""
     stimulation = jnp.asarray(stimulation)
-    carry0 = init_active(model, stimulation.dtype)
+    rest = init_active(model, stimulation.dtype)
 
     def body(c, x):
-        u, a, v = x
+        start, u, a, v = x
+        if start is not None:
+            c = jax.tree_util.tree_map(lambda r, ci: jnp.where(start, r, ci), rest, c)
         new, _ = _active_step(model, c, u, a, v)
-        return new, c
+        return (new if bound is None else bound(new)), c
 
-    _, carries = jax.lax.scan(body, carry0, (stimulation, jnp.asarray(angle), jnp.asarray(velocity)))
+    inputs = (None if begin is None else jnp.asarray(begin), stimulation, jnp.asarray(angle), jnp.asarray(velocity))
+    _, carries = jax.lax.scan(body, rest, inputs)
     return carries
 
 
