@@ -33,8 +33,28 @@ def discovered(tmp_path_factory):
     out = root / "discover"
     with contextlib.redirect_stderr(io.StringIO()) as err:  # the progress bars, to check what they say
         rc = main(["discover", str(root / "data"), "--effects", "potentiation,cubic_torque_angle",
-                   "--max-rounds", "2", "--confirm", "--chains", "1", "--warmup", "30", "--draws", "30", "--out", str(out)])
+                   "--max-rounds", "2", "--confirm", "--target-ess", "0", "--chains", "1", "--warmup", "30", "--draws", "30",
+                   "--out", str(out)])
     return root, out, rc, err.getvalue()
+
+
+def test_discover_confirms_with_fits_drawn_to_a_target_ess():
+    """`discover --confirm` draws each NUTS fit in blocks to an ESS target (R-hat and ESS checked) by
+    default; `--target-ess 0` gives the fixed lengths, and the user's lengths are kept either way."""
+    from quadshank.cli import CONFIRM_FIXED_LENGTHS, CONFIRM_TARGET_ESS, TARGET_LENGTHS, build_parser, confirm_settings
+
+    def settings(*extra):
+        return confirm_settings(build_parser().parse_args(["discover", "data", "--out", "o", *extra]), (1,))
+
+    assert settings() is None  # without --confirm, no NUTS fit
+    s = settings("--confirm")
+    assert (s.target_ess, s.warmup, s.draws, s.time_limit_s) == (CONFIRM_TARGET_ESS, *TARGET_LENGTHS, 1800.0)
+    s = settings("--confirm", "--target-ess", "0")
+    assert s.target_ess is None and (s.warmup, s.draws) == CONFIRM_FIXED_LENGTHS
+    s = settings("--confirm", "--target-ess", "250", "--time-limit", "60", "--warmup", "50", "--draws", "40", "--chains", "3")
+    assert (s.target_ess, s.time_limit_s, s.warmup, s.draws, s.chains) == (250, 60.0, 50, 40, 3)
+    with pytest.raises(ValueError, match="--target-ess must be at least 0"):
+        settings("--confirm", "--target-ess", "-1")
 
 
 def test_discover_on_the_command_line_with_a_user_effect(discovered):

@@ -433,14 +433,33 @@ def cmd_diagnose(args) -> int:
     return 0
 
 
+#: ``discover --confirm``'s warm-up and draws per chain with ``--target-ess 0`` (a fixed length)
+CONFIRM_FIXED_LENGTHS = (300, 300)
+#: ``discover --confirm``'s ESS target for each NUTS fit: a leader is added on the evidence of fits that
+#: pass their checks (R-hat, ESS), not of chains stopped after a fixed number of draws
+CONFIRM_TARGET_ESS = 400
+
+
+def confirm_settings(args, trials) -> FitSettings | None:
+    """The NUTS fits of ``discover --confirm`` (None without ``--confirm``): drawn in blocks to
+    ``--target-ess`` within ``--time-limit`` each, or of the fixed ``--warmup`` and ``--draws``
+    with ``--target-ess 0``."""
+    if not args.confirm:
+        return None
+    if args.target_ess < 0:
+        raise ValueError(f"--target-ess must be at least 0 (0: a fixed --warmup and --draws), not {args.target_ess}")
+    target = args.target_ess or None
+    warmup, draws = TARGET_LENGTHS if target is not None else CONFIRM_FIXED_LENGTHS
+    return FitSettings(chains=args.chains, warmup=warmup if args.warmup is None else args.warmup,
+                       draws=draws if args.draws is None else args.draws, target_ess=target,
+                       time_limit_s=args.time_limit, seed=args.seed, trials=trials)
+
+
 def cmd_discover(args) -> int:
     cohort, data = _loop_data(args)
     command = _command_line(args)
     trials = tuple(_int_list(args.trials, "--trials"))
-    confirm = None
-    if args.confirm:
-
-        confirm = FitSettings(chains=args.chains, warmup=args.warmup, draws=args.draws, seed=args.seed, trials=trials)
+    confirm = confirm_settings(args, trials)
     summary = run_discover(
         cohort, args.out, model=args.model, trials=trials,
         legs=_csv_list(args.legs) if args.legs else None, effects=_csv_list(args.effects) if args.effects else None,
@@ -707,8 +726,19 @@ def build_parser() -> argparse.ArgumentParser:
                     help="confirm with hierarchical NUTS: fit the start model, refit each round's leader before adding it "
                          "(the loop goes on only while NUTS agrees), compare the first and last fits (J, PSIS-LOO, residuals)")
     dc.add_argument("--chains", type=int, default=2, help="with --confirm (default 2)")
-    dc.add_argument("--warmup", type=int, default=300, help="with --confirm (default 300)")
-    dc.add_argument("--draws", type=int, default=300, help="with --confirm (default 300)")
+    dc.add_argument("--target-ess", type=int, default=CONFIRM_TARGET_ESS, metavar="N",
+                    help="with --confirm: each NUTS fit draws in blocks until bulk and tail ESS reach N for every "
+                         f"parameter and R-hat passes, or until --time-limit (default {CONFIRM_TARGET_ESS}; "
+                         "0: a fixed --warmup and --draws)")
+    dc.add_argument("--time-limit", type=float, default=FitSettings.time_limit_s, metavar="SECONDS",
+                    help="with --confirm and --target-ess: each fit begins no block that would end later than this "
+                         f"after its start (default {FitSettings.time_limit_s:.0f})")
+    dc.add_argument("--warmup", type=int, default=None,
+                    help=f"with --confirm: warm-up draws per chain (default {TARGET_LENGTHS[0]}; "
+                         f"{CONFIRM_FIXED_LENGTHS[0]} with --target-ess 0)")
+    dc.add_argument("--draws", type=int, default=None,
+                    help=f"with --confirm: the size of each block of draws per chain (default {TARGET_LENGTHS[1]}); "
+                         f"with --target-ess 0 the draws per chain (default {CONFIRM_FIXED_LENGTHS[1]})")
     dc.add_argument("--seed", type=int, default=0, help="with --confirm")
     dc.add_argument("--out", required=True)
     dc.set_defaults(func=cmd_discover)
