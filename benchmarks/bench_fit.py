@@ -206,8 +206,15 @@ def render(record: dict, section: str) -> str:
     sampling, compile_s, evidence_s = r["fit_sampling_s"], r["fit_compile_s"], r["delay_evidence_s"]
     ess_per_s = r["ess_bulk_min_per_s"]
     full = (len(legs), r["minutes"], r["chains"], r["warmup"], r["draws"]) == (5, 5.0, 4, 1000, 1000)
+    if peer is None or "error" in peer:
+        against = "no peer"
+    else:
+        against = (f"the peer with {PEER_METRICS[peer.get('metric', 'diag')].split(' (')[0]} from "
+                   + ("the same starts" if peer.get("start") == "fit" else "its own starts"))
     t = [
-        "## Hierarchical fit and posterior J bands",
+        # the configuration in the title: the sections of several runs stand apart in the contents
+        f"## Hierarchical fit and posterior J bands: {len(legs)} legs × {r['minutes']:g} min, "
+        f"{r['chains']} × ({r['warmup']} + {r['draws']}), {r['chain_method']} chains from the {r['start']}, {against}",
         "",
         f"Command: `{r['command']}`",
         "",

@@ -40,6 +40,9 @@ def test_converged_peer_gets_a_plain_ratio():
     text = bench_fit.render(_record(1.003, 2000.0), "bench_fit_screen")
     assert "fails the same checks" not in text
     assert "11.3× the peer's" in text  # (3597 / 784) / (2000 / 4920)
+    # the title tells the sections of several runs apart
+    assert text.startswith("## Hierarchical fit and posterior J bands: 5 legs × 5 min, 4 × (1000 + 1000), "
+                           "vectorized chains from the screen, the peer with its diagonal mass matrix from its own starts\n")
 
 
 @pytest.mark.parametrize("failed_ours", [False, True])
