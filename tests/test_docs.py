@@ -227,3 +227,15 @@ def test_readme_quickstart_names_are_exported():
             used |= {n for n in re.findall(r"\b(\w+)(?:\s+as\s+\w+)?", m.group(1).strip("()")) if n != "as"}
     missing = sorted(used - exported)
     assert not missing, f"README.md uses names that quadshank does not export: {missing}"
+
+
+def test_every_benchmark_section_is_listed_with_its_command():
+    """Each section of results/benchmarks.md is named in docs/benchmarks.md's table, and each
+    benchmark script there is one that exists."""
+    results = (ROOT / "results" / "benchmarks.md").read_text()
+    listed = (DOCS / "benchmarks.md").read_text()
+    sections = re.findall(r"<!-- (\S+):begin -->", results)
+    assert sections, "results/benchmarks.md holds no section"
+    assert [s for s in sections if f"| `{s}` |" not in listed] == []
+    scripts = set(re.findall(r"python (benchmarks/\S+\.py)", listed))
+    assert scripts and [s for s in sorted(scripts) if not (ROOT / s).is_file()] == []
