@@ -39,15 +39,20 @@ def rounds(out: Path) -> list[dict]:
         nuts = top.get("nuts")
         if nuts:
             row["nuts"] = {"delta_elpd": nuts.get("delta_elpd"), "delta_elpd_se": nuts.get("delta_elpd_se"),
-                           "clears_bar": nuts.get("clears_bar"), "fit_passed": nuts.get("banner") is None}
+                           "clears_bar": nuts.get("clears_bar"), "fit_passed": nuts.get("banner") is None,
+                           "banner": nuts.get("banner")}
         rows.append(row)
     return rows
 
 
-def start_fit_passed(out: Path) -> bool | None:
-    """Whether the NUTS fit of the start model passed its checks (None where there is none)."""
+def start_fit(out: Path) -> tuple[bool | None, str | None]:
+    """Whether the NUTS fit of the start model passed its checks, and its banner where it did not
+    (None, None where there is no such fit)."""
     path = out / "confirm" / "fit-start" / "summary.json"
-    return None if not path.exists() else json.loads(path.read_text()).get("banner") is None
+    if not path.exists():
+        return None, None
+    banner = json.loads(path.read_text()).get("banner")
+    return banner is None, banner
 
 
 def render(record: dict) -> str:
@@ -82,6 +87,12 @@ def render(record: dict) -> str:
         screened = max((x["screened"] for x in r["rounds"]), default=0)
         lines.append(f"| {r['hidden']} | {'; '.join(said)} | {screened} | {r['final_model']} | "
                      f"{sum(fits)} of {len(fits)} | {r['seconds']:.0f} |")
+    failed = [f"{r['hidden']}, {where}: {banner}" for r in record["rows"]
+              for where, banner in [("the start model", r.get("start_fit_banner"))]
+              + [(x["model"] + " + " + x["screen_verdict"], (x.get("nuts") or {}).get("banner")) for x in r["rounds"]]
+              if banner]
+    if failed:
+        lines += ["", "NUTS fits that failed their checks: " + "; ".join(failed) + "."]
     lines += ["", f"Measured {record['date']} on {record['machine']}."]
     return "\n".join(lines)
 
@@ -105,8 +116,9 @@ def main() -> None:
                           "--trials", "1", "--seed", str(args.seed), "--effects", effects)
             seconds = run_quadshank("discover", str(data), "--confirm", "--out", str(out))
             summary = json.loads((out / "summary.json").read_text())
-            record["rows"].append({"hidden": hidden, "seconds": seconds, "rounds": rounds(out),
-                                   "final_model": summary["final_model"], "start_fit_passed": start_fit_passed(out)})
+            passed, banner = start_fit(out)
+            record["rows"].append({"hidden": hidden, "seconds": seconds, "rounds": rounds(out), "final_model": summary["final_model"],
+                                   "start_fit_passed": passed, "start_fit_banner": banner})
             print(hidden, f"{seconds:.0f} s", summary["final_model"], flush=True)
             publish(dict(record), args.record, args.out, SECTION, render)  # what is measured so far is kept
 
