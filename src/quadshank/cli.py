@@ -277,15 +277,16 @@ FIXED_LENGTHS = (1000, 1000)
 TARGET_LENGTHS = (200, 100)
 
 
-def fit_lengths(args) -> tuple[int, int]:
-    """Warm-up and draws (or block) per chain: the user's, else the defaults for how the fit draws."""
-    warmup, draws = TARGET_LENGTHS if args.target_ess is not None else FIXED_LENGTHS
+def fit_lengths(args, target_ess: int | None, fixed: tuple[int, int] = FIXED_LENGTHS) -> tuple[int, int]:
+    """Warm-up and draws (or block) per chain: the user's, else the defaults for how the fit draws
+    (to ``target_ess``, or ``fixed`` lengths without one)."""
+    warmup, draws = TARGET_LENGTHS if target_ess is not None else fixed
     return (warmup if args.warmup is None else args.warmup, draws if args.draws is None else args.draws)
 
 
 def cmd_fit(args) -> int:
     cohort = load_cohort(Path(args.data))
-    warmup, draws = fit_lengths(args)
+    warmup, draws = fit_lengths(args, args.target_ess)
     settings = FitSettings(
         chains=args.chains,
         warmup=warmup,
@@ -449,9 +450,8 @@ def confirm_settings(args, trials) -> FitSettings | None:
     if args.target_ess < 0:
         raise ValueError(f"--target-ess must be at least 0 (0: a fixed --warmup and --draws), not {args.target_ess}")
     target = args.target_ess or None
-    warmup, draws = TARGET_LENGTHS if target is not None else CONFIRM_FIXED_LENGTHS
-    return FitSettings(chains=args.chains, warmup=warmup if args.warmup is None else args.warmup,
-                       draws=draws if args.draws is None else args.draws, target_ess=target,
+    warmup, draws = fit_lengths(args, target, CONFIRM_FIXED_LENGTHS)
+    return FitSettings(chains=args.chains, warmup=warmup, draws=draws, target_ess=target,
                        time_limit_s=args.time_limit, seed=args.seed, trials=trials)
 
 
