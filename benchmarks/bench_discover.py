@@ -13,7 +13,6 @@ in the plain standardised coordinates (``quadshank.inference._screen.WHITEN_FROM
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shlex
 import subprocess
@@ -23,7 +22,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from results_md import publish, run_quadshank  # noqa: E402
+from results_md import discover_rounds, publish, run_quadshank  # noqa: E402
 
 SECTION = "bench_discover"
 VARIANTS = {"whitened (default)": True, "plain coordinates": False}
@@ -44,13 +43,8 @@ def discover(data: str, out: str, whiten: bool) -> float:
 
 def rounds(out: Path) -> list[dict]:
     """Each round's verdict and its leader's ΔELPD ± SE, from the round's summary."""
-    rows = []
-    for folder in sorted(out.glob("round-*"), key=lambda p: int(p.name.split("-")[1])):
-        summary = json.loads((folder / "summary.json").read_text())
-        top = (summary.get("ranking") or [{}])[0]
-        rows.append({"verdict": summary.get("verdict"), "leader": top.get("effect"),
-                     "delta_elpd": top.get("delta_elpd"), "delta_elpd_se": top.get("delta_elpd_se")})
-    return rows
+    return [{"verdict": s.get("verdict"), "leader": top.get("effect"), "delta_elpd": top.get("delta_elpd"),
+             "delta_elpd_se": top.get("delta_elpd_se")} for s, top in discover_rounds(out)]
 
 
 def render(record: dict) -> str:

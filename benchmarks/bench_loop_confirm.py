@@ -22,7 +22,7 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from results_md import publish, run_quadshank  # noqa: E402
+from results_md import discover_rounds, publish, run_quadshank  # noqa: E402
 
 SECTION = "bench_loop_confirm"
 
@@ -30,9 +30,7 @@ SECTION = "bench_loop_confirm"
 def rounds(out: Path) -> list[dict]:
     """Each round's screen leader, the screen's and the final verdict, and the leader's NUTS evidence."""
     rows = []
-    for folder in sorted(out.glob("round-*"), key=lambda p: int(p.name.split("-")[1])):
-        s = json.loads((folder / "summary.json").read_text())
-        top = (s.get("ranking") or [{}])[0]
+    for s, top in discover_rounds(out):
         row = {"model": s.get("model"), "verdict": s.get("verdict"), "screen_verdict": s.get("screen_verdict", s.get("verdict")),
                "leader": top.get("effect"), "delta_elpd": top.get("delta_elpd"), "delta_elpd_se": top.get("delta_elpd_se"),
                "clears_bar": top.get("clears_bar"), "screened": len(s.get("ranking") or [])}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import subprocess
@@ -52,3 +53,11 @@ def publish(record: dict, record_path: str | Path, md_path: str | Path, name: st
     write_json(record_path, record)
     write_section(md_path, name, render(record))
     print(render(record))
+
+
+def discover_rounds(out: str | Path) -> list[tuple[dict, dict]]:
+    """A ``quadshank discover`` folder's rounds in order: each round's summary and the top row of
+    its ranking (an empty dict where nothing was ranked)."""
+    folders = sorted(Path(out).glob("round-*"), key=lambda p: int(p.name.split("-")[1]))
+    summaries = [json.loads((f / "summary.json").read_text()) for f in folders]
+    return [(s, (s.get("ranking") or [{}])[0]) for s in summaries]
