@@ -626,3 +626,20 @@ def test_the_noise_starts_at_the_fits_own_density_where_the_screen_held_a_thresh
     seen.clear()  # without a summed-out threshold the screen's density is the fit's: nothing moves
     fit(cohort, build_model("model3s"), FitSettings(chains=1, warmup=5, draws=5, seed=2), progress=False)
     assert not seen
+
+
+def test_a_delay_piled_at_the_longest_considered_is_a_warning():
+    """A leg whose P(d) holds a fifth or more at the longest delay considered (the muscle's delay
+    may be longer, or the model's twitch shorter than the recorded one) is named with that
+    probability and the delay in milliseconds, without failing the fit; a small tail draws nothing."""
+    from quadshank.inference._fitio import diagnose_sampling
+
+    edge = 0.65 * _peaked(N_DELAYS - 2, 0.0) + 0.35 * _peaked(N_DELAYS - 1, 0.0)
+    tail = 0.9 * _peaked(4, 0.0) + 0.1 * _peaked(N_DELAYS - 1, 0.0)
+    diag = diagnose_sampling(_two_chain_fit([[tail, edge], [tail, edge]]))
+    assert diag["ok"], diag["problems"]
+    assert diag["delay_at_edge"] == {"B": 0.35}
+    (said,) = [w for w in diag["warnings"] if "longest delay considered" in w]
+    assert f"{N_DELAYS - 1} samples ({(N_DELAYS - 1) * 10} ms)" in said and "B 0.35" in said and "A " not in said
+    quiet = diagnose_sampling(_two_chain_fit([[tail, tail], [tail, tail]]))
+    assert quiet["delay_at_edge"] == {} and quiet["warnings"] == []

@@ -83,8 +83,10 @@ def test_a_fit_to_a_target_ess_stops_at_it_and_says_so(data):
 def test_a_fit_that_runs_out_of_time_says_the_target_was_not_met(data, capsys):
     out = data / "late"
     code = main(["fit", str(data / "data"), "--model", "model1", "--chains", "2", "--start", "prior",
-                 "--warmup", "20", "--draws", "10", "--target-ess", "100000", "--time-limit", "1", "--out", str(out)])
+                 "--warmup", "20", "--draws", "10", "--target-ess", "100000", "--time-limit", "1", "--target-accept", "0.95",
+                 "--out", str(out)])
     summary = json.loads((out / "summary.json").read_text())
+    assert summary["settings"]["target_accept"] == 0.95  # the sampler's, as the user asked
     t = summary["target"]
     assert not t["met"] and t["blocks"] == 1 and "time limit of 1 s" in t["stopped"]
     assert code == 3 and not summary["diagnostics"]["ok"]

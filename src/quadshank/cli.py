@@ -300,6 +300,7 @@ def cmd_fit(args) -> int:
         delay_evidence=args.delay_evidence,
         mode_jumps=args.mode_jumps,
         max_tree_depth=args.max_tree_depth,
+        target_accept=args.target_accept,
         chain_method=args.chain_method,
         likelihood=args.likelihood,
     )
@@ -315,7 +316,7 @@ def cmd_fit(args) -> int:
         progress=not args.quiet,
         data_source=str(Path(args.data).resolve()),
     )
-    for leg, s in summary.legs.items():
+    for leg, s in summary.legs.items() if "no_muscle" not in summary.effects else ():  # the pendulum alone: no delay
         p = s["delay_posterior"]
         _say(args, f"{leg}: P(d) mode {s['delay_mode_samples']} samples ({max(p):.2f})")
     diag = summary.diagnostics
@@ -662,6 +663,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     start_options(f)
     f.add_argument("--max-tree-depth", type=int, default=8, help="NUTS tree depth limit (at most 2^depth - 1 leapfrog steps a draw)")
+    f.add_argument("--target-accept", type=float, default=FitSettings.target_accept, metavar="P",
+                   help="NUTS's target acceptance probability, between 0 and 1: higher takes smaller steps, which "
+                        f"divergent transitions call for (default {FitSettings.target_accept})")
 
     f.add_argument("--chain-method", choices=("auto", "vectorized", "sequential", "parallel"), default=FitSettings.chain_method,
                    help="run the chains as one batched program (faster on small data), one after another "

@@ -258,6 +258,22 @@ def delay_missed(idata) -> dict[str, dict[int, list[float]]]:
     return out
 
 
+#: P(d) at the longest delay considered from which a fit's summary warns that the delay may lie beyond it.
+DELAY_EDGE_P = 0.2
+
+
+def delay_at_edge(idata) -> dict[str, float]:
+    """The legs whose delay posterior holds at least :data:`DELAY_EDGE_P` at the longest delay
+    considered, with that probability (none for the pendulum alone, which has no delay)."""
+    attrs = idata.posterior.attrs
+    effects = from_json(attrs["quadshank_model"])["effects"] if "quadshank_model" in attrs else ()
+    if "no_muscle" in effects or "delay_logp" not in idata.posterior:
+        return {}
+    p = np.exp(np.asarray(idata.posterior["delay_logp"], np.float64)).mean(axis=(0, 1))  # (leg, D)
+    legs = [str(x) for x in idata.posterior["leg"].values]
+    return {leg: round(float(p[i, -1]), 3) for i, leg in enumerate(legs) if p[i, -1] >= DELAY_EDGE_P}
+
+
 def diagnose_sampling(idata) -> dict:
     """R-hat, bulk and tail ESS, divergences, E-BFMI against :data:`THRESHOLDS`, with advice."""
 
@@ -317,6 +333,21 @@ def diagnose_sampling(idata) -> dict:
             "Either the pooling across legs moved that mass or the chains sit in one of the delay's modes; "
             "a fit of the leg alone (--legs) or more data tells which, and --delay-from FITDIR fixes the delay"
         )
+    edge = delay_at_edge(idata)
+    if edge:
+        attrs = idata.posterior.attrs
+        period = from_json(attrs["quadshank_model"]).get("sampling_period_s", SAMPLING_PERIOD_S) if "quadshank_model" in attrs \
+            else SAMPLING_PERIOD_S
+        longest = N_DELAYS - 1
+        ms = longest * period * 1e3
+        cautions.append(
+            f"the delay's posterior holds at least {DELAY_EDGE_P:g} at the longest delay considered, {longest} samples "
+            f"({ms:.0f} ms): " + ", ".join(f"{leg} {p:.2f}" for leg, p in edge.items()) + ". The muscle's delay may be "
+            "longer than that, or the model's twitch shorter than the recorded one, so that its delay moves towards "
+            "the twitch's middle (model 3's twitch is a single sample). `quadshank identify` gives the delay at the "
+            "twitch's onset; model3s has a longer twitch; at a sampling period below 10 ms, `quadshank convert "
+            "--resample 0.01` lengthens the delays considered"
+        )
     if not ess_bulk_min >= ess_needed:
         problems.append(f"bulk ESS {ess_bulk_min:.0f} < {ess_needed} ({THRESHOLDS['ess_per_chain']} per chain)")
         advice.append("draw more (--draws)")
@@ -325,10 +356,10 @@ def diagnose_sampling(idata) -> dict:
         advice.append("draw more (--draws)")
     if divergences > THRESHOLDS["divergences"]:
         problems.append(f"{divergences} divergent transitions: the sampler missed part of the posterior")
-        advice.append("raise the target acceptance, or use the non-centred form for sparse data")
+        advice.append("raise the target acceptance (--target-accept 0.95) or lengthen the warm-up (--warmup)")
     if not bfmi_min > THRESHOLDS["bfmi_min"]:
         problems.append(f"E-BFMI {bfmi_min:.2f} ≤ {THRESHOLDS['bfmi_min']}: poor exploration of the energy")
-        advice.append("reparameterise (centred vs non-centred levels) or tighten the priors")
+        advice.append("lengthen the warm-up (--warmup) and let it adapt the metric (--adapt-metric), or fit more data")
     return {
         "ok": not problems,
         "rhat_max": rhat_max,
@@ -338,6 +369,7 @@ def diagnose_sampling(idata) -> dict:
         "bfmi_min": bfmi_min,
         "delay_splits": splits,
         "delay_missed": missed,
+        "delay_at_edge": edge,
         "mode_jumps": mode_jumps,
         "chains": int(chains),
         "draws": int(idata.posterior.sizes["draw"]),
