@@ -4,16 +4,18 @@ Per leg, from the identification trial (trial 1 by default):
 
 1. **Passive system** (the paper took it from its ref. [16]; here it is
    identified from the same data).  On *quiet* samples, where no pulse was
-   delivered in the preceding ``MAX_DELAY + TWITCH_SAMPLES`` = 35 samples (so no
-   twitch can be active) and the knee is no further extended than +60° (the
+   delivered in the preceding 350 ms (35 samples at the paper's 10 ms: the
+   longest delay and a twitch, so no twitch can be active) and the knee is no further extended than +60° (the
    top of the paper's operating range, beyond which a real knee meets the end
    of its range), the measured acceleration obeys eq. (8) with M = 0:
    ``φ̈ = -D'·φ̇ - G'·sin φ + k1'·(exp(-k2·φ) - 1)``.  This is linear in
    (D', G', k1') for fixed k2: k2 is scanned on a log grid (variable
    projection), then all four are refined by bounded nonlinear least squares.
 2. **Equivalent acceleration** M/I by eq. (8) on every sample.
-3. **Isolated twitches**: pulses with no other pulse in the 25 samples before
-   and the 50 after (a 25-sample epoch followed by 25 quiet samples).
+3. **Isolated twitches**: pulses with no other pulse in the 250 ms before
+   and the 500 ms after (an epoch of 250 ms, 25 samples at 10 ms, followed by
+   250 quiet ms).  The windows are counted in time, so that at any sampling
+   period an epoch holds the whole twitch and a quiet sample none.
 4. **Model 1** (eq. 9): G'_1 = Σ M/I over all epochs / Σ u.
 5. **Model 2** (eq. 10): DARMA(2, 2) with a second-order whitening filter on
    the residual, fitted by generalised (extended) least squares over all epochs
@@ -42,6 +44,7 @@ from ..common._results import Result
 from ..data._cohort import SAME_PERIOD_REL, Cohort, Trial
 from ..data._interchange import DataWarning
 from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S, TWITCH_SAMPLES
+from ..model._likelihood import TWITCH_S, twitch_window
 from ..model._model import Model, equivalent_acceleration, paper_model, passive_effects, simulate_angles
 
 __all__ = [
@@ -64,8 +67,24 @@ __all__ = [
     "load_identification",
 ]
 
-#: Samples after a pulse during which its twitch may still act on the shank.
+#: Samples after a pulse during which its twitch may still act on the shank, at the paper's 10 ms
+#: (:func:`quiet_samples` at any period).
 QUIET_AFTER_PULSE = MAX_DELAY + TWITCH_SAMPLES
+
+
+def quiet_samples(sampling_period_s: float) -> int:
+    """Samples after a pulse during which its twitch may still act: 350 ms, the paper's longest
+    delay (100 ms) and twitch (250 ms), and at least the longest delay considered (counted in
+    samples) and 250 ms (:func:`quadshank.model._likelihood.twitch_window`); 35 at 10 ms.  A
+    muscle's delay is a time: at 2 ms the 10 samples the models consider reach 20 ms, and a
+    43-ms delay would put the end of its twitch among the quiet samples."""
+    return max(twitch_window(sampling_period_s), int(round(QUIET_AFTER_PULSE * SAMPLING_PERIOD_S / sampling_period_s)))
+
+
+def twitch_epoch(sampling_period_s: float) -> int:
+    """Samples of the classical twitch epoch: 250 ms (the paper's 25 samples of 10 ms)."""
+    return max(1, int(round(TWITCH_S / sampling_period_s)))
+
 #: Highest knee angle [deg] of the samples used for the passive system (the paper's operating range ends at +60°).
 PASSIVE_MAX_ANGLE_DEG = 60.0
 #: Fewest isolated twitches needed for a meaningful identification.
@@ -219,17 +238,19 @@ def identify_passive(trials: list[Trial] | tuple[Trial, ...], gravity_offset: bo
     """
     ang, vel, acc = [], [], []
     for t in trials:
-        m = quiet_mask(t.stimulation) & (t.angle_deg <= PASSIVE_MAX_ANGLE_DEG) & ~t.exclude
+        m = quiet_mask(t.stimulation, quiet_samples(t.sampling_period_s)) & (t.angle_deg <= PASSIVE_MAX_ANGLE_DEG) & ~t.exclude
         ang.append(t.angle_deg[m])
         vel.append(t.velocity_deg_s[m])
         acc.append(t.acceleration_deg_s2[m])
     angle, velocity, accel = (np.concatenate(x) for x in (ang, vel, acc))
     where = ", ".join(f"{t.key} trial {t.trial}" + (f" ({t.source})" if t.source else "") for t in trials)
     if angle.size < 200:
-        quiet = np.concatenate([t.angle_deg[quiet_mask(t.stimulation) & ~t.exclude] for t in trials])
+        quiet = np.concatenate([t.angle_deg[quiet_mask(t.stimulation, quiet_samples(t.sampling_period_s)) & ~t.exclude]
+                                for t in trials])
         high = quiet.size >= 200 and np.count_nonzero(quiet > PASSIVE_MAX_ANGLE_DEG) > quiet.size / 2
         raise IdentificationError(
-            f"{where}: only {angle.size} quiet samples (no pulse in the preceding {QUIET_AFTER_PULSE}, knee at "
+            f"{where}: only {angle.size} quiet samples (no pulse in the preceding "
+            f"{quiet_samples(trials[0].sampling_period_s)}, knee at "
             f"most {PASSIVE_MAX_ANGLE_DEG:g}° extended); the passive system needs at least 200, stretches without "
             "stimulation"
             + (f". Most quiet samples lie above {PASSIVE_MAX_ANGLE_DEG:g}° (median {float(np.median(quiet)):.1f}°): "
@@ -269,7 +290,8 @@ def free_run_segments(trial: Trial) -> list[tuple[int, int]]:
     excluded, at least :data:`FREE_RUN_MIN_S` long.  Each starts a free run afresh from its
     first sample's measured state (an excluded spasm may have moved the shank)."""
     shortest = max(2, int(round(FREE_RUN_MIN_S / trial.sampling_period_s)))
-    return [(a, b) for a, b in stretches(quiet_mask(trial.stimulation) & ~trial.exclude) if b - a >= shortest]
+    quiet = quiet_mask(trial.stimulation, quiet_samples(trial.sampling_period_s))
+    return [(a, b) for a, b in stretches(quiet & ~trial.exclude) if b - a >= shortest]
 
 
 _PASSIVE_NAMES = ("damping", "gravity", "k1", "k2")
@@ -354,22 +376,23 @@ def isolated_twitches(stimulation: np.ndarray, epoch: int = TWITCH_SAMPLES, excl
     return pulses[ok]
 
 
-def _epoch_rows(y, u, pulses, d, order=2):
-    """Regression data of eq. (10) over all epochs for delay d (no whitening terms)."""
-    idx = (pulses[:, None] + np.arange(TWITCH_SAMPLES)[None, :]).ravel()
+def _epoch_rows(y, u, pulses, d, order=2, epoch=TWITCH_SAMPLES):
+    """Regression data of eq. (10) over all epochs of ``epoch`` samples for delay d (no whitening terms)."""
+    idx = (pulses[:, None] + np.arange(epoch)[None, :]).ravel()
     cols = [-y[idx - i] for i in range(1, order + 1)]
     cols += [u[idx - i - d] for i in range(1, order + 1)]  # pulses start after MAX_DELAY + 2
     return np.column_stack(cols), y[idx], idx
 
 
-def fit_darma(y: np.ndarray, u: np.ndarray, pulses: np.ndarray, d: int, order: int = 2, iterations: int = 10):
+def fit_darma(y: np.ndarray, u: np.ndarray, pulses: np.ndarray, d: int, order: int = 2, iterations: int = 10,
+              epoch: int = TWITCH_SAMPLES):
     """Generalised least squares of eq. (10) on the epochs for one delay.
 
     Extended least squares: an equation-error fit, then repeatedly the lagged
     residuals e_{k-1}, e_{k-2} are added as regressors (the whitening filter
     c_1, c_2) and the fit repeated.  Returns (a, b, c, residual mean square).
     """
-    X, target, idx = _epoch_rows(y, u, pulses, d, order)
+    X, target, idx = _epoch_rows(y, u, pulses, d, order, epoch)
     e_full = np.zeros_like(y)
     coef, *_ = np.linalg.lstsq(X, target, rcond=None)
     e_full[idx] = target - X @ coef
@@ -404,23 +427,24 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
         dtype=float,
     )
     u = trial.stimulation
-    pulses = isolated_twitches(u, exclude=trial.exclude)
+    epoch = twitch_epoch(dt)
+    pulses = isolated_twitches(u, epoch, exclude=trial.exclude)
     if pulses.size < MIN_TWITCHES:
         raise IdentificationError(
-            f"{where}: only {pulses.size} isolated twitches (a pulse with {TWITCH_SAMPLES} quiet samples "
-            f"before and {2 * TWITCH_SAMPLES} after, none of them excluded); the classical identification needs at least {MIN_TWITCHES} "
+            f"{where}: only {pulses.size} isolated twitches (a pulse with {epoch} quiet samples "
+            f"before and {2 * epoch} after, none of them excluded); the classical identification needs at least {MIN_TWITCHES} "
             "(`quadshank fit` does not: it fits every sample, trains of pulses too)"
         )
     pulses = pulses[pulses > MAX_DELAY + 2]
 
     # model 2 over all delays -> the delay of all models
-    fits = [fit_darma(mi, u, pulses, d) for d in range(MAX_DELAY + 1)]
+    fits = [fit_darma(mi, u, pulses, d, epoch=epoch) for d in range(MAX_DELAY + 1)]
     residuals = np.array([f[3] for f in fits])
     d = int(np.argmin(residuals))
     a, b, c, _ = fits[d]
 
     # integrated twitch responses (per unit recruitment)
-    epochs = pulses[:, None] + np.arange(TWITCH_SAMPLES)[None, :]
+    epochs = pulses[:, None] + np.arange(epoch)[None, :]
     integrated = mi[epochs].sum(axis=1) / u[pulses]
     g1 = float(mi[epochs].sum() / u[pulses].sum())
     if not g1 > 0:  # also NaN
