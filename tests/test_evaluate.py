@@ -91,3 +91,30 @@ def test_table_v_is_mean_and_sd_over_legs():
     mean, sd, n = T["1"]["model1"][100]
     assert (mean, n) == (4.0, 3)
     assert sd == pytest.approx(2.0)
+
+
+def test_a_model_whose_predictions_diverge_is_named():
+    """An unstable identified filter (model 2 with a pole outside the unit circle) gives J that is
+    not finite; evaluate_cohort names the model, leg, trial and horizons instead of leaving a bare
+    NaN, and a stable model on the same trial draws no warning."""
+    import warnings
+
+    from quadshank.data._cohort import Cohort
+    from quadshank.evaluation._prediction import DivergedPredictionWarning, evaluate_cohort
+
+    trial = _noisy_trial()
+    cohort = Cohort([trial])
+    passive = passive_effects(**PASSIVE)
+    stable = paper_model(2, passive, delay=4).with_params(a=np.array([-1.45, 0.6]), b=np.array([500.0, 600.0]))
+    unstable = paper_model(2, passive, delay=4).with_params(a=np.array([-2.5, 1.6]), b=np.array([500.0, 600.0]))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        J = evaluate_cohort(cohort, {trial.key: {"model2": unstable, "model3": paper_model(3, passive, delay=4)
+                                                  .with_params(**PARAMS["model3"])}})
+    said = [str(w.message) for w in caught if issubclass(w.category, DivergedPredictionWarning)]
+    assert not np.isfinite(J["model2"][trial.key]["2"][1000])
+    assert len(said) == 1 and said[0].startswith(f"model2 on {trial.key} trial 2: its predictions are not finite")
+    assert "1000 ms" in said[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DivergedPredictionWarning)
+        assert np.isfinite(evaluate_cohort(cohort, {trial.key: {"model2": stable}})["model2"][trial.key]["2"][1000])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import re
 import shlex
@@ -265,7 +266,8 @@ def run_evaluate_and_report(args, cohort, models, out):
     summary = run_evaluate(cohort, models, out, progress=not args.quiet)
     for model, trials in summary.J.items():
         _say(args, f"{model}: " + "; ".join(
-            f"trial {t}: " + ", ".join(f"{h} ms {v:.1f}°" for h, v in hv.items()) for t, hv in trials.items()
+            f"trial {t}: " + ", ".join(f"{h} ms {v:.1f}°" if math.isfinite(v) else f"{h} ms not finite" for h, v in hv.items())
+            for t, hv in trials.items()
         ))
     _say(args, f"Table V, sign tests, figures and summary.json in {out}")
     return summary

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import warnings
 from typing import ClassVar
 
 import numpy as np
@@ -27,6 +28,7 @@ from ..common._arrays import stretches
 from ..common._progress import progress_bar
 from ..common._results import Result
 from ..data._cohort import Cohort, Trial
+from ..data._interchange import DataWarning
 from ..data._paper import HORIZONS_MS
 from ..model._model import Model, measured_angle, predict_ahead, simulate_angles, true_angle
 
@@ -131,7 +133,16 @@ def evaluate_cohort(
         hs = horizon_samples(t.sampling_period_s, horizons_ms)
         errs = prediction_errors(m, t, tuple(hs.values()))
         J.setdefault(name, {}).setdefault(t.key, {})[str(t.trial)] = {h: errs[p] for h, p in hs.items()}
+        lost = [f"{h} ms" for h, p in hs.items() if not np.isfinite(errs[p])]
+        if lost:
+            warnings.warn(f"{name} on {t.key} trial {t.trial}: its predictions are not finite (J at {', '.join(lost)}): "
+                          "the identified model is unstable or diverges on this trial, and the means over legs that "
+                          "include it are not finite either", DivergedPredictionWarning, stacklevel=2)
     return J
+
+
+class DivergedPredictionWarning(DataWarning):
+    """A model's predictions on a trial are not finite (an unstable identified filter, say)."""
 
 
 def sign_tests(J: dict, trials=("2", "3"), alpha: float = ALPHA) -> list[dict]:
