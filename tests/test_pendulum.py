@@ -360,3 +360,25 @@ def test_the_loop_on_pendulum_tests_lists_the_muscle_candidates_as_not_applicabl
     ranking = rank_effects(Cohort((t,)), "passive", effects=["torque_angle_peak", "accel_resonance"],
                            n_draws=20, n_j_draws=10, start_stride=20, n_starts=0, objective="acceleration")
     assert ranking.base.data.objective == "acceleration" and list(ranking.not_applicable) == ["torque_angle_peak"]
+
+
+def test_a_gravity_angle_far_from_the_zero_is_named(monkeypatch):
+    """A gravity offset identified far from the angle's zero (a rest the tissues hold, traded
+    between gravity and the elasticity) draws a warning naming the leg and the angle; one near
+    the zero draws none."""
+    import warnings
+
+    from quadshank.inference import _identify
+
+    t = _realistic(PASSIVE, 3, gravity_angle=15.0)
+    for angle, named in ((121.0, True), (15.0, False)):
+        monkeypatch.setattr(_identify, "identify_passive_free_run",
+                            lambda trials, gravity_offset=False, angle=angle: ({**PASSIVE, "gravity_angle": angle}, 0.1, 900))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            identify_cohort(Cohort((t,)), gravity_offset=True)
+        said = [str(w.message) for w in caught if "has gravity acting about" in str(w.message)]
+        if named:
+            assert len(said) == 1 and said[0].startswith(f"PT-left: the identified pendulum has gravity acting about {angle:.0f}°")
+        else:
+            assert said == []

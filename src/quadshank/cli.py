@@ -26,6 +26,7 @@ from .commands.recovery import run_likelihood_calibration, run_recovery
 from .commands.report import Report, run_report
 from .commands.reproduce import Reproduction, run_reproduce
 from .common._io import read_json
+from .common._progress import write_above_bars
 from .common._xla_cache import use_compilation_cache
 from .data._interchange import DataWarning, convert, load_cohort, write_interchange
 from .data._paper import LEGS
@@ -834,7 +835,7 @@ def _one_line_warnings(previous):
     def show(message, category, filename, lineno, file=None, line=None) -> None:
         glyph = _MISSING_GLYPH.match(str(message))
         if issubclass(category, DataWarning):
-            print(f"quadshank: warning: {message}", file=sys.stderr)
+            write_above_bars(f"quadshank: warning: {message}")
         elif glyph:  # matplotlib warns at every figure; one line per character is enough
             if glyph.group(1) not in missing:
                 missing.add(glyph.group(1))
@@ -842,8 +843,8 @@ def _one_line_warnings(previous):
                     char = repr(unicodedata.lookup(glyph.group(1)))
                 except KeyError:
                     char = glyph.group(1)
-                print(f"quadshank: warning: the figures' font has no {char} ({glyph.group(1)}, in a subject's "
-                      "name?); it shows as a box", file=sys.stderr)
+                write_above_bars(f"quadshank: warning: the figures' font has no {char} ({glyph.group(1)}, in a "
+                                 "subject's name?); it shows as a box")
         else:
             previous(message, category, filename, lineno, file, line)
 

@@ -14,3 +14,10 @@ def progress_bar(iterable: Iterable, *, desc: str, enabled: bool = True, total: 
         return iterable
 
     return tqdm(iterable, desc=desc, total=total, file=sys.stderr, leave=False, dynamic_ncols=True)
+
+
+def write_above_bars(text: str, file=None) -> None:
+    """Print ``text`` as its own line (to stderr by default) above any progress bar being drawn,
+    which is drawn again below it: printed plainly, a warning raised inside a step with a bar
+    would share the bar's line, and the bar's next redraw would overwrite it."""
+    tqdm.write(text, file=sys.stderr if file is None else file)

@@ -94,6 +94,9 @@ MIN_TWITCHES = 8
 PASSIVE_OBJECTIVES = ("acceleration", "angle")
 #: Shortest stretch of usable samples [s] a free run is compared on.
 FREE_RUN_MIN_S = 1.0
+#: Largest |gravity angle| [deg] an identified gravity offset is taken at face value: the
+#: vertical of a seated knee lies near the angle's zero (the effect's prior: 0 ± 10°).
+PLAUSIBLE_GRAVITY_ANGLE_DEG = 45.0
 #: A pendulum whose free runs miss the swings by more than this share of the swing's spread (the
 #: standard deviation of the angle compared) is named: those trials may not be pendulum tests.
 POOR_SWING_SHARE = 0.3
@@ -554,6 +557,14 @@ def identify_cohort(
                                       "trial that is not one") from err
         if objective == "angle":
             _warn_poor_swing(leg, passive_trials, p_rms)
+        if gravity_offset and abs(passive["gravity_angle"]) > PLAUSIBLE_GRAVITY_ANGLE_DEG:
+            warnings.warn(
+                f"{leg}: the identified pendulum has gravity acting about {passive['gravity_angle']:.0f}°, where a "
+                f"seated knee's vertical lies within ±{PLAUSIBLE_GRAVITY_ANGLE_DEG:g}° of the angle's zero: its gravity and "
+                "elasticity trade against each other to hold the swing's rest, and their values are not the leg's. "
+                "A gravity offset describes a vertical away from the angle's zero (a tilted seat, a goniometer "
+                "zeroed elsewhere); a rest that the tissues hold away from the vertical has no built-in effect",
+                DataWarning, stacklevel=2)
         if not np.any(chosen.stimulation > 0):
             out[leg] = PassiveIdentification(leg, trial, {k: float(v) for k, v in passive.items()}, p_rms, n_quiet,
                                              numbers, chosen.sampling_period_s, objective)
