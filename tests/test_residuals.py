@@ -245,6 +245,10 @@ def test_findings_name_the_trend_and_stay_quiet_on_white_noise(capsys):
     trends = _all_trends(trended, mask, start, angle, velocity, stim)
     notes = rd.findings({"time": trends["time"]}, rd.acf(white, mask), rd.ccf(white, stim, mask))
     assert len(notes) == 1 and "time in trial" in notes[0] and "p < 0.001" in notes[0]
+    # one recruitment level throughout: a single bin is an offset, never a change with the feature
+    offset = rd.binned_trend(white + 5.0, np.ones(len(mask)), mask)
+    assert len(offset["mean"]) == 1 and offset["p_value"] < 0.01
+    assert rd.findings({"recruitment": offset}, rd.acf(white, mask), rd.ccf(white, stim, mask)) == []
     assert capsys.readouterr().out == ""
 
 
@@ -297,7 +301,11 @@ def test_spectrum_finding_names_a_resonance_and_stays_quiet_on_white_noise():
     assert rd.spectrum_finding(rd.spectrum(white, mask, dt)) == []
     ringing = white + 2.0 * np.sin(2 * np.pi * 12.0 * dt * np.arange(n))
     (line,) = rd.spectrum_finding(rd.spectrum(ringing, mask, dt))
-    assert "peaks at 12." in line
+    assert "peaks at 12." in line and "skin-motion resonance" in line
+    # a peak as slow as the shank's own swing is not the accelerometer's resonance
+    swinging = white + 2.0 * np.sin(2 * np.pi * 1.5 * dt * np.arange(n))
+    (line,) = rd.spectrum_finding(rd.spectrum(swinging, mask, dt))
+    assert "peaks at 1." in line and "shank's own swing" in line and "skin-motion" not in line
 
 
 def test_loo_pit_summary_reads_the_shape_of_a_miscalibrated_predictive():
@@ -313,3 +321,13 @@ def test_loo_pit_summary_reads_the_shape_of_a_miscalibrated_predictive():
     assert "too wide" in wide["notes"][0]
     high = rd.loo_pit_summary(stats.norm.cdf(z + 0.6), 100)  # the data lie above the predictions
     assert "under-predicts" in high["notes"][0]
+
+
+def test_findings_are_listed_as_sentences_of_their_own():
+    """Each leg's findings in a report read as separate sentences, whatever case and stop each came with."""
+    from quadshank.outputs._loop import findings_markdown
+
+    lines = findings_markdown({"A-left": ["the residual changes with knee angle (p < 0.001): mean −3 near 10",
+                                          "The residual's spectrum peaks at 1.5 Hz."], "B-left": []})
+    assert lines == ["- A-left: The residual changes with knee angle (p < 0.001): mean −3 near 10. "
+                     "The residual's spectrum peaks at 1.5 Hz.", "- B-left: nothing stands out."]

@@ -184,12 +184,20 @@ def ranking_markdown(summary: Diagnosis, command: str | None = None) -> str:
                "The table measures each feature on the residual as it is; each named trend is taken out before the "
                "next is looked for, and the verdict's sentence gives a later one's numbers after that."
                + (" See unexplained_structure.png." if left["found"] else "")]
-    findings = summary.residual_findings
-    if findings:
-        md += ["", "## Where the model fails (residuals of the baseline)", ""]
-        for leg, lines in findings.items():
-            md.append(f"- {leg}: " + (" ".join(lines) if lines else "nothing stands out."))
+    if summary.residual_findings:
+        md += ["", "## Where the model fails (residuals of the baseline)", "", *findings_markdown(summary.residual_findings)]
     return "\n".join(md) + "\n"
+
+
+def findings_markdown(findings: dict[str, list[str]]) -> list[str]:
+    """One list item per leg: its residual findings (:func:`residual_figures`), each a sentence of
+    its own (capitalised, ending in a full stop), or that nothing stands out."""
+
+    def sentence(text: str) -> str:
+        text = text.strip()
+        return text[:1].upper() + text[1:] + ("" if text.endswith(".") else ".")
+
+    return [f"- {leg}: " + (" ".join(map(sentence, lines)) if lines else "nothing stands out.") for leg, lines in findings.items()]
 
 
 def discovery_markdown(summary: Discovery, command: str | None = None) -> str:
