@@ -20,7 +20,7 @@ import pytest
 import xarray as xr
 
 from quadshank.cli import main
-from quadshank.data import Cohort, Trial, write_interchange
+from quadshank.data import Cohort, DataWarning, Trial, read_interchange, write_interchange
 
 N = 400
 DT = 0.01
@@ -491,6 +491,74 @@ def test_a_refused_command_leaves_no_folder_behind(base, tmp_path, capsys):
     _set_cell(data / T1, 17, "angle_deg", "abc")
     rc, lines = _run(COMMANDS["fit"](data, tmp_path / "fit"), capsys)
     assert rc == 2 and not (tmp_path / "fit").exists()
+
+
+def test_a_command_that_fails_removes_the_folder_it_made_empty(base, tmp_path, capsys, monkeypatch):
+    """A fit that fails after its folder was made (no finite density, say) is one error line, and
+    the folder it made and left empty is gone; a folder it wrote into keeps what it holds."""
+    import quadshank.cli as cli
+
+    def fails(cohort, out, *a, **k):
+        Path(out).mkdir(parents=True, exist_ok=True)
+        raise FloatingPointError("TN-left: the screen of model3 found no finite posterior density")
+
+    monkeypatch.setattr(cli, "run_fit", fails)
+    rc, lines = _run(COMMANDS["fit"](base / "data", tmp_path / "fit"), capsys)
+    assert rc == 2 and lines == ["quadshank: error: TN-left: the screen of model3 found no finite posterior density"]
+    assert not (tmp_path / "fit").exists()
+    (tmp_path / "kept").mkdir()
+    (tmp_path / "kept" / "notes.txt").write_text("mine")
+    rc, lines = _run(COMMANDS["fit"](base / "data", tmp_path / "kept") + ["--overwrite"], capsys)
+    assert rc == 2 and (tmp_path / "kept" / "notes.txt").read_text() == "mine"
+
+
+def test_values_no_knee_produces_are_refused_where_not_excluded(base, tmp_path, capsys):
+    """A missing-data marker, another unit or an overflow in a signal is refused with its file,
+    column and row, unless the sample is excluded; a run of a marker in a measured signal within
+    the bounds is named in a warning with its time."""
+    data = tmp_path / "data"
+    shutil.copytree(base / "data", data)
+    _set_cell(data / T1, 40, "angle_deg", "-9999")
+    _set_cell(data / T1, 41, "acceleration_deg_s2", "1e300")
+    rc, lines = _run(["convert", str(data), str(tmp_path / "x.nc")], capsys)
+    assert rc == 2 and not (tmp_path / "x.nc").exists()
+    said = "\n".join(lines)
+    assert f"{T1}, column 'angle_deg', row 40: value -9999.0 beyond ±720" in said
+    assert f"{T1}, column 'acceleration_deg_s2', row 41: value 1e+300 beyond ±500000" in said
+    assert "RuntimeWarning" not in said
+    rows = _rows(data / T1)
+    rows[0].append("exclude")
+    for i, row in enumerate(rows[1:], start=2):
+        row.append("1" if i in (40, 41) else "0")
+    for i in range(60, 66):
+        rows[i - 1][rows[0].index("acceleration_deg_s2")] = "-9999"
+    _write_rows(data / T1, rows)
+    with pytest.warns(DataWarning, match=r"acceleration_deg_s2 holds -9999 on 6 samples in 1 run, the first from time_s"):
+        cohort = read_interchange(data)
+    assert cohort.trials[0].exclude[38:40].all()
+
+
+def test_an_excluded_artefact_does_not_reach_the_derived_signals_beside_it():
+    """The velocity and acceleration derived from the angle run apart on each side of excluded
+    samples that hold no knee's angle (a missing-data marker), so the marker leaves the kept
+    samples' derivatives as they were without it; through excluded samples that hold a movement
+    (a release) the derivation runs on as before."""
+    clean = _trial("TN", "left", 1, 0.3)
+    angle = clean.angle_deg.copy()
+    angle[100:110] = -9999.0
+    exclude = np.zeros(angle.size, bool)
+    exclude[100:110] = True
+    marked = Trial.from_signals("TN", "left", 1, clean.sampling_period_s, angle, None, clean.stimulation, exclude=exclude)
+    smooth = Trial.from_signals("TN", "left", 1, clean.sampling_period_s, clean.angle_deg, None, clean.stimulation)
+    kept = ~exclude
+    kept[90:120] = False  # the filter's own edge beside the stretch differs a little, not by thousands
+    np.testing.assert_allclose(marked.acceleration_deg_s2[kept], smooth.acceleration_deg_s2[kept], rtol=1e-9, atol=1e-6)
+    near = slice(93, 100)
+    assert np.max(np.abs(marked.acceleration_deg_s2[near] - smooth.acceleration_deg_s2[near])) < 1e3
+    assert np.max(np.abs(marked.velocity_deg_s[near] - smooth.velocity_deg_s[near])) < 1e2
+    moving = Trial.from_signals("TN", "left", 1, clean.sampling_period_s, clean.angle_deg, None, clean.stimulation,
+                                exclude=exclude)
+    np.testing.assert_array_equal(moving.acceleration_deg_s2, smooth.acceleration_deg_s2)
 
 
 def test_an_earlier_output_of_the_same_command_is_written_over(base, tmp_path, capsys):

@@ -42,7 +42,7 @@ from .model._plugins import load_effects_file, load_entry_point_effects
 
 __all__ = ["main"]
 
-EXPECTED_ERRORS: tuple[type[BaseException], ...] = (OSError, KeyError, ValueError)
+EXPECTED_ERRORS: tuple[type[BaseException], ...] = (OSError, KeyError, ValueError, FloatingPointError)
 
 #: The result kinds (``summary.json`` schema) a command may find in its output folder from an earlier run of its own.
 OUTPUT_KINDS = {
@@ -136,9 +136,9 @@ def prepare_output(out: Path, command: str, inputs, overwrite: bool = False):
     command (``overwrite``: any folder; files of the same names are replaced, others kept).
     Then remove its ``summary.json``: until the new one lands, the folder is incomplete.
 
-    Returns the function that marks the folder as this command's once the command has run
-    (whether or not it succeeded), where the folder exists by then: a command refused before
-    it wrote anything leaves no folder behind."""
+    Returns the function that marks the folder as this command's once the command has run,
+    where the folder exists by then: a command refused before it wrote anything leaves no folder
+    behind, and one that failed (``mark(failed=True)``) removes a folder it made and left empty."""
     resolved = out.resolve()
     for p in inputs:
         src = p.resolve()
@@ -162,8 +162,12 @@ def prepare_output(out: Path, command: str, inputs, overwrite: bool = False):
             f"{out}: the folder is not empty and holds no earlier output of `quadshank {command}`; give a new "
             "folder (or --overwrite to write into it: files of the same names are replaced, others kept)")
     (out / "summary.json").unlink(missing_ok=True)
+    new = not out.exists()
 
-    def mark() -> None:
+    def mark(failed: bool = False) -> None:
+        if failed and new and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()  # made for this output, and nothing came of it
+            return
         # a folder written into by --overwrite stays unmarked: it holds more than this output
         if not foreign and out.is_dir():
             try:
@@ -877,11 +881,14 @@ def main(argv: list[str] | None = None) -> int:
                 load_entry_point_effects()
                 for path in args.effects_file:
                     _say(args, f"effects from {path}: {', '.join(load_effects_file(path))}")
+            failed = True
             try:
-                return int(args.func(args) or 0)
+                code = int(args.func(args) or 0)
+                failed = False
+                return code
             finally:
                 if mark is not None:
-                    mark()
+                    mark(failed)
     except KeyboardInterrupt:
         print("quadshank: interrupted; files already written are complete, nothing half-written", file=sys.stderr)
         return 130

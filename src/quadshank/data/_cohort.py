@@ -20,6 +20,7 @@ import numpy as np
 import xarray as xr
 from scipy.signal import savgol_filter
 
+from ..common._arrays import stretches
 from ..common._io import atomic_path
 
 __all__ = [
@@ -91,6 +92,26 @@ def derive_acceleration(angle_deg: np.ndarray, dt: float) -> np.ndarray:
     if angle.size < window:
         return np.gradient(np.gradient(angle, dt), dt) if angle.size > 2 else np.zeros_like(angle)
     return savgol_filter(angle, window, ACCELERATION_POLYORDER, deriv=2, delta=dt, mode="interp")
+
+
+#: Largest |angle| [deg] that can be a knee's: it turns less than twice round.
+ANGLE_LIMIT_DEG = 720.0
+#: Values loggers write where a sample is missing.
+MISSING_MARKERS = (-9999.0, 9999.0, -999.0, 999.0, -99999.0, 99999.0, -32768.0, 32767.0)
+
+
+def _derived_by_stretch(derive, angle: np.ndarray, dt: float, exclude) -> np.ndarray:
+    """``derive(angle, dt)``, run apart on each side of the excluded samples whose angle is no
+    knee's (``exclude``: True on excluded samples, or None) and on those samples themselves."""
+    broken = np.zeros(angle.size, bool) if exclude is None else np.asarray(exclude, bool) & (
+        (np.abs(angle) > ANGLE_LIMIT_DEG) | np.isin(angle, MISSING_MARKERS) | ~np.isfinite(angle))
+    if not broken.any():
+        return derive(angle, dt)
+    out = np.empty_like(angle)
+    for mask in (~broken, broken):
+        for a, b in stretches(mask):
+            out[a:b] = derive(angle[a:b], dt)
+    return out
 
 
 def derivation_settings(sampling_period_s: float) -> dict:
@@ -169,16 +190,20 @@ class Trial:
         exclude=None,
     ) -> Trial:
         """Build a trial, deriving the velocity and the acceleration from the angle when they
-        are not given (None).  The derivation runs through excluded samples too."""
+        are not given (None).  The derivation runs through excluded samples, whose angle is
+        usually a real movement (a release, a spasm), except where an excluded angle is no
+        knee's (beyond :data:`ANGLE_LIMIT_DEG` or one of :data:`MISSING_MARKERS`): there it
+        runs on each side apart, so that the marker does not reach the kept samples beside it
+        through the filter's window."""
         angle = np.asarray(angle_deg, dtype=float)
         if time_s is None:
             time_s = np.arange(angle.size) * sampling_period_s
         measured = velocity_deg_s is not None
         if not measured:
-            velocity_deg_s = derive_velocity(angle, sampling_period_s)
+            velocity_deg_s = _derived_by_stretch(derive_velocity, angle, sampling_period_s, exclude)
         accelerometer = acceleration_deg_s2 is not None
         if not accelerometer:
-            acceleration_deg_s2 = derive_acceleration(angle, sampling_period_s)
+            acceleration_deg_s2 = _derived_by_stretch(derive_acceleration, angle, sampling_period_s, exclude)
         return cls(
             subject=subject,
             leg=leg,

@@ -110,8 +110,9 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 from scipy.signal import savgol_filter
 
+from ..common._arrays import stretches
 from ..common._io import file_stem, temp_sibling
-from ._cohort import Cohort, Trial, leg_key
+from ._cohort import ANGLE_LIMIT_DEG, MISSING_MARKERS, Cohort, Trial, leg_key
 from ._resample import resample_cohort, resample_trial
 
 __all__ = [
@@ -164,6 +165,12 @@ RADIAN_MIN_SAMPLES = 100
 #: (about one period a second) or a twitch (about 100 ms); a longer one is usually milliseconds
 #: written as seconds.
 MAX_SAMPLING_PERIOD_S = 0.1
+
+#: Largest magnitude a sample not excluded may hold, per column: a knee turns less than twice
+#: round, swings at up to a few thousand deg/s and accelerates at up to a few 10⁴ deg/s².
+#: Beyond these a value is no measurement of a knee in degrees: a logger's missing-data marker
+#: (-9999), another unit (millidegrees), an overflow.
+MAGNITUDE_LIMITS = {"angle_deg": ANGLE_LIMIT_DEG, "velocity_deg_s": 1.0e5, "acceleration_deg_s2": 5.0e5}
 
 #: Individual problems reported per file, column and kind before they are summarised.
 _MAX_PER_KIND = 5
@@ -273,7 +280,7 @@ def plausibility(trial: Trial) -> list[str]:
     window = _smoothing_window(dt)
     if trial.n_samples < 3 * window:
         return glitches
-    found = glitches + (_pendulum_plausibility(trial) if not np.any(trial.stimulation > 0) else [])
+    found = glitches + _markers(trial) + (_pendulum_plausibility(trial) if not np.any(trial.stimulation > 0) else [])
     checks = [("acceleration_deg_s2", 2, "deg/s²")] if trial.acceleration_measured else []
     if trial.velocity_measured:
         checks.append(("velocity_deg_s", 1, "deg/s"))
@@ -297,6 +304,27 @@ def plausibility(trial: Trial) -> list[str]:
         elif abs(corr) < PLAUSIBLE_CORRELATION:
             found.append(f"{column} hardly follows the angle's {what} (correlation {corr:.2f}): is it the "
                          "signal of this trial, in this column?")
+    return found
+
+
+#: Consecutive samples of one marker that make a run (a single one may be a measurement).
+MARKER_RUN = 3
+
+
+def _markers(trial: Trial) -> list[str]:
+    """Runs of :data:`~quadshank.data._cohort.MISSING_MARKERS` in the measured signals (samples not excluded), in words."""
+    columns = [("angle_deg", trial.angle_deg)]
+    columns += [("velocity_deg_s", trial.velocity_deg_s)] if trial.velocity_measured else []
+    columns += [("acceleration_deg_s2", trial.acceleration_deg_s2)] if trial.acceleration_measured else []
+    found = []
+    for column, values in columns:
+        for marker in MISSING_MARKERS:
+            runs = [(a, b) for a, b in stretches((values == marker) & ~trial.exclude) if b - a >= MARKER_RUN]
+            if runs:
+                n = sum(b - a for a, b in runs)
+                found.append(f"{column} holds {marker:g} on {n} samples in {len(runs)} run{'s' if len(runs) > 1 else ''}, "
+                             f"the first from time_s = {float(trial.time_s[runs[0][0]])!r}: a logger's missing-data "
+                             "marker? Set exclude = 1 there (the fit then leaves those samples out)")
     return found
 
 
@@ -327,6 +355,8 @@ def _pendulum_plausibility(trial: Trial) -> list[str]:
     flexion, says that the zero or the sign of the angle may be off."""
     kept = ~trial.exclude
     angle = trial.angle_deg[kept]
+    if angle.size < 2:  # nothing left to judge (the rules refuse such a trial)
+        return []
     tail = angle[-max(2, int(round(1.0 / trial.sampling_period_s))):]
     found = []
     if np.ptp(tail) < STILL_RANGE_DEG and abs(float(np.median(tail))) > REST_TOLERANCE_DEG:
@@ -565,13 +595,27 @@ def _check_signals(
             problems.append(Problem(file, "exclude", None, f"{np.count_nonzero(exclude == 0)} of {exclude.size} "
                                     "samples not excluded; at least 2 are needed"))
 
+    kept = np.ones(lines.size, bool) if exclude is None else exclude != 1
+    beyond = False
+    for column, limit in MAGNITUDE_LIMITS.items():
+        values = signals.get(column)
+        if values is None or values.size != kept.size:
+            continue
+        out = np.flatnonzero(kept & (np.abs(values) > limit))
+        beyond |= bool(out.size)
+        _report_cells(
+            problems, file, column, [(int(lines[i]), repr(float(values[i]))) for i in out],
+            "value {} beyond ±" + f"{limit:g}" + " (no knee's, in degrees: a missing-data marker, another unit, an "
+            "overflow?); correct it, or set exclude to 1 there",
+        )
+
     angle = signals.get("angle_deg")
-    if angle is not None and stim is not None and angle.size >= RADIAN_MIN_SAMPLES:
+    if angle is not None and stim is not None and angle.size >= RADIAN_MIN_SAMPLES and not beyond:
         # the bulk of the samples, so that a glitch or two cannot hide radians
         lo, hi = np.quantile(angle, [RADIAN_QUANTILE, 1 - RADIAN_QUANTILE])
         magnitude = max(abs(float(lo)), abs(float(hi)))
         moves = hi - lo > (RADIAN_MIN_RANGE if np.any(stim > 0) else RADIAN_MIN_RANGE_PASSIVE)
-        small_swing = np.any(stim > 0) and _same_units(angle, signals.get("acceleration_deg_s2"), time)
+        small_swing = np.any(stim > 0) and _same_units(angle, signals.get("acceleration_deg_s2"), time, kept)
         if magnitude <= RADIAN_LIMIT and moves and not small_swing:
             peak = int(np.argmax(np.where((angle >= lo) & (angle <= hi), np.abs(angle), -1.0)))
             problems.append(
@@ -592,16 +636,20 @@ def _agreement(angle: np.ndarray, measured: np.ndarray, order: int, dt: float, k
     Savitzky–Golay filter of :data:`PLAUSIBILITY_WINDOW_S`, on the samples ``kept``; None where
     either is flat."""
     window = _smoothing_window(dt)
-    derived = savgol_filter(angle, window, 3, deriv=order, delta=dt)
-    smooth = savgol_filter(measured, window, 3)
-    if kept is not None:
-        derived, smooth = derived[kept], smooth[kept]
+    kept = np.ones(angle.size, bool) if kept is None else np.asarray(kept, bool)
+    # stretch by stretch of kept samples, so that an excluded artefact does not reach the samples
+    # beside it through the filter's window
+    pieces = [(savgol_filter(angle[a:b], window, 3, deriv=order, delta=dt), savgol_filter(measured[a:b], window, 3))
+              for a, b in stretches(kept) if b - a >= window]
+    if not pieces:
+        return None
+    derived, smooth = (np.concatenate(x) for x in zip(*pieces))
     if np.std(derived) == 0 or np.std(smooth) == 0:
         return None
     return float(np.corrcoef(smooth, derived)[0, 1]), float(np.std(smooth) / np.std(derived))
 
 
-def _same_units(angle: np.ndarray, acceleration: np.ndarray | None, time: np.ndarray | None) -> bool:
+def _same_units(angle: np.ndarray, acceleration: np.ndarray | None, time: np.ndarray | None, kept=None) -> bool:
     """Whether a measured acceleration [deg/s²] follows the angle's second derivative at about its
     size (as :func:`plausibility` compares them): then, in a trial with pulses, the angle is in
     degrees however small its swing (weak twitches of a knee at rest), and the radian rule does
@@ -612,7 +660,7 @@ def _same_units(angle: np.ndarray, acceleration: np.ndarray | None, time: np.nda
     dt = float(np.median(np.diff(time)))
     if angle.size < 3 * _smoothing_window(dt):
         return False
-    agreement = _agreement(angle, acceleration, 2, dt)
+    agreement = _agreement(angle, acceleration, 2, dt, kept)
     return agreement is not None and agreement[0] > PLAUSIBLE_CORRELATION \
         and PLAUSIBLE_RATIO[0] <= agreement[1] <= PLAUSIBLE_RATIO[1]
 
@@ -893,11 +941,19 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
                            uniform=resample_s is None)
             time = signals.get("time_s")
             if e.span_ok and time is not None and time.size and (e.start_s is not None or e.end_s is not None):
-                kept = int(np.count_nonzero(_span(time, e.start_s, e.end_s)))
+                span = _span(time, e.start_s, e.end_s)
+                kept = int(np.count_nonzero(span))
+                exclude = signals.get("exclude")
+                free = kept if exclude is None or exclude.size != span.size else int(np.count_nonzero(span & (exclude != 1)))
+                column = "start_s" if e.start_s is not None else "end_s"
                 if kept < 2:
-                    problems.append(Problem(MANIFEST_NAME, "start_s" if e.start_s is not None else "end_s", e.line,
+                    problems.append(Problem(MANIFEST_NAME, column, e.line,
                                             f"start_s/end_s keep {kept} sample(s) of {e.file} (its time runs from "
                                             f"{float(time[0])!r} to {float(time[-1])!r} s); at least 2 are needed"))
+                elif free < 2:
+                    problems.append(Problem(MANIFEST_NAME, column, e.line,
+                                            f"start_s/end_s keep {kept} samples of {e.file}, of which {free} not "
+                                            "excluded (its column 'exclude'); at least 2 are needed"))
         signals_of[i] = signals
 
     listed = {_file_id(e.path) for e in entries if e.path is not None}
