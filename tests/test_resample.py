@@ -94,3 +94,22 @@ def test_a_recording_at_1_ms_is_resampled_and_identified(tmp_path, capsys):
     assert a["delay_samples"] == b["delay_samples"]
     assert a["model1"]["gain"] == pytest.approx(b["model1"]["gain"], rel=0.05)
     assert a["passive"]["damping"] == pytest.approx(b["passive"]["damping"], rel=0.05)
+
+
+def test_a_new_period_that_no_command_would_read_is_refused():
+    """A period longer than the longest the readers accept (0.1 s), or not a number of seconds at
+    all, is refused before anything is written; the message says why."""
+    trial = _irregular()
+    for period in (0.5, float("inf"), 0.0, -0.01):
+        with pytest.raises(ValueError, match=r"the new sampling period"):
+            resample_trial(trial, period)
+    assert resample_trial(trial, 0.1).sampling_period_s == pytest.approx(0.1)
+
+
+def test_a_missing_trial_is_named_with_the_trials_the_leg_has():
+    cohort = Cohort((_irregular(),))
+    leg = cohort.legs[0]
+    with pytest.raises(KeyError, match=rf"no trial 3 for leg {leg}; its trials: 1"):
+        cohort.get(leg, 3)
+    with pytest.raises(KeyError, match="legs present"):
+        cohort.get("XX-left", 1)

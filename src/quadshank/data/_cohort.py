@@ -94,6 +94,10 @@ def derive_acceleration(angle_deg: np.ndarray, dt: float) -> np.ndarray:
     return savgol_filter(angle, window, ACCELERATION_POLYORDER, deriv=2, delta=dt, mode="interp")
 
 
+#: The longest sampling period [s] accepted: slower than this cannot follow a knee's swing
+#: (about one period a second) or a twitch (about 100 ms); a longer one is usually milliseconds
+#: written as seconds.
+MAX_SAMPLING_PERIOD_S = 0.1
 #: Largest |angle| [deg] that can be a knee's: it turns less than twice round.
 ANGLE_LIMIT_DEG = 720.0
 #: Values loggers write where a sample is missing.
@@ -269,6 +273,9 @@ class Cohort:
         for t in self.trials:
             if t.key == leg and t.trial == int(trial):
                 return t
+        if leg in self.legs:
+            have = ", ".join(str(t.trial) for t in self.trials_of(leg))
+            raise KeyError(f"no trial {trial} for leg {leg}; its trials: {have}")
         raise KeyError(f"no trial {trial} for leg {leg}; legs present: {', '.join(self.legs)}")
 
     def fingerprint(self, legs: Sequence[str] | None = None, trials: Sequence[int] | None = None) -> str:

@@ -112,7 +112,7 @@ from scipy.signal import savgol_filter
 
 from ..common._arrays import stretches
 from ..common._io import file_stem, temp_sibling
-from ._cohort import ANGLE_LIMIT_DEG, MISSING_MARKERS, Cohort, Trial, leg_key
+from ._cohort import ANGLE_LIMIT_DEG, MAX_SAMPLING_PERIOD_S, MISSING_MARKERS, Cohort, Trial, leg_key
 from ._resample import resample_cohort, resample_trial
 
 __all__ = [
@@ -161,10 +161,6 @@ RADIAN_MIN_RANGE_PASSIVE = 0.5
 RADIAN_QUANTILE = 0.01
 #: The radian test needs this many samples: a few samples of a trial say nothing of its units.
 RADIAN_MIN_SAMPLES = 100
-#: The longest sampling period [s] accepted: slower than this cannot follow a knee's swing
-#: (about one period a second) or a twitch (about 100 ms); a longer one is usually milliseconds
-#: written as seconds.
-MAX_SAMPLING_PERIOD_S = 0.1
 
 #: Largest magnitude a sample not excluded may hold, per column: a knee turns less than twice
 #: round, swings at up to a few thousand deg/s and accelerates at up to a few 10⁴ deg/s².

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.signal import butter, filtfilt
 
-from ._cohort import Cohort, Trial
+from ._cohort import MAX_SAMPLING_PERIOD_S, Cohort, Trial
 
 __all__ = ["resample_trial", "resample_cohort", "ANTI_ALIAS_FRACTION", "MAX_STEP_RATIO"]
 
@@ -47,6 +47,9 @@ def resample_trial(trial: Trial, period_s: float) -> Trial:
     """``trial`` on a uniform grid of ``period_s`` seconds (see the module's docs)."""
     if not period_s > 0:
         raise ValueError(f"the new sampling period must be positive, not {period_s!r} s")
+    if not period_s <= MAX_SAMPLING_PERIOD_S:
+        raise ValueError(f"the new sampling period {period_s!r} s is longer than {MAX_SAMPLING_PERIOD_S:g} s, which "
+                         "cannot follow a knee's swing or a twitch (and which no command would read)")
     where = f"{trial.key} trial {trial.trial}" + (f" ({trial.source})" if trial.source else "")
     time = trial.time_s
     steps = np.diff(time)
