@@ -79,3 +79,44 @@ def test_trains_from_a_stimulators_log_are_fitted_through_a_recruitment_curve(tr
     assert main(["-q", "identify", str(folder), "--out", str(tmp_path / "id")]) == 2
     err = capsys.readouterr().err
     assert "JM-left trial 1" in err and "isolated twitches" in err and "quadshank fit" in err
+
+
+def test_a_pulse_width_typo_and_mixed_encodings_are_named(train_data, tmp_path):
+    """One pulse logged 100 times too wide scales every other pulse's level down by as much: named
+    with its file and time; so is a leg whose trials give the stimulation in two ways. The file as
+    logged draws neither."""
+    import shutil
+    import warnings
+
+    from quadshank.data import DataWarning, read_interchange
+
+    def said(folder):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            read_interchange(folder)
+        return [str(w.message) for w in caught if issubclass(w.category, DataWarning)]
+
+    assert not [w for w in said(train_data) if "charge" in w or "same way" in w]
+    typo = tmp_path / "typo"
+    shutil.copytree(train_data, typo)
+    path = typo / "JM-left-trial1.csv"
+    lines = path.read_text().splitlines()
+    j = lines[0].split(",").index("pulse_width_us")
+    row = next(r for r in range(1, len(lines)) if float(lines[r].split(",")[j]) > 0)
+    cells = lines[row].split(",")
+    cells[j] = repr(float(cells[j]) * 100)
+    lines[row] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    (found,) = [w for w in said(typo) if "largest pulse charge" in w]
+    assert found.startswith(f"JM-left-trial1.csv (JM-left): its largest pulse charge at time_s = {cells[0]}")
+    assert "a typo in pulse_width_us" in found
+    mixed = tmp_path / "mixed"
+    shutil.copytree(train_data, mixed)
+    levels = Trial.from_signals("JM", "left", 1, DT, 20 * np.sin(np.arange(500) * 0.05), None,
+                                np.r_[np.zeros(250), 1.0, np.zeros(249)])
+    write_interchange(Cohort((levels,)), tmp_path / "two")
+    shutil.copy(tmp_path / "two" / "JM-left-trial1.csv", mixed / "JM-left-trial2.csv")
+    with open(mixed / "manifest.csv", "a") as f:
+        manifest = (mixed / "manifest.csv").read_text().splitlines()
+        f.write(manifest[1].replace(",1,", ",2,", 1).replace("trial1", "trial2") + "\n")
+    assert any("give every trial of a leg the same way" in w for w in said(mixed)), said(mixed)

@@ -1005,11 +1005,46 @@ def _relative_charges(entries: Sequence[_Entry], signals_of: dict) -> dict[int, 
     for i, q in charges.items():
         key = (entries[i].subject, entries[i].leg)
         largest[key] = max(largest.get(key, 0.0), float(q.max(initial=0.0)))
+    _warn_charge_scales(entries, signals_of, charges)
     out = {}
     for i, q in charges.items():
         top = largest[(entries[i].subject, entries[i].leg)]
         out[i] = q / top if top > 0 else np.zeros_like(q)
     return out
+
+
+#: A leg's largest pulse charge this many times its next largest is named: every other pulse's level
+#: is its charge over the largest, so one typo (30000 µs for 300) scales them all down.
+CHARGE_OUTLIER_RATIO = 5.0
+
+
+def _warn_charge_scales(entries: Sequence[_Entry], signals_of: dict, charges: dict[int, np.ndarray]) -> None:
+    """Warn of a leg whose largest pulse charge stands far above its others (a typo), and of a leg
+    whose trials give the stimulation partly as levels and partly as a stimulator's columns (two
+    scales that the fit takes for one)."""
+    legs: dict[tuple, list[int]] = {}
+    for i in signals_of:
+        legs.setdefault((entries[i].subject, entries[i].leg), []).append(i)
+    for (subject, leg), rows in legs.items():
+        name = f"{subject}-{leg}"
+        given = [i for i in rows if i in charges]
+        if given and len(given) < len(rows):
+            levels = ", ".join(entries[i].file for i in rows if i not in charges)
+            warnings.warn(f"{name}: {', '.join(entries[i].file for i in given)} give the stimulation as a stimulator's "
+                          f"columns (levels are charges over the leg's largest), {levels} as levels in [0, 1]: the fit "
+                          "takes them for one scale; give every trial of a leg the same way", DataWarning, stacklevel=4)
+        pulses = [(float(charges[i][k]), i, int(k)) for i in given for k in np.flatnonzero(charges[i] > 0)]
+        if len(pulses) < 2:
+            continue
+        pulses.sort()
+        (second, *_), (top, i, k) = pulses[-2], pulses[-1]
+        if top > CHARGE_OUTLIER_RATIO * second:
+            time = signals_of[i].get("time_s")
+            when = f" at time_s = {float(time[k])!r}" if time is not None and time.size > k else ""
+            warnings.warn(f"{entries[i].file} ({name}): its largest pulse charge{when} is {top / second:.0f} times the "
+                          f"leg's next largest; every pulse's level is its charge over the largest, so all the others "
+                          f"fall below {second / top:.2g}: a typo in pulse_width_us or current_mA?", DataWarning,
+                          stacklevel=4)
 
 
 def _span(time: np.ndarray, start_s: float | None, end_s: float | None) -> np.ndarray:
