@@ -382,3 +382,25 @@ def test_a_gravity_angle_far_from_the_zero_is_named(monkeypatch):
             assert len(said) == 1 and said[0].startswith(f"PT-left: the identified pendulum has gravity acting about {angle:.0f}°")
         else:
             assert said == []
+
+
+def test_pulses_whose_twitch_is_excluded_inform_nothing():
+    """A leg whose pulses all fall where their twitch is excluded is as uninformed as one without
+    pulses, and says why; excluding only the pulses' own samples leaves their twitches compared."""
+    from quadshank.commands.fit import uninformed_legs
+    from quadshank.inference import build_model
+    from quadshank.model._likelihood import twitch_window
+
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.5, seed=0, trials=[1])
+    t = cohort.trials[0]
+    pulses = np.flatnonzero(t.stimulation > 0)
+    hidden = np.zeros(t.n_samples, bool)
+    for k in pulses:
+        hidden[k : k + twitch_window(t.sampling_period_s)] = True
+    model = build_model("model1")
+    assert uninformed_legs(model, cohort) == {}
+    (got,) = uninformed_legs(model, Cohort((t.replace(exclude=hidden),))).values()
+    assert got["pulses"] == 0 and got["why"] == f"no pulses whose twitch is compared ({pulses.size} with their twitch excluded)"
+    only_pulses = np.zeros(t.n_samples, bool)
+    only_pulses[pulses] = True
+    assert uninformed_legs(model, Cohort((t.replace(exclude=only_pulses),))) == {}

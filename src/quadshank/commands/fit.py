@@ -18,7 +18,7 @@ from ..inference._fitio import (
 from ..inference._identify import check_delay_range
 from ..inference._nuts import FitSettings, run_nuts
 from ..inference._priors import build_model, delay_prior_from
-from ..model._likelihood import resolve_objective
+from ..model._likelihood import resolve_objective, twitch_window
 
 #: A leg with fewer pulses than this in its fitted trials has active parameters its own data hardly
 #: inform (the classical identification asks for 8 isolated twitches; one twitch pins nothing down).
@@ -26,7 +26,8 @@ FEW_PULSES = 8
 
 
 def uninformed_legs(model, cohort: Cohort) -> dict:
-    """Legs with fewer than :data:`FEW_PULSES` pulses: per leg the pulses and the parameters of
+    """Legs with fewer than :data:`FEW_PULSES` pulses whose twitch is compared (some sample of its
+    window not excluded): per leg the pulses and the parameters of
     the muscle and the delay, whose values there come from the prior and the other legs (none for
     the ``passive`` model, which has no muscle)."""
     active = [p.name for e in model.effects if e.kind in ("activation", "gain", "pulse", "delay")
@@ -35,10 +36,16 @@ def uninformed_legs(model, cohort: Cohort) -> dict:
         return {}  # the pendulum alone: nothing active to inform
     out = {}
     for leg in cohort.legs:
-        pulses = int(sum(np.count_nonzero(t.stimulation > 0) for t in cohort.trials_of(leg)))
+        pulses, hidden = 0, 0
+        for t in cohort.trials_of(leg):
+            kept, window = ~t.exclude, twitch_window(t.sampling_period_s)
+            seen = [bool(kept[k : k + window].any()) for k in np.flatnonzero(t.stimulation > 0)]
+            pulses, hidden = pulses + sum(seen), hidden + len(seen) - sum(seen)
         if pulses < FEW_PULSES:
-            out[leg] = {"pulses": pulses, "params": active, "delay": True,
-                        "why": "no pulses" if pulses == 0 else f"only {pulses} pulse{'s' if pulses > 1 else ''}"}
+            why = "no pulses" if pulses == 0 else f"only {pulses} pulse{'s' if pulses > 1 else ''}"
+            if hidden:  # pulses whose whole twitch is excluded inform nothing
+                why += f" whose twitch is compared ({hidden} with their twitch excluded)"
+            out[leg] = {"pulses": pulses, "params": active, "delay": True, "why": why}
     return out
 
 
