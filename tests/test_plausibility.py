@@ -136,3 +136,15 @@ def test_a_glitch_is_named_where_most_of_the_trial_is_excluded():
     angle[10] = 1e6
     found = plausibility(t.replace(angle_deg=angle, exclude=exclude))
     assert any("jumps by" in f and "time_s = 0.1" in f for f in found), found
+
+
+def test_float_noise_in_the_stimulation_is_named():
+    """Levels just above 0 where no pulse was delivered (a spreadsheet's float noise) would each
+    be a pulse: named with their number and the first one's time; real levels draw nothing."""
+    t = _trial()
+    assert not any("float noise" in f for f in plausibility(t))
+    stim = np.where(t.stimulation > 0, t.stimulation, 1e-12)
+    noisy = t.replace(stimulation=stim)
+    (said,) = [f for f in plausibility(noisy) if "float noise" in f]
+    zeros = int(np.count_nonzero(t.stimulation == 0))
+    assert said.startswith(f"stimulation holds {zeros} levels above 0 and below 1e-06, the first at time_s = ")

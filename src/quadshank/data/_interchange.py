@@ -276,7 +276,8 @@ def plausibility(trial: Trial) -> list[str]:
     window = _smoothing_window(dt)
     if trial.n_samples < 3 * window:
         return glitches
-    found = glitches + _markers(trial) + (_pendulum_plausibility(trial) if not np.any(trial.stimulation > 0) else [])
+    found = glitches + _markers(trial) + _faint_pulses(trial) \
+        + (_pendulum_plausibility(trial) if not np.any(trial.stimulation > 0) else [])
     checks = [("acceleration_deg_s2", 2, "deg/s²")] if trial.acceleration_measured else []
     if trial.velocity_measured:
         checks.append(("velocity_deg_s", 1, "deg/s"))
@@ -322,6 +323,20 @@ def _markers(trial: Trial) -> list[str]:
                              f"the first from time_s = {float(trial.time_s[runs[0][0]])!r}: a logger's missing-data "
                              "marker? Set exclude = 1 there (the fit then leaves those samples out)")
     return found
+
+
+#: A pulse level below this is no recruitment a stimulator delivers: float noise where it delivered none.
+FAINT_PULSE = 1e-6
+
+
+def _faint_pulses(trial: Trial) -> list[str]:
+    """Pulses whose level is below :data:`FAINT_PULSE`, in words (each nonzero level is a pulse)."""
+    faint = np.flatnonzero((trial.stimulation > 0) & (trial.stimulation < FAINT_PULSE))
+    if not faint.size:
+        return []
+    return [f"stimulation holds {faint.size} level{'s' if faint.size > 1 else ''} above 0 and below {FAINT_PULSE:g}, "
+            f"the first at time_s = {float(trial.time_s[faint[0]])!r}: each nonzero level is a pulse; float noise "
+            "where no pulse was delivered? Write 0 there"]
 
 
 def _glitches(trial: Trial) -> list[str]:
