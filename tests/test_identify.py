@@ -200,3 +200,17 @@ def test_too_few_quiet_samples_from_an_angle_zeroed_elsewhere_say_so():
     t = cohort.get("OT-left", 1)
     with pytest.raises(IdentificationError, match=r"only \d+ quiet samples.*Most quiet samples lie above 60°.*zero"):
         identify_leg(t.replace(angle_deg=t.angle_deg + 150.0))
+
+
+def test_signals_that_are_not_finite_are_refused_not_fed_to_least_squares():
+    """A sample beyond what a float holds (an overflow that reached the trial) is refused naming the
+    leg and trial; least squares on it would not return."""
+    from quadshank.data import Cohort, simulate_cohort
+    from quadshank.inference._identify import IdentificationError, identify_cohort
+
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.5, seed=0, trials=[1])
+    t = cohort.trials[0]
+    acc = t.acceleration_deg_s2.copy()
+    acc[np.flatnonzero(t.stimulation > 0)[3] + 5] = np.inf
+    with pytest.raises(IdentificationError, match=r"TN-left trial 1: the .* is not finite on 1 of the samples used"):
+        identify_cohort(Cohort((t.replace(acceleration_deg_s2=acc),)))

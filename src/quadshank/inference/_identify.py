@@ -247,6 +247,7 @@ def identify_passive(trials: list[Trial] | tuple[Trial, ...], gravity_offset: bo
         acc.append(t.acceleration_deg_s2[m])
     angle, velocity, accel = (np.concatenate(x) for x in (ang, vel, acc))
     where = ", ".join(f"{t.key} trial {t.trial}" + (f" ({t.source})" if t.source else "") for t in trials)
+    _refuse_non_finite(where, angle=angle, velocity=velocity, acceleration=accel)
     if angle.size < 200:
         quiet = np.concatenate([t.angle_deg[quiet_mask(t.stimulation, quiet_samples(t.sampling_period_s)) & ~t.exclude]
                                 for t in trials])
@@ -429,6 +430,7 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
         equivalent_acceleration(base, trial.angle_deg, trial.velocity_deg_s, trial.acceleration_deg_s2),
         dtype=float,
     )
+    _refuse_non_finite(where, **{"equivalent acceleration": mi})
     u = trial.stimulation
     epoch = twitch_epoch(dt)
     pulses = isolated_twitches(u, epoch, exclude=trial.exclude)
@@ -490,6 +492,16 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
         g1_std=float(np.std(integrated, ddof=1)),
         rms_error_pct={"model1": rms1, "model3": rms3},
     )
+
+
+def _refuse_non_finite(where: str, **signals) -> None:
+    """Refuse signals that are not finite where the least squares would meet them (LAPACK does
+    not return on some of them)."""
+    for name, x in signals.items():
+        bad = np.flatnonzero(~np.isfinite(x))
+        if bad.size:
+            raise IdentificationError(f"{where}: the {name} is not finite on {bad.size} of the samples used "
+                                      "(a value beyond what a float holds?); correct the recording, or exclude those samples")
 
 
 def _warn_poor_swing(leg: str, trials, rms: float) -> None:
