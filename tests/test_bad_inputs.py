@@ -243,6 +243,7 @@ CSV_CASES = {
     "gzip file": gzipped,
     "header only": header_only,
     "leg capitalised": manifest_cell(2, "leg", "Left", "'left' or 'right'"),
+    "leg with a Cyrillic e": manifest_cell(2, "leg", "l\u0435ft", "'l\\u0435ft' is not 'left' or 'right', which holds characters outside ASCII"),
     "trial gap": manifest_cell(3, "trial", "3", "missing"),
     "trial number with separator": manifest_cell(2, "trial", "1_0"),
     "trial number not ASCII": manifest_cell(2, "trial", "١"),

@@ -214,3 +214,25 @@ def test_signals_that_are_not_finite_are_refused_not_fed_to_least_squares():
     acc[np.flatnonzero(t.stimulation > 0)[3] + 5] = np.inf
     with pytest.raises(IdentificationError, match=r"TN-left trial 1: the .* is not finite on 1 of the samples used"):
         identify_cohort(Cohort((t.replace(acceleration_deg_s2=acc),)))
+
+
+def test_an_angle_zeroed_elsewhere_is_named_by_its_missing_gravity():
+    """A constant added to every angle (a goniometer zeroed 30° away from the rest) leaves the
+    passive fit no gravity about angle 0: named with the leg and G'; the recording as it is draws nothing."""
+    import warnings
+
+    from quadshank.data import Cohort, DataWarning, simulate_cohort
+    from quadshank.inference._identify import identify_cohort
+
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.5, seed=0, trials=[1])
+    t = cohort.trials[0]
+
+    def said(trial):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            identify_cohort(Cohort((trial,)))
+        return [str(w.message) for w in caught if issubclass(w.category, DataWarning) and "next to no gravity" in str(w.message)]
+
+    assert said(t) == []
+    (found,) = said(t.replace(angle_deg=t.angle_deg + 30.0))
+    assert found.startswith("TN-left: the identified pendulum has next to no gravity (G' = ")

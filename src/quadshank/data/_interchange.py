@@ -677,6 +677,14 @@ def _same_units(angle: np.ndarray, acceleration: np.ndarray | None, time: np.nda
 
 
 # --------------------------------------------------------------------------- manifest
+def _leg_problem(leg: str) -> str:
+    """Why ``leg`` is not a leg; a name with characters outside ASCII shows them escaped (a Cyrillic
+    'е' looks like 'e' but is not)."""
+    shown = ascii(leg) if not leg.isascii() else repr(leg)
+    hint = ", which holds characters outside ASCII" if not leg.isascii() else ""
+    return f"{shown} is not 'left' or 'right'{hint}"
+
+
 def _subject_problem(subject: str) -> str | None:
     """What is wrong with a subject's name, or None."""
     if not subject or subject.strip() != subject:
@@ -768,7 +776,7 @@ def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry],
 
         leg: str | None = row[col["leg"]].strip()
         if leg not in _LEGS:
-            bad("leg", f"{leg!r} is not 'left' or 'right'")
+            bad("leg", _leg_problem(leg))
             leg = None
 
         trial = _parse_trial_number(row[col["trial"]].strip())
@@ -1164,7 +1172,7 @@ def _check_cohort(cohort: Cohort, names: Sequence[str], *, listing: str = MANIFE
             problems.append(Problem(listing, "subject", line, _subject_problem(t.subject)))
         leg = t.leg if t.leg in _LEGS else None
         if leg is None:
-            problems.append(Problem(listing, "leg", line, f"{t.leg!r} is not 'left' or 'right'"))
+            problems.append(Problem(listing, "leg", line, _leg_problem(t.leg)))
         trial = t.trial if t.trial >= 1 else None
         if trial is None:
             problems.append(Problem(listing, "trial", line, f"non-positive trial number {t.trial}"))

@@ -554,6 +554,7 @@ def identify_cohort(
                     f"{leg}: the passive objective 'angle' fits free swings, and the leg has no trial without "
                     "pulses (a pendulum test); use the objective 'auto' or 'acceleration'")
             out[leg] = identify_leg(chosen)
+            _warn_gravity_near_zero(leg, out[leg].passive)
             continue
         objective = "acceleration" if passive_objective == "acceleration" else "angle"
         numbers = tuple(t.trial for t in passive_trials)
@@ -583,7 +584,24 @@ def identify_cohort(
         else:
             out[leg] = dataclasses.replace(identify_leg(chosen, passive=passive), passive_rms_residual=p_rms,
                                            n_quiet=n_quiet, passive_trials=numbers, passive_objective=objective)
+        _warn_gravity_near_zero(leg, passive)
     return out
+
+
+#: G' [deg/s²] below which an identified pendulum has next to no gravity: a shank's is m·g·l/I,
+#: about 1500–2500 (the paper's 1800), and no leg's is a tenth of it.
+GRAVITY_NEAR_ZERO = 150.0
+
+
+def _warn_gravity_near_zero(leg: str, passive: dict) -> None:
+    """Warn where the identified G' is next to 0: eq. (8) could not hold the swings with gravity
+    about the angle's zero, which happens when the zero is off (a constant added to every angle)."""
+    if passive["gravity"] < GRAVITY_NEAR_ZERO:
+        warnings.warn(
+            f"{leg}: the identified pendulum has next to no gravity (G' = {passive['gravity']:.3g} deg/s², where a "
+            "shank's is about 1500-2500): eq. (8) could not hold the swings with gravity about angle 0. Is angle_deg "
+            "zero with the shank at rest? A constant added to every angle does this; the other passive and active "
+            "values then come out wrong too", DataWarning, stacklevel=3)
 
 
 def models_from_summary(summary: dict, sampling_period_s: float = SAMPLING_PERIOD_S) -> dict[str, dict[str, Model]]:
