@@ -236,3 +236,20 @@ def test_an_angle_zeroed_elsewhere_is_named_by_its_missing_gravity():
     assert said(t) == []
     (found,) = said(t.replace(angle_deg=t.angle_deg + 30.0))
     assert found.startswith("TN-left: the identified pendulum has next to no gravity (G' = ")
+
+
+def test_a_marker_on_excluded_samples_leaves_the_identification_as_it_was():
+    """A logger's missing-data marker set to be excluded, as the warnings advise, changes nothing
+    the classical identification finds (its equivalent acceleration there is no number, and is not used)."""
+    from quadshank.data import Cohort, simulate_cohort
+    from quadshank.inference._identify import identify_cohort
+
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.5, seed=0, trials=[1])
+    t = cohort.trials[0]
+    angle, exclude = t.angle_deg.copy(), np.zeros(t.n_samples, bool)
+    angle[1000:1020], exclude[1000:1020] = -9999.0, True
+    clean = identify_cohort(cohort)["TN-left"]
+    marked = identify_cohort(Cohort((t.replace(angle_deg=angle, exclude=exclude),)))["TN-left"]
+    assert marked.delay == clean.delay
+    for name in ("damping", "gravity"):
+        assert marked.passive[name] == pytest.approx(clean.passive[name], rel=0.02), name

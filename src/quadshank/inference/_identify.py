@@ -430,7 +430,7 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
         equivalent_acceleration(base, trial.angle_deg, trial.velocity_deg_s, trial.acceleration_deg_s2),
         dtype=float,
     )
-    _refuse_non_finite(where, **{"equivalent acceleration": mi})
+    _refuse_non_finite(where, **{"equivalent acceleration": mi[~trial.exclude]})
     u = trial.stimulation
     epoch = twitch_epoch(dt)
     pulses = isolated_twitches(u, epoch, exclude=trial.exclude)
