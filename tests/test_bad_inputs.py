@@ -610,3 +610,26 @@ def test_an_empty_output_name_is_refused(base, tmp_path, capsys, monkeypatch):
         rc, lines = _run(argv, capsys)
         _assert_refused(rc, lines, ["give"], None)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_start_that_cuts_a_twitch_from_its_pulse_is_named(base, tmp_path):
+    """start_s just after a pulse keeps the pulse's twitch without the pulse: named with the file,
+    the manifest row and the pulse's time; a start well clear of the pulses draws nothing."""
+    import warnings
+
+    def said(start):
+        data = tmp_path / f"start{start}"
+        shutil.copytree(base / "data", data)
+        rows = _rows(data / MAN)
+        rows[0].append("start_s")
+        for i, row in enumerate(rows[1:]):
+            row.append(str(start) if i == 0 else "")
+        _write_rows(data / MAN, rows)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            read_interchange(data)
+        return [str(w.message) for w in caught if "without its pulse" in str(w.message)]
+
+    (found,) = said(1.25)  # a pulse at 1.2 s
+    assert found.startswith(f"{T1}: start_s = 1.25 ({MAN} row 2) falls 0.05 s after a pulse at time_s = 1.2:")
+    assert said(1.7) == []

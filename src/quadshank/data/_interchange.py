@@ -1006,11 +1006,30 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
             exclude=s["exclude"],
         )
         trials.append(trim(whole, e.start_s, e.end_s))
+        _warn_cut_twitch(whole, e)
     if resample_s is not None:
         trials = [resample_trial(t, resample_s) for t in trials]
     cohort = Cohort(tuple(trials), {"source": str(folder), "source_format": "interchange"})
     _warn_implausible(cohort, [str(folder / e.file) for e in entries])
     return cohort
+
+
+#: How long [s] a twitch may act after its pulse: the paper's longest delay and twitch (35 samples of 10 ms).
+TWITCH_REACH_S = 0.35
+
+
+def _warn_cut_twitch(whole: Trial, e: _Entry) -> None:
+    """Warn where ``start_s`` cuts a trial within :data:`TWITCH_REACH_S` after a pulse: its twitch
+    is then in the samples kept, without the pulse that caused it."""
+    if e.start_s is None:
+        return
+    times = whole.time_s[whole.stimulation > 0]
+    cut = times[(times < e.start_s) & (times > e.start_s - TWITCH_REACH_S)]
+    if cut.size:
+        warnings.warn(f"{e.file}: start_s = {e.start_s!r} ({MANIFEST_NAME} row {e.line}) falls "
+                      f"{e.start_s - float(cut[-1]):.3g} s after a pulse at time_s = {float(cut[-1]):.6g}: its twitch "
+                      "is in the samples kept, without its pulse; start after the twitch, or before the pulse",
+                      DataWarning, stacklevel=3)
 
 
 def _charge(signals: dict[str, np.ndarray | None]) -> np.ndarray:
