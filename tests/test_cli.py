@@ -205,3 +205,22 @@ def test_the_command_line_keeps_compiled_programs_in_a_cache_on_disk(tmp_path):
     assert run(XDG_CACHE_HOME=str(xdg)) == str(xdg / "quadshank" / "xla") and any((xdg / "quadshank" / "xla").iterdir())
     mine = tmp_path / "mine"
     assert run(QUADSHANK_XLA_CACHE=str(folder), JAX_COMPILATION_CACHE_DIR=str(mine)) == str(mine)
+
+
+def test_a_warning_under_a_progress_bar_gets_a_line_of_its_own():
+    """A warning raised while a progress bar is drawn prints as its own line above the bar, which
+    is drawn again below it; printed plainly it would share the bar's line and be overwritten."""
+    import io
+
+    from tqdm import tqdm
+
+    from quadshank.common._progress import write_above_bars
+
+    out = io.StringIO()
+    bar = tqdm(range(3), file=out, desc="identify", mininterval=0)
+    for k in bar:
+        if k == 1:
+            write_above_bars("quadshank: warning: TN-left: something", file=out)
+    bar.close()
+    lines = [line.strip() for line in out.getvalue().replace("\r", "\n").split("\n")]
+    assert "quadshank: warning: TN-left: something" in lines
