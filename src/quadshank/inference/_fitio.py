@@ -344,9 +344,10 @@ def diagnose_sampling(idata) -> dict:
             f"the delay's posterior holds at least {DELAY_EDGE_P:g} at the longest delay considered, {longest} samples "
             f"({ms:.0f} ms): " + ", ".join(f"{leg} {p:.2f}" for leg, p in edge.items()) + ". The muscle's delay may be "
             "longer than that, or the model's twitch shorter than the recorded one, so that its delay moves towards "
-            "the twitch's middle (model 3's twitch is a single sample). `quadshank identify` gives the delay at the "
-            "twitch's onset; model3s has a longer twitch; at a sampling period below 10 ms, `quadshank convert "
-            "--resample 0.01` lengthens the delays considered"
+            "the twitch's middle (model 3's twitch is a single sample; model3s's is longer). `quadshank identify` "
+            "gives the delay at the twitch's onset"
+            + ("; resampled to 10 ms (`quadshank convert DATA data.nc --resample 0.01`) the delays considered reach "
+               "100 ms" if period < SAMPLING_PERIOD_S * (1 - 1e-6) else "")
         )
     if not ess_bulk_min >= ess_needed:
         problems.append(f"bulk ESS {ess_bulk_min:.0f} < {ess_needed} ({THRESHOLDS['ess_per_chain']} per chain)")

@@ -5,9 +5,10 @@ Per leg, from the identification trial (trial 1 by default):
 1. **Passive system** (the paper took it from its ref. [16]; here it is
    identified from the same data).  On *quiet* samples, where no pulse was
    delivered in the preceding 350 ms (35 samples at the paper's 10 ms: the
-   longest delay and a twitch, so no twitch can be active) and the knee is no further extended than +60° (the
-   top of the paper's operating range, beyond which a real knee meets the end
-   of its range), the measured acceleration obeys eq. (8) with M = 0:
+   longest delay and a twitch, so no twitch can be active) and the knee is
+   no further extended than +60° (the top of the paper's operating range,
+   beyond which a real knee meets the end of its range), the measured
+   acceleration obeys eq. (8) with M = 0:
    ``φ̈ = -D'·φ̇ - G'·sin φ + k1'·(exp(-k2·φ) - 1)``.  This is linear in
    (D', G', k1') for fixed k2: k2 is scanned on a log grid (variable
    projection), then all four are refined by bounded nonlinear least squares.
@@ -589,7 +590,7 @@ def identify_cohort(
 
 
 #: G' [deg/s²] below which an identified pendulum has next to no gravity: a shank's is m·g·l/I,
-#: about 1500–2500 (the paper's 1800), and no leg's is a tenth of it.
+#: about 1500–2500, and no leg's is a tenth of it.
 GRAVITY_NEAR_ZERO = 150.0
 
 
