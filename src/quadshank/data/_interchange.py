@@ -113,6 +113,7 @@ from scipy.signal import savgol_filter
 from ..common._arrays import stretches
 from ..common._io import file_stem, temp_sibling
 from ._cohort import ANGLE_LIMIT_DEG, MAX_SAMPLING_PERIOD_S, MISSING_MARKERS, Cohort, Trial, leg_key
+from ._paper import TWITCH_REACH_S
 from ._resample import resample_cohort, resample_trial
 
 __all__ = [
@@ -1012,10 +1013,6 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
     cohort = Cohort(tuple(trials), {"source": str(folder), "source_format": "interchange"})
     _warn_implausible(cohort, [str(folder / e.file) for e in entries])
     return cohort
-
-
-#: How long [s] a twitch may act after its pulse: the paper's longest delay and twitch (35 samples of 10 ms).
-TWITCH_REACH_S = 0.35
 
 
 def _warn_cut_twitch(whole: Trial, e: _Entry) -> None:

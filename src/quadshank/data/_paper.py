@@ -16,6 +16,9 @@ HORIZON_MS = dict(zip(HORIZONS, HORIZONS_MS))
 MAX_DELAY = 10
 #: Assumed twitch duration (samples) = length of an isolated-twitch epoch.
 TWITCH_SAMPLES = 25
+#: How long [s] after its pulse a twitch may still act on the shank: the largest delay and the
+#: twitch at the paper's period (350 ms).
+TWITCH_REACH_S = (MAX_DELAY + TWITCH_SAMPLES) * SAMPLING_PERIOD_S
 
 LEGS = ("TN-left", "TN-right", "JM-left", "JM-right", "OT-left")
 

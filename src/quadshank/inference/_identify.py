@@ -44,7 +44,7 @@ from ..common._progress import progress_bar
 from ..common._results import Result
 from ..data._cohort import SAME_PERIOD_REL, Cohort, Trial
 from ..data._interchange import DataWarning
-from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S, TWITCH_SAMPLES
+from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S, TWITCH_REACH_S, TWITCH_SAMPLES
 from ..model._likelihood import TWITCH_S, twitch_window
 from ..model._model import Model, equivalent_acceleration, paper_model, passive_effects, simulate_angles
 
@@ -79,7 +79,7 @@ def quiet_samples(sampling_period_s: float) -> int:
     samples) and 250 ms (:func:`quadshank.model._likelihood.twitch_window`); 35 at 10 ms.  A
     muscle's delay is a time: at 2 ms the 10 samples the models consider reach 20 ms, and a
     43-ms delay would put the end of its twitch among the quiet samples."""
-    return max(twitch_window(sampling_period_s), int(round(QUIET_AFTER_PULSE * SAMPLING_PERIOD_S / sampling_period_s)))
+    return max(twitch_window(sampling_period_s), int(round(TWITCH_REACH_S / sampling_period_s)))
 
 
 def twitch_epoch(sampling_period_s: float) -> int:
