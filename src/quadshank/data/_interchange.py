@@ -1065,7 +1065,7 @@ def _warn_charge_scales(entries: Sequence[_Entry], signals_of: dict, charges: di
     for i in signals_of:
         legs.setdefault((entries[i].subject, entries[i].leg), []).append(i)
     for (subject, leg), rows in legs.items():
-        name = f"{subject}-{leg}"
+        name = leg_key(subject, leg)
         given = [i for i in rows if i in charges]
         if given and len(given) < len(rows):
             levels = ", ".join(entries[i].file for i in rows if i not in charges)
