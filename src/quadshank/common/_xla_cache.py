@@ -20,8 +20,10 @@ __all__ = ["use_compilation_cache", "CACHE_ENV", "MAX_CACHE_BYTES", "MIN_COMPILE
 CACHE_ENV = "QUADSHANK_XLA_CACHE"
 #: The cache's size on disk; the programs used longest ago are dropped first.
 MAX_CACHE_BYTES = 2 * 1024**3
-#: Programs that compile faster than this [s] are not worth a file.
-MIN_COMPILE_S = 0.2
+#: Programs that compile faster than this [s] are not kept.  Every program is: a command compiles
+#: hundreds of small ones (operations run outside a jitted function, numpyro's set-up), 20–50 ms
+#: each, several seconds in all that a rerun would otherwise compile again (``bench_cache``).
+MIN_COMPILE_S = 0.0
 
 
 def default_folder() -> Path:
