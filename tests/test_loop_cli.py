@@ -178,3 +178,25 @@ def test_compare_before_and_after(discovered, tmp_path):
         for kind in ("residual_trends", "residual_correlation", "twitch_average"):
             png = cmp / "figures" / f"{kind}_{label}_{LEG}.png"
             assert png.stat().st_size > 5000 and png.name in report
+
+
+def test_the_screens_starts_are_an_option_of_discover(tmp_path, monkeypatch, capsys):
+    """``--starts N`` reaches the loop (default: one prior draw besides the median); a negative
+    number is refused before any work."""
+    import quadshank.cli as cli
+    from quadshank.loop._diagnose import SCREEN_STARTS
+
+    seen = []
+
+    def run_discover(*args, **kwargs):
+        seen.append(kwargs["n_starts"])
+        raise ValueError("stopped before the loop")
+
+    monkeypatch.setattr(cli, "run_discover", run_discover)
+    cohort, _ = simulate_cohort(legs=[LEG], minutes=0.1, seed=1, trials=(1,))
+    write_interchange(cohort, tmp_path / "data")
+    args = ["discover", str(tmp_path / "data"), "--out", str(tmp_path / "out")]
+    assert main(args) != 0 and main([*args, "--starts", "3"]) != 0
+    assert seen == [SCREEN_STARTS, 3] and SCREEN_STARTS == 1
+    assert main([*args, "--starts", "-1"]) != 0 and len(seen) == 2
+    assert "--starts must be at least 0" in capsys.readouterr().err

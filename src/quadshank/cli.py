@@ -36,7 +36,7 @@ from .evaluation._prediction import Evaluation
 from .inference._fitio import FitResult, read_summary
 from .inference._identify import Identification, load_identification
 from .inference._nuts import SEQUENTIAL_FROM_SAMPLES, STARTS, FitSettings
-from .loop._diagnose import Diagnosis, Discovery
+from .loop._diagnose import SCREEN_STARTS, Diagnosis, Discovery
 from .model._model import FIT_MODELS
 from .model._plugins import load_effects_file, load_entry_point_effects
 
@@ -424,6 +424,7 @@ def _say_ranking(args, summary: Diagnosis) -> None:
 
 
 def cmd_diagnose(args) -> int:
+    n_starts = _starts(args)
     (fit,) = load_fits([args.fitdir])
     model, desc = fit.model, fit.desc
     cohort, _ = _loop_data(args, fit.summary)
@@ -436,6 +437,7 @@ def cmd_diagnose(args) -> int:
         effects=_csv_list(args.effects) if args.effects else None, command=command, progress=not args.quiet,
         confirm_from=args.fitdir if args.confirm else None, n_confirm=args.confirm,
         objective=desc.get("likelihood", "acceleration"),  # the screens compare what the fit compared
+        n_starts=n_starts,
     )
     _say_ranking(args, summary)
     _say(args, f"report: {Path(args.out) / 'report.md'}")
@@ -463,7 +465,21 @@ def confirm_settings(args, trials) -> FitSettings | None:
                        time_limit_s=args.time_limit, seed=args.seed, trials=trials)
 
 
+def _starts(args) -> int:
+    if args.starts < 0:
+        raise ValueError(f"--starts must be at least 0, not {args.starts}")
+    return args.starts
+
+
+def _starts_option(parser) -> None:
+    parser.add_argument("--starts", type=int, default=SCREEN_STARTS, metavar="N",
+                        help="prior draws tried for each candidate's new parameters, besides their prior median, "
+                             f"each a start of the screen's optimisation per leg (default {SCREEN_STARTS}); more "
+                             "guard against a local mode, each costing one more optimisation per leg and candidate")
+
+
 def cmd_discover(args) -> int:
+    n_starts = _starts(args)
     cohort, data = _loop_data(args)
     command = _command_line(args)
     trials = tuple(_int_list(args.trials, "--trials"))
@@ -472,7 +488,7 @@ def cmd_discover(args) -> int:
         cohort, args.out, model=args.model, trials=trials,
         legs=_csv_list(args.legs) if args.legs else None, effects=_csv_list(args.effects) if args.effects else None,
         max_rounds=args.max_rounds, command=command, progress=not args.quiet, confirm=confirm,
-        data_source=str(Path(data).resolve()),
+        data_source=str(Path(data).resolve()), n_starts=n_starts,
     )
     for k, r in enumerate(summary.rounds, 1):
         _say(args, f"round {k}: {r['model']}: verdict {r['verdict']}")
@@ -722,6 +738,7 @@ def build_parser() -> argparse.ArgumentParser:
     dg.add_argument("--confirm", type=int, nargs="?", const=1, default=0, metavar="N",
                     help="refit the N best candidates that clear the screen's bar (default 1) with NUTS, with the fit's "
                          "settings, and give the verdict under NUTS")
+    _starts_option(dg)
     dg.add_argument("--out", required=True)
     dg.set_defaults(func=cmd_diagnose)
 
@@ -751,6 +768,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help=f"with --confirm: the size of each block of draws per chain (default {TARGET_LENGTHS[1]}); "
                          f"with --target-ess 0 the draws per chain (default {CONFIRM_FIXED_LENGTHS[1]})")
     dc.add_argument("--seed", type=int, default=0, help="with --confirm")
+    _starts_option(dc)
     dc.add_argument("--out", required=True)
     dc.set_defaults(func=cmd_discover)
 

@@ -7,7 +7,7 @@ from pathlib import Path
 from ..common._io import atomic_write_text
 from ..data._cohort import Cohort
 from ..inference._priors import build_model
-from ..loop._diagnose import Discovery
+from ..loop._diagnose import SCREEN_STARTS, Discovery
 from ..model._model import Model
 from ..outputs._loop import discovery_markdown
 from .diagnose import run_diagnose
@@ -56,6 +56,7 @@ def run_discover(
     data_source: str | None = None,
     compare_draws: int = 100,
     compare_stride: int = 10,
+    n_starts: int = SCREEN_STARTS,
 ) -> Discovery:
     """The whole loop: diagnose, add the leading effect, diagnose again, while an effect clears the bar.
 
@@ -65,7 +66,7 @@ def run_discover(
     previous round's fit (``round-K/confirm/fit-EFFECT``, see :func:`run_diagnose`)
     and the loop goes on only while NUTS agrees; the first and last fits are then
     compared (``confirm/compare``: J bands over ``compare_draws`` posterior draws,
-    PSIS-LOO, residuals before and after).
+    PSIS-LOO, residuals before and after).  ``n_starts``: see :func:`rank_effects`.
     """
 
     out = Path(out)
@@ -82,6 +83,7 @@ def run_discover(
         s = run_diagnose(
             cohort, current, out / f"round-{k}", trials=trials, legs=legs, effects=effects, base=base, progress=progress,
             confirm_from=nuts_folder, progress_label=f"round {k} of at most {max_rounds}: ", previous=s,
+            n_starts=n_starts,
         )
         rounds.append({"model": current.name, "verdict": s.verdict, "sentence": s.sentence, "J_ms": s.J_ms, "elpd": s.elpd})
         if s.screen_verdict is not None:

@@ -75,6 +75,11 @@ K_SHARE_MAX = 0.5
 J_HORIZONS_MS = HORIZONS_MS
 #: Posterior draws, and the stride between prediction starts, of the J bands behind the bar.
 J_DRAWS, J_START_STRIDE = 40, 5
+#: Prior draws tried for an extension's new parameters, besides their prior median, each a start
+#: of L-BFGS from the baseline's mode (per leg; the best mode wins).  One guards against a median
+#: that is a stationary point of the new parameters (an effect switched off); more cost a
+#: minimisation each per leg and candidate, most of a round's L-BFGS.
+SCREEN_STARTS = 1
 
 
 def candidates(model: Model) -> list[str]:
@@ -253,7 +258,7 @@ def rank_effects(
     n_j_draws: int = J_DRAWS,
     start_stride: int = J_START_STRIDE,
     seed: int = 0,
-    n_starts: int = 3,
+    n_starts: int = SCREEN_STARTS,
     base: LaplaceFit | None = None,
     progress: bool = False,
     progress_label: str = "",
