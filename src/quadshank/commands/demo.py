@@ -72,8 +72,8 @@ class Demo(Result):
 
 #: Legs of the demo's fit: two subjects, so subject and population levels differ.
 DEMO_LEGS = ("TN-left", "JM-left")
-#: Each extension's mode sought from the baseline's mode only (no extra prior draws): a
-#: quarter of the screen's work; the loop's tests find each hidden effect this way.
+#: Each extension's mode sought from the baseline's mode only (no prior draw besides the median:
+#: half the screen's work of ``discover``'s default); the loop's tests find each hidden effect this way.
 DEMO_N_STARTS = 0
 #: Candidates screened by the demo's diagnosis: the effects the paper's discussion names.
 DEMO_EFFECTS = ("torque_angle_peak", "hill_velocity", "angle_delay", "fatigue", "potentiation")

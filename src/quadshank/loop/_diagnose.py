@@ -77,8 +77,8 @@ J_HORIZONS_MS = HORIZONS_MS
 J_DRAWS, J_START_STRIDE = 40, 5
 #: Prior draws tried for an extension's new parameters, besides their prior median, each a start
 #: of L-BFGS from the baseline's mode (per leg; the best mode wins).  One guards against a median
-#: that is a stationary point of the new parameters (an effect switched off); more cost a
-#: minimisation each per leg and candidate, most of a round's L-BFGS.
+#: that is a stationary point of the new parameters (an effect switched off); each more costs one
+#: more minimisation per leg and candidate.
 SCREEN_STARTS = 1
 
 
