@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import pickle
 import shutil
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -792,3 +793,18 @@ def test_a_small_swing_in_degrees_is_not_taken_for_radians_where_the_acceleromet
     drop_column(tmp_path / "small" / "TN-left-trial1.csv", "acceleration_deg_s2")
     with pytest.raises(InterchangeError, match="radians"):
         read_interchange(tmp_path / "small")
+
+
+def test_a_subject_with_a_comma_is_read_and_named_in_a_warning(tmp_path):
+    """A comma in a subject's name is valid data, but ``--legs`` (comma-separated) cannot name its
+    legs: the reader says so once, with the manifest's row, and reads the trials as they are."""
+    renamed = Cohort(tuple(make_trial("Smith, J" if t.subject == "TN" else t.subject, t.leg, t.trial, 0.3 * t.trial)
+                           for t in make_cohort().trials))
+    folder = write_interchange(renamed, tmp_path / "comma")
+    with pytest.warns(DataWarning, match=r"row 2: subject 'Smith, J' holds a comma") as caught:
+        back = read_interchange(folder)
+    assert sum("holds a comma" in str(w.message) for w in caught) == 1
+    assert sorted({t.subject for t in back.trials}) == ["JM", "Smith, J"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DataWarning)
+        read_interchange(write_interchange(make_cohort(), tmp_path / "plain"))

@@ -1012,7 +1012,19 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
         trials = [resample_trial(t, resample_s) for t in trials]
     cohort = Cohort(tuple(trials), {"source": str(folder), "source_format": "interchange"})
     _warn_implausible(cohort, [str(folder / e.file) for e in entries])
+    _warn_unselectable_subjects(entries)
     return cohort
+
+
+def _warn_unselectable_subjects(entries: list[_Entry]) -> None:
+    """Warn, once per subject, where a subject's name holds a comma: the commands' ``--legs``
+    takes comma-separated leg names, so its legs cannot be named there (the data are read, and
+    every leg is used without ``--legs``)."""
+    for subject in sorted({e.subject for e in entries if e.subject and "," in e.subject}):
+        line = min(e.line for e in entries if e.subject == subject)
+        warnings.warn(f"{MANIFEST_NAME} row {line}: subject {subject!r} holds a comma, so its legs cannot be named "
+                      "in --legs, which is comma-separated (without --legs every leg is used); rename the subject "
+                      "to select its legs", DataWarning, stacklevel=3)
 
 
 def _warn_cut_twitch(whole: Trial, e: _Entry) -> None:
