@@ -209,6 +209,36 @@ def test_evaluation_diagnosis_and_delay_angle_are_shown(passing):
     assert "1.1 <span" in tn  # J of TN-left at 100 ms from the evaluation: 1.0 + 0.1
 
 
+def _strict_json(path: Path):
+    return json.loads(path.read_text(), parse_constant=lambda c: pytest.fail(f"{path}: {c} is not JSON"))
+
+
+def test_numbers_that_are_not_finite_are_null_and_the_report_reads_them(made, passing):
+    """JSON has no NaN: the one-chain fit's R-hat is null in its summary, and an evaluation
+    whose band came out not finite (an unstable draw) is written with null and reported
+    with "–" in its place, in strict JSON throughout."""
+    fit = _strict_json(made["fit"] / "summary.json")
+    assert fit["diagnostics"]["rhat_max"] is None and fit["diagnostics"]["chains"] == 1
+    root = made["root"]
+    evaluation = root / "eval-nan"
+    shutil.copytree(passing["out"].parent / "eval", evaluation)
+    doc = _strict_json(evaluation / "summary.json")
+    leg = LEGS[0]
+    band = doc["J_legs"]["model3"][leg]["1"]["100"]
+    band.update(median=float("nan"), hi=float("inf"))
+    PosteriorEvaluation.from_json(doc).write(evaluation)
+    written = _strict_json(evaluation / "summary.json")["J_legs"]["model3"][leg]["1"]["100"]
+    assert written["median"] is None and written["hi"] is None and written["lo"] == band["lo"]
+    out = root / "report-nan"
+    assert main(["-q", "report", str(passing["fit"]), "--out", str(out), "--evaluation", str(evaluation),
+                 "--draws", "5"]) == 0
+    legs_json = _strict_json(out / "legs" / f"{leg}.json")
+    assert legs_json["J"]["1"]["100"]["median"] is None
+    assert legs_json["J"]["1"]["250"] == passing["j_legs"][leg]["1"]["250"]
+    _strict_json(out / "summary.json")
+    assert "– <span" in (out / "subject-TN.html").read_text()
+
+
 def test_missing_folders_and_unusable_inputs_are_plain_errors(made, capsys):
     root = made["root"]
     assert main(["report", str(root / "no-such-fit"), "--out", str(root / "r1")]) == 2

@@ -38,6 +38,27 @@ def test_a_result_reads_back_as_it_was_written(tmp_path):
     assert not FitResult.read(tmp_path).ok
 
 
+def test_a_number_that_is_not_finite_is_written_as_null(tmp_path):
+    """JSON has no NaN or infinity: a strict reader (JavaScript, R's jsonlite) refuses Python's
+    ``NaN``.  R-hat of one chain, an unstable model's J and the like are written as null, in
+    plain floats, numpy scalars and arrays alike, and the summary reads back."""
+    import math
+
+    import numpy as np
+
+    def strict(text):
+        return json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in strict JSON"))
+
+    diagnostics = {"ok": False, "rhat_max": float("nan"), "ess_bulk_min": np.float64(5.0),
+                   "worst": np.array([1.0, np.inf, -np.inf]), "bfmi": np.float32("nan"), "chains": 1}
+    _fit(diagnostics=diagnostics).write(tmp_path)
+    doc = strict((tmp_path / "summary.json").read_text())
+    assert doc["diagnostics"] == {"ok": False, "rhat_max": None, "ess_bulk_min": 5.0, "worst": [1.0, None, None],
+                                  "bfmi": None, "chains": 1}
+    back = FitResult.read(tmp_path)
+    assert back.diagnostics["rhat_max"] is None and math.isclose(back.diagnostics["ess_bulk_min"], 5.0)
+
+
 def test_a_required_field_stays_when_it_is_none(tmp_path):
     _fit(banner=None, diagnostics={"ok": True}).write(tmp_path)
     assert json.loads((tmp_path / "summary.json").read_text())["banner"] is None

@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 from typing import ClassVar
 
-from ..common._io import read_json
+from ..common._io import nulls_as_nan, read_json
 from ..common._results import Result, SchemaError
 from ..data._interchange import load_cohort
 from ..evaluation._parameters import leg_parameters, population_spreads
@@ -66,7 +66,8 @@ def _j_from_evaluation(folder, label: str, legs, fit_id: str | None = None) -> t
         raise ValueError(f"{folder}: evaluates another fit of {label} ({fit.get('folder', '?')}), not this one")
     how = (f"from the evaluation in {folder} ({fit.get('draws_used', s.n_draws)} posterior draws, one start in every "
            f"{s.start_stride} samples; fit {fit.get('folder', '?')})")
-    return s.J.get(label, {}), s.J_legs[label], how
+    # a band that came out not finite (an unstable draw) was written as null
+    return nulls_as_nan(s.J.get(label, {})), nulls_as_nan(s.J_legs[label]), how
 
 
 def _leg_predictions(fit, cohort, leg: str, n_draws: int, seed: int) -> tuple:

@@ -6,6 +6,7 @@ import contextlib
 import functools
 import io
 import json
+import math
 import os
 import re
 import tempfile
@@ -79,9 +80,36 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
+def _strict(o):
+    """``o`` with every number that is not finite (NaN, ±inf) as None: JSON has no such
+    numbers, and strict readers (JavaScript, R's jsonlite) refuse Python's ``NaN``."""
+    if isinstance(o, float):  # numpy's float64 too
+        return o if math.isfinite(o) else None
+    if isinstance(o, dict):
+        return {k: _strict(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_strict(v) for v in o]
+    if isinstance(o, (np.generic, np.ndarray)) or hasattr(o, "__array__"):
+        return _strict(_json_default(o))
+    return o
+
+
+def nulls_as_nan(tree):
+    """The inverse of writing a number that is not finite as null, for a tree read back whose
+    leaves are all numbers (J's bands, a model's parameters): every None becomes NaN."""
+    if tree is None:
+        return math.nan
+    if isinstance(tree, dict):
+        return {k: nulls_as_nan(v) for k, v in tree.items()}
+    if isinstance(tree, list):
+        return [nulls_as_nan(v) for v in tree]
+    return tree
+
+
 def write_json(path: str | os.PathLike, obj) -> Path:
-    """Write ``obj`` as indented JSON atomically (numpy and JAX arrays as lists)."""
-    return atomic_write_text(path, json.dumps(obj, indent=2, default=_json_default) + "\n")
+    """Write ``obj`` as indented, strict JSON atomically (numpy and JAX arrays as lists; a number
+    that is not finite, such as R-hat of one chain, as ``null``)."""
+    return atomic_write_text(path, json.dumps(_strict(obj), indent=2, allow_nan=False, default=_json_default) + "\n")
 
 
 def read_json(path: str | os.PathLike):

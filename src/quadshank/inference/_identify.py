@@ -40,6 +40,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..common._arrays import stretches
+from ..common._io import nulls_as_nan
 from ..common._progress import progress_bar
 from ..common._results import Result
 from ..data._cohort import SAME_PERIOD_REL, Cohort, Trial
@@ -611,6 +612,8 @@ def models_from_summary(summary: dict, sampling_period_s: float = SAMPLING_PERIO
     models = {}
     dt = sampling_period_s
     for leg, s in summary.items():
+        # a value that came out not finite was written as null
+        s = {**s, **{k: nulls_as_nan(s[k]) for k in ("passive", "model1", "model2", "model3") if k in s}}
         if s.get("passive_only"):
             models[leg] = {"passive": passive_model(s["passive"], dt)}
             continue

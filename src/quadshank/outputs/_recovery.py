@@ -2,8 +2,16 @@
 
 from __future__ import annotations
 
+import math
+
 from ..evaluation._recovery import DELAY_SEEN
 from ._tables import markdown_table
+
+
+def _number(x, spec: str) -> str:
+    """``x`` formatted, or "–" where it could not be computed (R-hat of one chain: NaN in a live
+    result, null in a summary read back)."""
+    return "–" if x is None or not math.isfinite(x) else format(x, spec)
 
 
 def _sampling_row(model: str, f: dict) -> dict[str, str]:
@@ -13,8 +21,8 @@ def _sampling_row(model: str, f: dict) -> dict[str, str]:
     where = "–" if splits is None else ", ".join(f"{leg} {'/'.join(map(str, d))}" for leg, d in splits.items()) or "none"
     unseen = "–" if missed is None else "; ".join(
         f"{leg} " + ", ".join(f"d = {d} ({e:.2f})" for d, (e, _c) in ds.items()) for leg, ds in missed.items()) or "none"
-    return {"model": model, "seed": str(f["seed"]), "R-hat max": f"{f['rhat_max']:.3f}",
-            "bulk ESS min": f"{f['ess_bulk_min']:.0f}", "divergences": str(f["divergences"]),
+    return {"model": model, "seed": str(f["seed"]), "R-hat max": _number(f["rhat_max"], ".3f"),
+            "bulk ESS min": _number(f["ess_bulk_min"], ".0f"), "divergences": str(f["divergences"]),
             "chains at different delays": where, "delays weighed but not visited": unseen,
             "sampling [s]": "" if secs is None else f"{secs:.0f}"}
 
