@@ -79,6 +79,66 @@ def test_trains_from_a_stimulators_log_are_fitted_through_a_recruitment_curve(tr
     assert main(["-q", "identify", str(folder), "--out", str(tmp_path / "id")]) == 2
     err = capsys.readouterr().err
     assert "JM-left trial 1" in err and "isolated twitches" in err and "quadshank fit" in err
+    _a_plan_in_pulse_widths_is_predicted_through_the_legs_charge(out, tmp_path, capsys)
+
+
+def _plan(path, column: str, widths: dict[int, float], seconds: float = 3.0):
+    rows = [f"time_s,{column}"] + [f"{k * DT:.2f},{widths.get(k, 0.0)!r}" for k in range(int(round(seconds / DT)))]
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def _a_plan_in_pulse_widths_is_predicted_through_the_legs_charge(fit_dir, tmp_path, capsys):
+    """The fit keeps the charge its levels are relative to (the widest pulse, 400 µs); a plan in
+    pulse widths is that leg's levels, width / 400, rolled out as a plan of levels is; a plan
+    in other columns, beyond the widest fitted pulse, or as levels is refused, naming why."""
+    import csv
+
+    from quadshank.evaluation._posterior import load_fits, plan_predictions
+    from quadshank.inference._fitio import posterior_models
+    from quadshank.inference._summaries import interval
+
+    s = json.loads((fit_dir / "summary.json").read_text())
+    assert s["charge_scale"] == {LEG: {"largest_charge": WIDTH_US, "columns": ["pulse_width_us"], "unit": "µs"}}
+    widths = {50: 200.0, 53: 200.0, 56: 200.0, 150: 400.0, 152: 400.0}
+    plan = _plan(tmp_path / "plan.csv", "pulse_width_us", widths)
+    out = tmp_path / "predicted"
+    assert main(["-q", "predict", str(fit_dir), "--stimulation", str(plan), "--draws", "20", "--out", str(out)]) == 0
+    rows = list(csv.DictReader((out / "predictions.csv").open()))
+    levels = np.array([float(r[f"{LEG} stimulation"]) for r in rows])
+    assert [float(r["pulse_width_us"]) for r in rows] == [widths.get(k, 0.0) for k in range(len(rows))]
+    assert np.allclose(levels, [widths.get(k, 0.0) / WIDTH_US for k in range(len(rows))])
+    (fit,) = load_fits([fit_dir])
+    models, _ = posterior_models(fit.idata, fit.model, LEG, 20, 0)
+    expected = np.asarray(interval(plan_predictions(models, levels, 0.0, 0.0), axis=0)["median"])
+    got = np.array([float(r[f"{LEG} median [deg]"]) for r in rows])
+    assert np.allclose(got, expected, rtol=1e-5, atol=1e-4) and np.ptp(got) > 1.0  # the twitches move the knee
+    assert json.loads((out / "summary.json").read_text())["plan_columns"] == ["pulse_width_us"]
+    refusals = {
+        "other columns": (_plan(tmp_path / "mA.csv", "current_mA", {50: 20.0}), "a charge in mA is not one in µs"),
+        "wider": (_plan(tmp_path / "wide.csv", "pulse_width_us", {50: 500.0}), "above the largest in JM-left's"),
+        "levels": (_plan(tmp_path / "levels.csv", "stimulation", {50: 0.5}), "give the plan in those columns"),
+    }
+    for name, (path, message) in refusals.items():
+        capsys.readouterr()
+        assert main(["-q", "predict", str(fit_dir), "--stimulation", str(path), "--out", str(tmp_path / name)]) == 2
+        err = capsys.readouterr().err
+        assert message in err and path.name in err, (name, err)
+        assert not (tmp_path / name / "summary.json").exists()
+
+
+def test_the_charge_a_legs_levels_are_relative_to_is_kept_through_netcdf(train_data, tmp_path):
+    """Read from a stimulator's columns, a leg keeps its largest charge, the columns and their unit,
+    in the folder's cohort and in its NetCDF conversion; levels keep none."""
+    from quadshank.data import charge_scales, convert, load_cohort
+
+    expected = {LEG: {"largest_charge": WIDTH_US, "columns": ["pulse_width_us"], "unit": "µs"}}
+    assert charge_scales(load_cohort(train_data)) == expected
+    convert(train_data, tmp_path / "data.nc")
+    assert charge_scales(load_cohort(tmp_path / "data.nc")) == expected
+    trial = Trial.from_signals("JM", "left", 1, DT, 20 * np.sin(np.arange(300) * 0.05), None,
+                              np.r_[np.zeros(100), 1.0, np.zeros(199)])
+    assert charge_scales(load_cohort(write_interchange(Cohort((trial,)), tmp_path / "levels"))) == {}
 
 
 def test_a_pulse_width_typo_and_mixed_encodings_are_named(train_data, tmp_path):

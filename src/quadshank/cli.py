@@ -798,7 +798,9 @@ def build_parser() -> argparse.ArgumentParser:
                                         "with posterior bands")
     pr.add_argument("fitdir", help="fit folder of `quadshank fit`")
     pr.add_argument("--stimulation", dest="plan", required=True, metavar="PLAN.csv",
-                    help="the plan: a CSV with time_s,stimulation at the fit's sampling period")
+                    help="the plan: a CSV with time_s,stimulation at the fit's sampling period, or with "
+                         "time_s and the stimulator's columns (pulse_width_us and/or current_mA) of legs "
+                         "fitted on them")
     pr.add_argument("--angle0", type=float, default=0.0, help="start angle [deg] as the goniometer reads it (default 0: rest)")
     pr.add_argument("--velocity0", type=float, default=0.0, help="start velocity [deg/s] (default 0)")
     pr.add_argument("--legs", default="", help="legs, comma-separated (default: every fitted leg)")

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..data._cohort import Cohort, derivation_settings
+from ..data._interchange import charge_scales
 from ..inference._fitio import (
     FitResult,
     begin_fit,
@@ -106,6 +107,9 @@ def run_fit(
     derived = {signal: d for signal, d in derived.items() if d["trials"]}
     if derived:
         extra["derived_signals"] = derived
+    scales = {leg: v for leg, v in charge_scales(cohort).items() if leg in desc["legs"]}
+    if scales:
+        extra["charge_scale"] = scales  # what a plan in the same columns needs (predict)
     uninformed = uninformed_legs(m, fitted)
     if uninformed:
         extra["uninformed"] = uninformed

@@ -13,9 +13,9 @@ import numpy as np
 
 from ..common._io import atomic_write_text, save_figure
 from ..common._results import Result
-from ..data._interchange import read_stimulation_plan
+from ..data._interchange import read_plan
 from ..evaluation._posterior import load_fits, plan_predictions
-from ..inference._fitio import posterior_models
+from ..inference._fitio import posterior_models, read_summary
 from ..inference._summaries import INTERVAL, interval
 from ..outputs._figures import plot_plan_predictions
 
@@ -40,43 +40,60 @@ class PlanPrediction(Result):
     samples: int
     files: list
     extremes: dict  # leg -> the band at the plan's last sample, its lowest and highest angle
+    plan_columns: list | None = None  # a stimulator's columns the plan gave, made each leg's levels; None: levels
 
 
 def run_predict(
     fit_dir, plan, out, *, legs=None, angle0: float = 0.0, velocity0: float = 0.0, n_draws: int = 200, seed: int = 0,
 ) -> PlanPrediction:
     """Roll each fitted leg's posterior draws through the stimulation ``plan`` (a CSV with
-    time_s,stimulation at the fit's period) from the start state (``angle0`` [deg] as the
+    time_s,stimulation at the fit's period, or time_s and the stimulator's columns the fitted
+    data gave, :func:`~quadshank.data.read_plan`) from the start state (``angle0`` [deg] as the
     goniometer reads it, ``velocity0`` [deg/s], the muscle at rest); write ``predictions.csv``
-    (time, u, and per leg median, lo, hi), ``predictions.png`` and, last, ``summary.json``."""
+    (time, the plan's column(s), each leg's level where it differs, and per leg median, lo, hi),
+    ``predictions.png`` and, last, ``summary.json``."""
     if n_draws < 1:
         raise ValueError(f"--draws must be at least 1, not {n_draws}")
     fit_dir, out = Path(fit_dir), Path(out)
     (fit,) = load_fits([fit_dir])
-    time_s, u = read_stimulation_plan(plan, fit.model.sampling_period_s)
+    planned = read_plan(plan, fit.model.sampling_period_s)
+    time_s = planned.time_s
     fitted = list(fit.desc["legs"])
     legs = list(legs) if legs else fitted
     unknown = [leg for leg in legs if leg not in fitted]
     if unknown:
         raise KeyError(f"{fit_dir}: the fit has no leg {', '.join(unknown)} (it has {', '.join(fitted)})")
+    scales = read_summary(fit_dir).charge_scale or {}
+    try:  # every leg's levels before any rollout: a plan one leg cannot take is refused at once
+        levels = {leg: planned.levels(leg, scales) for leg in legs}
+    except ValueError as err:
+        raise ValueError(f"{plan}: {err}") from None
     bands = {}
     for leg in legs:
         models, _ = posterior_models(fit.idata, fit.model, leg, n_draws, seed)
-        band = interval(plan_predictions(models, u, angle0, velocity0), axis=0)
+        band = interval(plan_predictions(models, levels[leg], angle0, velocity0), axis=0)
         bands[leg] = {k: np.asarray(v) for k, v in band.items()}
+    # the plan's columns as given and, for a stimulator's, each leg's levels (its charge over the leg's largest)
+    values = planned.stimulator or {"stimulation": planned.stimulation}
+    given = list(values)
+    per_leg = [f"{leg} stimulation" for leg in legs] if planned.columns else []
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["time_s", "stimulation", *[f"{leg} {k} [deg]" for leg in legs for k in ("median", "lo", "hi")]])
+    w.writerow(["time_s", *given, *per_leg, *[f"{leg} {k} [deg]" for leg in legs for k in ("median", "lo", "hi")]])
     for i in range(time_s.size):
-        w.writerow([repr(float(time_s[i])), repr(float(u[i])),
+        w.writerow([repr(float(time_s[i])), *[repr(float(values[c][i])) for c in given],
+                    *([repr(float(levels[leg][i])) for leg in legs] if planned.columns else []),
                     *[f"{float(bands[leg][k][i]):.6g}" for leg in legs for k in ("median", "lo", "hi")]])
     atomic_write_text(out / "predictions.csv", buf.getvalue())
-    save_figure(plot_plan_predictions(time_s, u, bands, fit.label), out / "predictions.png")
+    shown = planned.stimulation if planned.stimulation is not None else planned.charge
+    ylabel = None if planned.unit is None else (
+        {"µs": "pulse width", "mA": "current"}.get(planned.unit, "pulse charge") + f" [{planned.unit}]")
+    save_figure(plot_plan_predictions(time_s, shown, bands, fit.label, ylabel=ylabel), out / "predictions.png")
     used = min(n_draws, fit.idata.posterior.sizes["chain"] * fit.idata.posterior.sizes["draw"])
     result = PlanPrediction(
         fit=str(fit_dir), model=fit.label, plan=str(plan), legs=legs, angle0_deg=float(angle0),
         velocity0_deg_s=float(velocity0), n_draws=used, interval=list(INTERVAL), samples=int(time_s.size),
-        files=["predictions.csv", "predictions.png"],
+        files=["predictions.csv", "predictions.png"], plan_columns=list(planned.columns) or None,
         extremes={leg: {"end": {k: float(b[k][-1]) for k in ("median", "lo", "hi")},
                        "max_deg": float(b["hi"].max()), "min_deg": float(b["lo"].min())} for leg, b in bands.items()},
     )

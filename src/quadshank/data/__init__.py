@@ -25,6 +25,9 @@ from ._interchange import (
     parse_number,
     read_interchange,
     read_netcdf,
+    StimulationPlan,
+    charge_scales,
+    read_plan,
     read_stimulation_plan,
     trim,
     write_interchange,
@@ -58,7 +61,7 @@ from ._simulate import (
 __all__ = [
     "Cohort", "Trial", "derive_velocity", "derive_acceleration", "leg_key", "VELOCITY_WINDOW", "ACCELERATION_WINDOW_S",
     "InterchangeError", "Problem", "DataWarning", "plausibility", "read_interchange", "read_netcdf", "write_interchange", "load_cohort", "convert",
-    "parse_number", "trim", "read_stimulation_plan", "resample_trial", "resample_cohort",
+    "parse_number", "trim", "read_stimulation_plan", "read_plan", "StimulationPlan", "charge_scales", "resample_trial", "resample_cohort",
     "MANIFEST_NAME", "DEFAULT_SAMPLING_PERIOD_S",
     "EFFECTS", "PASSIVE_TRUTH", "default_truth", "simulate_cohort", "simulate_pendulum_test", "simulate_response", "stimulation_sequence",
     "write_truth",

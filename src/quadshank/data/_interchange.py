@@ -100,6 +100,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import difflib
+import json
 import math
 import os
 import re
@@ -119,6 +120,9 @@ from ._resample import resample_cohort, resample_trial
 __all__ = [
     "trim",
     "read_stimulation_plan",
+    "read_plan",
+    "StimulationPlan",
+    "charge_scales",
     "DataWarning",
     "plausibility",
     "Problem",
@@ -988,6 +992,7 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
         raise InterchangeError(problems, context)
 
     relative = _relative_charges(entries, signals_of)
+    scales = _charge_scales(entries, signals_of)
     trials = []
     for i, e in enumerate(entries):
         s = signals_of[i]
@@ -1010,7 +1015,10 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
         _warn_cut_twitch(whole, e)
     if resample_s is not None:
         trials = [resample_trial(t, resample_s) for t in trials]
-    cohort = Cohort(tuple(trials), {"source": str(folder), "source_format": "interchange"})
+    attrs = {"source": str(folder), "source_format": "interchange"}
+    if scales:
+        attrs[CHARGE_SCALE_ATTR] = scales
+    cohort = Cohort(tuple(trials), attrs)
     _warn_implausible(cohort, [str(folder / e.file) for e in entries])
     _warn_unselectable_subjects(entries)
     return cohort
@@ -1062,6 +1070,42 @@ def _relative_charges(entries: Sequence[_Entry], signals_of: dict) -> dict[int, 
         top = largest[(entries[i].subject, entries[i].leg)]
         out[i] = q / top if top > 0 else np.zeros_like(q)
     return out
+
+
+#: The cohort attribute that holds, per leg read from a stimulator's columns, the charge that its
+#: levels are relative to (:func:`charge_scales`).
+CHARGE_SCALE_ATTR = "charge_scale"
+
+#: The unit of a charge made of the stimulator's columns given (one column alone stands for itself).
+_CHARGE_UNITS = {("pulse_width_us",): "µs", ("current_mA",): "mA", ("pulse_width_us", "current_mA"): "µs·mA"}
+
+
+def _charge_scales(entries: Sequence[_Entry], signals_of: dict) -> dict[str, dict]:
+    """Per leg whose trials give a stimulator's columns: its largest pulse charge, the columns and
+    the charge's unit, what a plan in the same columns needs to become levels (``predict``).  A
+    leg whose trials give different columns (pulse width in one, width and current in another)
+    has charges in two units and gets no scale."""
+    columns: dict[str, set] = {}
+    largest: dict[str, float] = {}
+    for i, sig in signals_of.items():
+        if sig.get("stimulation") is not None:
+            continue
+        key = leg_key(entries[i].subject, entries[i].leg)
+        columns.setdefault(key, set()).add(tuple(c for c in _STIMULATOR if sig.get(c) is not None))
+        largest[key] = max(largest.get(key, 0.0), float(_charge(sig).max(initial=0.0)))
+    return {key: {"largest_charge": largest[key], "columns": list(cols[0]), "unit": _CHARGE_UNITS[cols[0]]}
+            for key, cols in ((k, sorted(v)) for k, v in columns.items())
+            if len(cols) == 1 and cols[0] and largest[key] > 0}
+
+
+def charge_scales(cohort: Cohort) -> dict[str, dict]:
+    """Leg -> ``{"largest_charge", "columns", "unit"}`` of the legs read from a stimulator's columns
+    (their ``stimulation`` is each pulse's charge over ``largest_charge``); empty for levels.  A
+    cohort read back from NetCDF holds it as JSON text."""
+    value = cohort.attrs.get(CHARGE_SCALE_ATTR)
+    if isinstance(value, str):
+        value = json.loads(value)
+    return dict(value or {})
 
 
 #: A leg's largest pulse charge this many times its next largest is named: every other pulse's level
@@ -1117,27 +1161,97 @@ def trim(trial: Trial, start_s: float | None = None, end_s: float | None = None)
 
 
 # --------------------------------------------------------------------------- stimulation plans
-def read_stimulation_plan(path: str | os.PathLike, sampling_period_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """``(time_s, stimulation)`` of a planned stimulation sequence, checked like a trial's columns.
+@dataclasses.dataclass(frozen=True)
+class StimulationPlan:
+    """A planned stimulation sequence (:func:`read_plan`): per sample either the recruitment level
+    (``stimulation``) or a stimulator's settings, the pulse ``charge`` made of ``columns`` as the
+    reader makes a trial's (:func:`charge_scales` turns it into a leg's levels)."""
+
+    time_s: np.ndarray
+    stimulation: np.ndarray | None
+    #: a stimulator's columns as given (``pulse_width_us`` and/or ``current_mA``); empty for levels
+    stimulator: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        return tuple(self.stimulator)
+
+    @property
+    def charge(self) -> np.ndarray | None:
+        """Each sample's pulse charge (the product of the columns), None for a plan of levels."""
+        return _charge(self.stimulator) if self.stimulator else None
+
+    @property
+    def unit(self) -> str | None:
+        """The charge's unit, None for a plan of levels."""
+        return _CHARGE_UNITS[self.columns] if self.stimulator else None
+
+    def levels(self, leg: str, scales: dict[str, dict]) -> np.ndarray:
+        """The plan as ``leg``'s recruitment levels: ``stimulation``, or each pulse's charge over the
+        largest of the leg's fitted data (``scales``: :func:`charge_scales` of those data)."""
+        if not self.stimulator:
+            if leg in scales:
+                raise ValueError(f"{leg} was fitted on a stimulator's columns ({', '.join(scales[leg]['columns'])}), "
+                                 "where a level is a pulse's charge over the leg's largest: give the plan in "
+                                 "those columns, not as stimulation")
+            return self.stimulation
+        scale = scales.get(leg)
+        if scale is None:
+            raise ValueError(f"{leg} was fitted on recruitment levels (stimulation), not on a stimulator's columns: "
+                             f"its fit holds no charge to relate the plan's {', '.join(self.columns)} to; give the "
+                             "plan as stimulation")
+        if tuple(scale["columns"]) != self.columns:
+            raise ValueError(f"the plan gives {', '.join(self.columns)}, {leg}'s data gave "
+                             f"{', '.join(scale['columns'])}: a charge in {self.unit} is not one in {scale['unit']}")
+        charge = self.charge
+        levels = charge / scale["largest_charge"]
+        over = np.flatnonzero(levels > 1.0 + 1e-9)
+        if over.size:
+            i = int(over[0])
+            raise ValueError(f"the plan's pulse at {float(self.time_s[i])!r} s has a charge of "
+                             f"{float(charge[i]):g} {scale['unit']}, above the largest in {leg}'s fitted data "
+                             f"({scale['largest_charge']:g} {scale['unit']}), which the fitted recruitment does not "
+                             f"reach{f' (and {over.size - 1} more)' if over.size > 1 else ''}")
+        return levels
+
+
+def read_plan(path: str | os.PathLike, sampling_period_s: float) -> StimulationPlan:
+    """A planned stimulation sequence, checked like a trial's columns.
 
     A CSV file with the columns ``time_s`` (uniform, at ``sampling_period_s``, the fitted
-    model's period) and ``stimulation`` (the recruitment level u in [0, 1] of the pulse
-    delivered at each sample, 0 when none).  Every problem names file, column and row.
+    model's period) and either ``stimulation`` (the recruitment level u in [0, 1] of the pulse
+    delivered at each sample, 0 when none) or a stimulator's columns, ``pulse_width_us`` and/or
+    ``current_mA`` (0 when no pulse), as the trials of the fitted legs gave them.  Every problem
+    names file, column and row.
     """
     path = Path(path)
     problems: list[Problem] = []
     context = f"{path}: invalid stimulation plan"
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such file (a stimulation plan is a CSV with time_s,stimulation)")
-    table = _read_table(path, path.name, ("time_s", "stimulation"), (), problems)
-    if table is None or any(c not in table.columns for c in ("time_s", "stimulation")):
+        raise FileNotFoundError(f"{path}: no such file (a stimulation plan is a CSV with time_s and stimulation, "
+                                "or pulse_width_us and/or current_mA)")
+    table = _read_table(path, path.name, ("time_s", "stimulation"), _STIMULATOR, problems,
+                        alternatives={"stimulation": _STIMULATOR})
+    if table is None or "time_s" not in table.columns or not {"stimulation", *_STIMULATOR} & set(table.columns):
         raise InterchangeError(problems, context)
-    signals = {c: _parse_float_column(table, c, path.name, problems) for c in ("time_s", "stimulation")}
+    names = ("time_s", "stimulation", *_STIMULATOR)
+    signals = {c: _parse_float_column(table, c, path.name, problems) if c in table.columns else None for c in names}
     if table.well_formed:
         _check_signals(path.name, table.lines, signals, sampling_period_s, "(the fitted model's period)", problems)
     if problems:
         raise InterchangeError(problems, context)
-    return signals["time_s"], signals["stimulation"]
+    stimulator = {c: signals[c] for c in _STIMULATOR if signals[c] is not None}
+    return StimulationPlan(signals["time_s"], None if stimulator else signals["stimulation"], stimulator)
+
+
+def read_stimulation_plan(path: str | os.PathLike, sampling_period_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(time_s, stimulation)`` of a plan of recruitment levels (:func:`read_plan`, which also
+    reads a plan in a stimulator's columns)."""
+    plan = read_plan(path, sampling_period_s)
+    if plan.stimulation is None:
+        raise ValueError(f"{path}: the plan gives {', '.join(plan.columns)}, not stimulation levels: read it with "
+                         "read_plan, which relates them to a fitted leg's charges")
+    return plan.time_s, plan.stimulation
 
 
 # --------------------------------------------------------------------------- writing

@@ -98,6 +98,7 @@ class FitResult(Result):
     effect_origins: dict | None = None  # a user's effect -> its module, file and source hash (not built-ins)
     target: dict | None = None  # drawn to a target ESS: how the blocks ended (inference.target_status)
     likelihood: str = "acceleration"  # what the likelihood compared (model._likelihood.OBJECTIVES)
+    charge_scale: dict | None = None  # leg -> the charge its levels are relative to (legs read from a stimulator's columns)
 
     @property
     def ok(self) -> bool:

@@ -270,9 +270,10 @@ def plot_delay_angle(legs: dict, label: str = "", population: dict | None = None
     return fig
 
 
-def plot_plan_predictions(time_s, stimulation, bands: dict, label: str = ""):
+def plot_plan_predictions(time_s, stimulation, bands: dict, label: str = "", ylabel: str | None = None):
     """A planned stimulation sequence and, per leg, the angle it would produce: the posterior
-    median with its 90 % band (``bands``: leg -> {"median", "lo", "hi"} arrays over samples)."""
+    median with its 90 % band (``bands``: leg -> {"median", "lo", "hi"} arrays over samples).
+    ``ylabel``: None for recruitment levels u, else what the stimulator's values are (pulse width [µs], …)."""
     fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
     for leg, b in bands.items():
         line, = axes[0].plot(time_s, b["median"], lw=1.2, label=f"{leg} (median)")
@@ -283,8 +284,8 @@ def plot_plan_predictions(time_s, stimulation, bands: dict, label: str = ""):
     u = np.asarray(stimulation)
     k = u > 0
     axes[1].vlines(np.asarray(time_s)[k], 0, u[k], color="k", lw=0.8)
-    axes[1].set_ylim(0, 1.05)
-    axes[1].set_ylabel("u")
+    axes[1].set_ylim(0, 1.05 * (1.0 if ylabel is None else max(float(u.max(initial=0.0)), 1e-12)))
+    axes[1].set_ylabel("u" if ylabel is None else ylabel)
     axes[1].set_xlabel("time [s]")
     fig.tight_layout()
     return fig
