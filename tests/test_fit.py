@@ -464,6 +464,35 @@ def test_one_chain_is_named_as_a_problem_without_arviz_warnings():
     assert "one chain: R-hat cannot be computed" in diag["problems"]
 
 
+def test_a_failing_check_names_the_parameter_and_leg_that_hold_the_fit_back():
+    """R-hat and ESS are maxima and minima over every parameter of every leg: the problem names
+    where the worst is, the parameter's own name rather than its standardised site, and the
+    summary keeps it."""
+    import arviz as az
+
+    from quadshank.inference._fitio import diagnose_sampling
+
+    rng = np.random.default_rng(1)
+    legs = ["A-left", "B-left", "C-right"]
+
+    def diagnosed(**posterior):
+        return diagnose_sampling(az.from_dict(
+            posterior=posterior, coords={"leg": legs}, dims={k: ["leg"] for k in posterior},
+            sample_stats={"diverging": np.zeros((2, 300), bool), "energy": rng.standard_normal((2, 300))}))
+
+    gain = rng.standard_normal((2, 300, 3))
+    gain[1, :, 2] += 3.0  # the second chain sits elsewhere on the third leg only
+    diag = diagnosed(gain=gain, gain_s_leg=gain * 2.0, k2=rng.standard_normal((2, 300, 3)))
+    assert diag["worst"]["rhat"]["variable"] == "gain" and diag["worst"]["rhat"]["at"] == "C-right"
+    assert any(p.startswith("R-hat") and "(gain of C-right): chains disagree" in p for p in diag["problems"])
+    k2 = rng.standard_normal((2, 300, 3))
+    for t in range(1, 300):  # the second leg's k2 mixes slowly (AR(1), 0.97), about the same mean in both chains
+        k2[:, t, 1] = 0.97 * k2[:, t - 1, 1] + 0.25 * rng.standard_normal(2)
+    diag = diagnosed(gain=rng.standard_normal((2, 300, 3)), k2=k2)
+    assert diag["worst"]["ess_bulk"] == {**diag["worst"]["ess_bulk"], "variable": "k2", "at": "B-left"}
+    assert any(p.startswith("bulk ESS") and "(k2 of B-left) <" in p for p in diag["problems"])
+
+
 def test_a_delay_the_evidence_weighs_but_no_chain_visits_is_a_warning():
     """Chains that agree on one delay while the per-delay Laplace evidence gives a neighbour a
     fifth of the mass (model 3 on a minute of data) draw a warning naming the leg, the delay and

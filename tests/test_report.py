@@ -336,10 +336,14 @@ def test_the_diagnostics_table_shows_the_delay_checks_and_omits_them_for_older_f
     row_missed = row_missed[: row_missed.index("</tr>")]
     assert "JM-left: d = 4" in row_missed and "look" in row_missed and "FAIL" not in row_missed  # a warning
     assert "Warning: JM-left &amp; d = 4 never visited" in failing
+    worst = report._diagnostics_section({**base, "ok": False, "rhat_max": 1.2, "worst": {
+        "rhat": {"variable": "gain", "at": "TN-left", "value": 1.2}, "ess_bulk": None, "ess_tail": None}})
+    row_rhat = worst[worst.index("R-hat, largest"):]
+    assert "1.2 (gain, TN-left)" in row_rhat[: row_rhat.index("</tr>")]
     passing = report._diagnostics_section({**base, "delay_splits": {}, "delay_missed": {}})
     assert "no chain visited" in passing and "FAIL" not in passing
     older = report._diagnostics_section(base)
-    assert "settled at different delays" not in older and "no chain visited" not in older
+    assert "settled at different delays" not in older and "no chain visited" not in older and "(gain" not in older
 
 
 def test_a_report_refuses_mixed_fit_files_other_data_and_another_fits_evaluation(made, passing, capsys):

@@ -1197,9 +1197,9 @@ class StimulationPlan:
             return self.stimulation
         scale = scales.get(leg)
         if scale is None:
-            raise ValueError(f"{leg} was fitted on recruitment levels (stimulation), not on a stimulator's columns: "
-                             f"its fit holds no charge to relate the plan's {', '.join(self.columns)} to; give the "
-                             "plan as stimulation")
+            raise ValueError(f"the fit holds no charge of {leg} to relate the plan's {', '.join(self.columns)} to: "
+                             "its data gave recruitment levels (stimulation), or trials that gave different "
+                             "stimulator columns, or the fit was made before fits kept it; give the plan as stimulation")
         if tuple(scale["columns"]) != self.columns:
             raise ValueError(f"the plan gives {', '.join(self.columns)}, {leg}'s data gave "
                              f"{', '.join(scale['columns'])}: a charge in {self.unit} is not one in {scale['unit']}")

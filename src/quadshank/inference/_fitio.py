@@ -275,6 +275,34 @@ def delay_at_edge(idata) -> dict[str, float]:
     return {leg: round(float(p[i, -1]), 3) for i, leg in enumerate(legs) if p[i, -1] >= DELAY_EDGE_P}
 
 
+def _where(ds, largest: bool) -> dict | None:
+    """The entry of ``ds`` (one value per variable and coordinate, as arviz's R-hat or ESS) that is
+    largest (or smallest): ``{"variable", "at", "value"}``, ``at`` naming its coordinates (a leg,
+    say); None where nothing is finite.  A failing fit then says which parameter of which leg
+    holds it back, not only by how much."""
+    best = None
+    for v in ds.data_vars:
+        if str(v).endswith("_s_leg") and str(v)[: -len("_s_leg")] in ds.data_vars:
+            continue  # a parameter's standardised site: the parameter itself is named
+        a = np.asarray(ds[v], np.float64)
+        if not np.isfinite(a).any():
+            continue
+        flat = np.where(np.isfinite(a), a, -np.inf if largest else np.inf).ravel()
+        i = int(np.argmax(flat) if largest else np.argmin(flat))
+        value = float(flat[i])
+        if best is None or (value > best["value"] if largest else value < best["value"]):
+            index = np.unravel_index(i, a.shape) if a.ndim else ()
+            at = ", ".join(str(ds[v][dim].values[k]) if dim in ds[v].coords else f"{dim} {k}"
+                           for dim, k in zip(ds[v].dims, index))
+            best = {"variable": str(v), "at": at, "value": value}
+    return best
+
+
+def _named(w: dict | None) -> str:
+    """" (gain of OT-left)": where :func:`_where` found the worst value, for a problem's text."""
+    return "" if not w else f" ({w['variable']}{' of ' + w['at'] if w['at'] else ''})"
+
+
 def diagnose_sampling(idata) -> dict:
     """R-hat, bulk and tail ESS, divergences, E-BFMI against :data:`THRESHOLDS`, with advice."""
 
@@ -289,9 +317,12 @@ def diagnose_sampling(idata) -> dict:
         return fn(np.array(vals)) if vals else float("nan")
 
     # arviz logs a shape warning for R-hat of one chain, which has none
-    rhat_max = float(extreme(az.rhat(post), np.nanmax)) if chains > 1 else float("nan")
+    rhat = az.rhat(post) if chains > 1 else None
+    rhat_max = float(extreme(rhat, np.nanmax)) if chains > 1 else float("nan")
     ess_bulk_min = float(extreme(ess_bulk, np.nanmin))
     ess_tail_min = float(extreme(ess_tail, np.nanmin))
+    worst = {"rhat": None if rhat is None else _where(rhat, largest=True), "ess_bulk": _where(ess_bulk, largest=False),
+             "ess_tail": _where(ess_tail, largest=False)}
     divergences = int(np.asarray(idata.sample_stats["diverging"]).sum())
     bfmi = np.atleast_1d(az.bfmi(idata))
     bfmi_min = float(np.min(bfmi))
@@ -301,7 +332,7 @@ def diagnose_sampling(idata) -> dict:
         problems.append("one chain: R-hat cannot be computed")
         advice.append("run at least 2 chains (--chains 4)")
     elif not rhat_max < THRESHOLDS["rhat_max"]:
-        problems.append(f"R-hat {rhat_max:.3f} ≥ {THRESHOLDS['rhat_max']}: chains disagree")
+        problems.append(f"R-hat {rhat_max:.3f} ≥ {THRESHOLDS['rhat_max']}{_named(worst['rhat'])}: chains disagree")
         advice.append("run longer (--warmup, --draws) or check for several posterior modes")
     splits = delay_splits(idata)
     # jumps between delay modes taken after the transitions (None: the chains did not jump)
@@ -351,10 +382,12 @@ def diagnose_sampling(idata) -> dict:
                "100 ms" if period < SAMPLING_PERIOD_S * (1 - 1e-6) else "")
         )
     if not ess_bulk_min >= ess_needed:
-        problems.append(f"bulk ESS {ess_bulk_min:.0f} < {ess_needed} ({THRESHOLDS['ess_per_chain']} per chain)")
+        problems.append(f"bulk ESS {ess_bulk_min:.0f}{_named(worst['ess_bulk'])} < {ess_needed} "
+                        f"({THRESHOLDS['ess_per_chain']} per chain)")
         advice.append("draw more (--draws)")
     if not ess_tail_min >= ess_needed:
-        problems.append(f"tail ESS {ess_tail_min:.0f} < {ess_needed}: the 90 % intervals are unreliable")
+        problems.append(f"tail ESS {ess_tail_min:.0f}{_named(worst['ess_tail'])} < {ess_needed}: the 90 % intervals "
+                        "are unreliable")
         advice.append("draw more (--draws)")
     if divergences > THRESHOLDS["divergences"]:
         problems.append(f"{divergences} divergent transitions: the sampler missed part of the posterior")
@@ -369,6 +402,7 @@ def diagnose_sampling(idata) -> dict:
         "ess_tail_min": ess_tail_min,
         "divergences": divergences,
         "bfmi_min": bfmi_min,
+        "worst": worst,
         "delay_splits": splits,
         "delay_missed": missed,
         "delay_at_edge": edge,

@@ -266,12 +266,17 @@ def _diagnostics_section(d: dict) -> str:
     def finite(x) -> bool:
         return x is not None and np.isfinite(float(x))
 
+    def value(key: str, worst: str) -> str:
+        """The check's value and, where the fit records it (fits saved before did not), whose it is."""
+        w = (d.get("worst") or {}).get(worst)
+        return _num(d.get(key)) + (f" ({_e(w['variable'])}{', ' + _e(w['at']) if w['at'] else ''})" if w else "")
+
     rows = [
-        ["R-hat, largest", _num(d.get("rhat_max")), f"&lt; {_num(th.get('rhat_max'))}",
+        ["R-hat, largest", value("rhat_max", "rhat"), f"&lt; {_num(th.get('rhat_max'))}",
          verdict(finite(d.get("rhat_max")) and d["rhat_max"] < th.get("rhat_max", 1.01))],
-        ["bulk ESS, smallest", _num(d.get("ess_bulk_min")), f"≥ {_num(th.get('ess_min'))}",
+        ["bulk ESS, smallest", value("ess_bulk_min", "ess_bulk"), f"≥ {_num(th.get('ess_min'))}",
          verdict(finite(d.get("ess_bulk_min")) and d["ess_bulk_min"] >= th.get("ess_min", 0))],
-        ["tail ESS, smallest", _num(d.get("ess_tail_min")), f"≥ {_num(th.get('ess_min'))}",
+        ["tail ESS, smallest", value("ess_tail_min", "ess_tail"), f"≥ {_num(th.get('ess_min'))}",
          verdict(finite(d.get("ess_tail_min")) and d["ess_tail_min"] >= th.get("ess_min", 0))],
         ["divergent transitions", _e(d.get("divergences")), f"≤ {_e(th.get('divergences', 0))}",
          verdict(d.get("divergences", 0) <= th.get("divergences", 0))],
