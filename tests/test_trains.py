@@ -80,6 +80,12 @@ def test_trains_from_a_stimulators_log_are_fitted_through_a_recruitment_curve(tr
     err = capsys.readouterr().err
     assert "JM-left trial 1" in err and "isolated twitches" in err and "quadshank fit" in err
     _a_plan_in_pulse_widths_is_predicted_through_the_legs_charge(out, tmp_path, capsys)
+    # the report gives the recruitment curve in the stimulator's unit too: u50 × 400 µs
+    assert main(["-q", "report", str(out), "--out", str(tmp_path / "report"), "--draws", "5"]) == 0
+    page = (tmp_path / "report" / "subject-JM.html").read_text()
+    u50 = s["legs"][LEG]["params"]["u50"]
+    assert f"<code>u50</code> {u50['median'] * WIDTH_US:.4g} µs [{u50['lo'] * WIDTH_US:.4g}," in page, page
+    assert "each pulse's pulse width over 400 µs" in page
 
 
 def _plan(path, column: str, widths: dict[int, float], seconds: float = 3.0):

@@ -943,6 +943,9 @@ class RecruitmentSigmoid(Effect):
     name = "recruitment_sigmoid"
     signature = "u"
     candidate = False
+    #: Parameters in relative charge: a report gives them in the stimulator's unit too, where the
+    #: fit keeps the charge the leg's levels are relative to (``FitResult.charge_scale``).
+    in_charge = ("u50", "u_width")
     params = (
         Param("u50", "1", prior=("normal", 0.5, 0.2), doc="relative charge of half the recruitment"),
         Param("u_width", "1", support="positive", prior=("lognormal", math.log(0.15), 0.5),

@@ -46,7 +46,7 @@ from ..common._io import atomic_write_text, figure_bytes, file_stem, write_json
 from ..common._progress import progress_bar
 from ..data._paper import SAMPLING_PERIOD_S, TABLE_V
 from ..inference._summaries import INTERVAL, interval
-from ..model._effects import to_standard
+from ..model._effects import registered_effects, to_standard
 from ._figures import horizon_axis, plot_delay_angle
 
 __all__ = ["write_report", "plot_shrinkage", "plot_delay_posterior", "plot_leg_predictions", "PREDICTION_WINDOW_S", "PREDICTION_HORIZONS_MS"]
@@ -350,6 +350,27 @@ def _param_rows(rows: dict, prior_only=()) -> list[list[str]]:
     ]
 
 
+def _in_charge_html(leg: str, rows: dict, scale: dict | None, effects) -> str:
+    """The parameters in relative charge (an effect's ``in_charge``) in the stimulator's own unit,
+    for a leg read from a stimulator's columns (``scale``: its ``FitResult.charge_scale``)."""
+    if not scale:
+        return ""
+    known = registered_effects()
+    names = [p for e in effects if e in known for p in getattr(known[e], "in_charge", ())]
+    parts = []
+    for name in names:
+        q = rows.get(name, {}).get("leg")
+        if q:
+            top, unit = scale["largest_charge"], scale["unit"]
+            parts.append(f"<code>{_e(name)}</code> {_num(q['median'] * top)} {_e(unit)} "
+                         f"[{_num(q['lo'] * top)}, {_num(q['hi'] * top)}]")
+    if not parts:
+        return ""
+    what = {"µs": "pulse width", "mA": "current"}.get(scale["unit"], "pulse charge")
+    return (f"<p>{_e(leg)}'s stimulation levels are each pulse's {what} over {_num(scale['largest_charge'])} "
+            f"{_e(scale['unit'])}, the largest in its data; in {_e(scale['unit'])}: " + "; ".join(parts) + ".</p>")
+
+
 def _delay_text(s: dict, sampling_period_s: float) -> str:
     p = s["delay_posterior"]
     mode = int(np.argmax(p))
@@ -509,6 +530,9 @@ def write_report(
             body.append(f"<h3>Credible parameters of {_e(leg)}</h3>")
             body.append(_table(["parameter", "units", f"leg {leg}", f"subject {subject}", "population", "meaning"],
                                _param_rows(params[leg]["params"], u["params"] if u else ()), (2, 3, 4)))
+            charge = _in_charge_html(leg, params[leg]["params"], (fs.charge_scale or {}).get(leg), fs.effects)
+            if charge:
+                body.append(charge)
             body.append(f"<h3>J_φ,p of {_e(leg)} [deg]</h3>")
             body.append(_table(["trial", "horizon [ms]", "median [90 %]", f"paper {base}: mean (s.d.)"],
                                _j_rows(J_legs.get(leg, {}), label), (2, 3)))
