@@ -35,6 +35,31 @@ def test_convergence_status_passes_independent_chains_and_names_the_variable_tha
     assert not st["met"] and st["rhat_max"] > 1.05 and st["lagging"] == "d"
 
 
+def test_the_lagging_variable_is_named_with_its_leg_or_subject(monkeypatch):
+    """The block's check names the entry that lags, not only its variable: a leg's parameter by
+    the leg, a subject's value by the subject; a scalar by nothing more."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(3)
+    data = SimpleNamespace(legs=("A-left", "B-left", "C-right"), subjects=("A", "B", "C"), leg_subject=np.arange(3))
+    monkeypatch.setattr(_nuts, "hyper_draws", lambda *args: {})  # the draws below stand for them
+    iid = {"gain": rng.normal(size=(4, 500, 3)), "gain_subject": rng.normal(size=(4, 500, 3)), "nu_pop": rng.normal(size=(4, 500))}
+
+    def lagging(name, entry=None):
+        draws = {**iid, name: iid[name].copy()}
+        slow = _ar1(rng, 0.98, (4, 500))
+        if entry is None:
+            draws[name] = slow
+        else:
+            draws[name][:, :, entry] = slow
+        st = _nuts.target_status(draws, None, data, FitSettings(target_ess=400))
+        return st["lagging"], st.get("lagging_at")
+
+    assert lagging("gain", 2) == ("gain", "C-right")
+    assert lagging("gain_subject", 1) == ("gain_subject", "B")
+    assert lagging("nu_pop") == ("nu_pop", None)
+
+
 def test_blocks_continue_the_chains_exactly_as_one_longer_run(monkeypatch):
     cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.3, seed=2, trials=(1,))
     model = build_model("model1")

@@ -638,8 +638,23 @@ def convergence_status(draws: dict, needed: float, rhat_max: float = THRESHOLDS[
             shortfall[v] = max(shortfall.get(v, 0.0), (r - 1.0) / (rhat_max - 1.0))
     rhat_worst, bulk_min, tail_min = max(rhat.values()), min(bulk.values()), min(tail.values())
     met = bulk_min >= needed and tail_min >= needed and (chains < 2 or rhat_worst < rhat_max)
+    lagging = max(shortfall, key=shortfall.get)
     return {"met": bool(met), "draws_per_chain": int(n), "ess_needed": needed, "rhat_max": rhat_worst,
-            "ess_bulk_min": bulk_min, "ess_tail_min": tail_min, "lagging": max(shortfall, key=shortfall.get)}
+            "ess_bulk_min": bulk_min, "ess_tail_min": tail_min, "lagging": lagging,
+            "lagging_index": _lagging_entry(post, lagging, needed, rhat_max) if lagging else None}
+
+
+def _lagging_entry(post, name: str, needed: float, rhat_max: float) -> list[int] | None:
+    """Which entry of variable ``name`` (its index past chain and draw; [] for a scalar) is
+    furthest from passing, by the shortfall :func:`convergence_status` ranks variables by."""
+    one = post[[name]]
+    ess = np.minimum(np.asarray(az.ess(one, method="bulk")[name]), np.asarray(az.ess(one, method="tail")[name]))
+    short = needed / np.maximum(np.where(np.isfinite(ess), ess, np.inf), 1e-9)
+    if post.sizes["chain"] > 1:
+        r = np.asarray(az.rhat(one)[name])
+        short = np.maximum(short, np.where(np.isfinite(r), (r - 1.0) / (rhat_max - 1.0), 0.0))
+    short = np.atleast_1d(short)
+    return [int(i) for i in np.unravel_index(int(np.argmax(short)), short.shape)] if np.ndim(ess) else []
 
 
 def target_status(samples: dict, model: Model, data: LikelihoodData, settings: FitSettings) -> dict:
@@ -654,7 +669,13 @@ def target_status(samples: dict, model: Model, data: LikelihoodData, settings: F
     chains = next(iter(samples.values())).shape[0]
     kept = {k: np.asarray(v) for k, v in samples.items() if k not in _NOT_CHECKED}
     kept.update(hyper_draws(model, kept, data.leg_subject, len(data.subjects), settings.seed))
-    return convergence_status(kept, max(int(settings.target_ess or 0), THRESHOLDS["ess_per_chain"] * chains))
+    status = convergence_status(kept, max(int(settings.target_ess or 0), THRESHOLDS["ess_per_chain"] * chains))
+    name, index = status["lagging"], status.pop("lagging_index")
+    if name and index:  # the lagging entry's leg (or subject): its first axis past chain and draw
+        names = data.subjects if name.endswith("_subject") else data.legs
+        if np.shape(kept[name])[2] == len(names):
+            status["lagging_at"] = str(names[index[0]])
+    return status
 
 
 def _draw_to_target(mcmc, key, arrays, init_params, model, data, settings, started, progress) -> BlockDraws:
@@ -695,7 +716,7 @@ def _draw_to_target(mcmc, key, arrays, init_params, model, data, settings, start
                 print(f"fit: {status['draws_per_chain']} draws per chain (a block takes about {seconds:.0f} s): "
                       f"bulk ESS {status['ess_bulk_min']:.0f}, tail ESS {status['ess_tail_min']:.0f}, R-hat {status['rhat_max']:.3f} "
                       f"(needed: ESS {status['ess_needed']}, R-hat < {THRESHOLDS['rhat_max']}; furthest: "
-                      f"{status['lagging']}); "
+                      f"{status['lagging']}{' of ' + status['lagging_at'] if status.get('lagging_at') else ''}); "
                       f"{settings.draws} more per chain", file=sys.stderr, flush=True)
             mcmc.post_warmup_state = mcmc.last_state
             seconds = draw()
