@@ -15,7 +15,7 @@ from ..common._io import atomic_write_text, save_figure
 from ..common._results import Result
 from ..data._interchange import read_plan
 from ..evaluation._posterior import load_fits, plan_predictions
-from ..inference._fitio import posterior_models, read_summary
+from ..inference._fitio import posterior_models
 from ..inference._summaries import INTERVAL, interval
 from ..outputs._figures import plot_plan_predictions
 
@@ -63,7 +63,7 @@ def run_predict(
     unknown = [leg for leg in legs if leg not in fitted]
     if unknown:
         raise KeyError(f"{fit_dir}: the fit has no leg {', '.join(unknown)} (it has {', '.join(fitted)})")
-    scales = read_summary(fit_dir).charge_scale or {}
+    scales = fit.summary.charge_scale or {}
     try:  # every leg's levels before any rollout: a plan one leg cannot take is refused at once
         levels = {leg: planned.levels(leg, scales) for leg in legs}
     except ValueError as err:
