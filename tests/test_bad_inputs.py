@@ -109,7 +109,7 @@ def decimal_comma(folder: Path):
 
 def semicolons(folder: Path):
     (folder / T1).write_text((folder / T1).read_text().replace(",", ";"))
-    return [T1, "column"]
+    return [T1, "row 1", "separated by semicolons"]
 
 
 def drop_column(file, column):
@@ -480,7 +480,11 @@ def test_continuous_stimulation_names_the_leg_and_trial(base, tmp_path, capsys):
     for f in (T1, T2, J1):
         _map_column(data / f, "stimulation", lambda v: 0.4)  # a pulse at every sample
     rc, lines = _run(COMMANDS["identify"](data, tmp_path / "out"), capsys)
-    _assert_refused(rc, lines, ["TN-left trial 1", "quiet samples"], tmp_path / "out")
+    # reading warns that a pulse on every sample looks like a logged setting, then identify refuses
+    warned = [line for line in lines if line.startswith("quadshank: warning:")]
+    assert len(warned) == 3 and all("nonzero on every one of its 400 samples" in w for w in warned), lines
+    _assert_refused(rc, [line for line in lines if line not in warned], ["TN-left trial 1", "quiet samples"],
+                    tmp_path / "out")
 
 
 def test_a_refused_command_leaves_no_folder_behind(base, tmp_path, capsys):
@@ -633,3 +637,150 @@ def test_a_start_that_cuts_a_twitch_from_its_pulse_is_named(base, tmp_path):
     (found,) = said(1.25)  # a pulse at 1.2 s
     assert found.startswith(f"{T1}: start_s = 1.25 ({MAN} row 2) falls 0.05 s after a pulse at time_s = 1.2:")
     assert said(1.7) == []
+
+
+# ----------------------------------------------------------------------------- what other labs' files look like
+def _read(folder: Path) -> tuple[Cohort | None, str, list[str]]:
+    """``read_interchange(folder)``: the cohort (None where refused), the error's text and the warnings."""
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            cohort, error = read_interchange(folder), ""
+        except ValueError as err:
+            cohort, error = None, str(err)
+    return cohort, error, [str(w.message) for w in caught if issubclass(w.category, DataWarning)]
+
+
+def _copy(base: Path, tmp_path: Path, name: str) -> Path:
+    data = tmp_path / name
+    shutil.copytree(base / "data", data)
+    return data
+
+
+@pytest.mark.parametrize("separator, said", [(";", "semicolons (';')"), ("\t", "tabs")])
+def test_a_file_separated_otherwise_is_named_once_with_its_separator(base, tmp_path, separator, said):
+    """A spreadsheet in another locale writes ';' (or a tab): one problem says so, not one per
+    column that then looks unknown or missing."""
+    data = _copy(base, tmp_path, "sep")
+    (data / T1).write_text((data / T1).read_text().replace(",", separator))
+    _, error, _ = _read(data)
+    problems = [line for line in error.splitlines() if T1 in line]
+    assert len(problems) == 1 and f"{T1}, row 1: the header is one field" in problems[0], error
+    assert f"separated by {said}" in problems[0]
+
+
+def test_decimal_commas_and_upper_case_names_get_a_hint(base, tmp_path):
+    data = _copy(base, tmp_path, "locale")
+    rows = _rows(data / T1)
+    rows[0] = [c.upper() for c in rows[0]]
+    _write_rows(data / T1, rows)
+    text = (data / T2).read_text().splitlines()
+    (data / T2).write_text("\n".join(text[:1] + [line.replace(".", ",") for line in text[1:]]) + "\n")
+    _, error, _ = _read(data)
+    assert f"{T1}, column 'TIME_S', row 1: unknown column" in error and "did you mean 'time_s'?" in error
+    assert f"{T2}, row 2: " in error and "decimal commas (0,25 for 0.25)?" in error
+
+
+def test_names_that_look_the_same_are_one_name_or_refused(base, tmp_path):
+    """A subject typed 'Zoë' in one row and stored decomposed ('e' + '¨') in another is one subject,
+    a file listed composed and stored decomposed (as some file systems write names) is found, and
+    a name with an invisible character is refused naming its row."""
+    import unicodedata
+
+    nfc, nfd = "Zo\u00eb", unicodedata.normalize("NFD", "Zo\u00eb")
+    assert nfc != nfd
+    data = _copy(base, tmp_path, "names")
+    rows = _rows(data / MAN)
+    col = rows[0].index("subject")
+    rows[1][col], rows[2][col] = nfc, nfd  # TN-left trials 1 and 2
+    (data / T2).rename(data / unicodedata.normalize("NFD", f"{nfc}-left-trial2.csv"))
+    rows[2][rows[0].index("file")] = f"{nfc}-left-trial2.csv"
+    _write_rows(data / MAN, rows)
+    cohort, error, _ = _read(data)
+    assert error == "" and f"{nfc}-left" in cohort.legs and len(cohort.trials_of(f"{nfc}-left")) == 2
+
+    hidden = _copy(base, tmp_path, "hidden")
+    rows = _rows(hidden / MAN)
+    rows[3][rows[0].index("subject")] = "JM\u200b"
+    _write_rows(hidden / MAN, rows)
+    _, error, _ = _read(hidden)
+    assert f"{MAN}, column 'subject', row 4: subject 'JM\\u200b' holds an invisible character" in error
+    assert "U+200B" in error
+
+
+def test_a_pulse_without_charge_is_named(base, tmp_path):
+    """Pulse width and current given, one of them 0 at a pulse: no charge, no pulse; said with the
+    file, column and first row."""
+    data = _copy(base, tmp_path, "charge")
+    rows = _rows(data / T1)
+    j = rows[0].index("stimulation")
+    rows[0][j:j + 1] = ["pulse_width_us", "current_mA"]
+    pulses = []
+    for i, r in enumerate(rows[1:], start=2):
+        level = float(r[j])
+        if level > 0:
+            pulses.append(i)
+        r[j:j + 1] = [repr(300.0 * level), repr(40.0 if level > 0 and len(pulses) > 1 else 0.0)]
+    rows[pulses[0] - 1][j] = "300.0"
+    _write_rows(data / T1, rows)
+    cohort, error, warned = _read(data)
+    assert error == ""
+    said = [w for w in warned if "current_mA" in w]
+    assert len(said) == 1 and said[0].startswith(f"{T1}, column 'current_mA', row {pulses[0]}: 0 where pulse_width_us "
+                                                 "is 300.0")
+    trial = next(t for t in cohort.trials if t.source == T1)
+    assert np.count_nonzero(trial.stimulation) == len(pulses) - 1
+
+
+def test_a_gate_or_a_logged_setting_is_not_taken_silently_for_pulses(base, tmp_path):
+    """Stimulation nonzero on consecutive samples at 100 Hz (a gate) or on every sample (a setting):
+    a warning; a 50 Hz train (every other sample) is a train and draws none."""
+    def stimulated(name, level):
+        data = _copy(base, tmp_path, name)
+        _map_column_indexed(data / J1, "stimulation", level)
+        return _read(data)
+
+    _, error, warned = stimulated("gate", lambda i: 0.5 if 100 <= i < 140 else 0.0)
+    assert error == "" and any("longest 40 samples from time_s = 1.0 (pulses at 100 Hz)" in w for w in warned), warned
+    _, _, warned = stimulated("setting", lambda i: 0.3)
+    assert any(f"nonzero on every one of its {N} samples" in w for w in warned), warned
+    _, _, warned = stimulated("train", lambda i: 0.5 if 100 <= i < 200 and i % 2 == 0 else 0.0)
+    assert not [w for w in warned if "consecutive" in w or "every one" in w], warned
+
+
+def _map_column_indexed(path: Path, column: str, f) -> None:
+    rows = _rows(path)
+    j = rows[0].index(column)
+    for i, r in enumerate(rows[1:]):
+        r[j] = repr(float(f(i)))
+    _write_rows(path, rows)
+
+
+def test_a_bound_outside_the_recording_is_named(base, tmp_path):
+    """start_s/end_s beyond the recording cut nothing (end_s in ms, say): a warning names the
+    manifest's column and row; bounds inside it draw none."""
+    def bounded(name, start, end):
+        data = _copy(base, tmp_path, name)
+        rows = _rows(data / MAN)
+        rows[0] += ["start_s", "end_s"]
+        for i, row in enumerate(rows[1:]):
+            row += [start, end] if i == 2 else ["", ""]
+        _write_rows(data / MAN, rows)
+        return _read(data)
+
+    cohort, error, warned = bounded("ms", "", "3500")
+    said = [w for w in warned if "outside" in w]
+    assert error == "" and len(said) == 1, warned
+    assert said[0].startswith(f"{MAN}, column 'end_s', row 4: 3500.0 s lies outside {J1}'s recording (0 to 3.99 s)")
+    assert next(t for t in cohort.trials if t.source == J1).n_samples == N
+    _, _, warned = bounded("inside", "0.5", "3.5")
+    assert not [w for w in warned if "outside" in w]
+
+
+def test_irregular_time_stamps_point_to_resampling(base, tmp_path):
+    data = _copy(base, tmp_path, "irregular")
+    _set_cell(data / T1, 30, "time_s", "0.2805")
+    _, error, _ = _read(data)
+    assert f"{T1}, column 'time_s', row 30: non-uniform sampling" in error and "--resample" in error

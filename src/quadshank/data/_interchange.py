@@ -104,6 +104,7 @@ import json
 import math
 import os
 import re
+import unicodedata
 import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path, PurePosixPath
@@ -281,7 +282,7 @@ def plausibility(trial: Trial) -> list[str]:
     window = _smoothing_window(dt)
     if trial.n_samples < 3 * window:
         return glitches
-    found = glitches + _markers(trial) + _faint_pulses(trial) \
+    found = glitches + _markers(trial) + _faint_pulses(trial) + _pulse_runs(trial) \
         + (_pendulum_plausibility(trial) if not np.any(trial.stimulation > 0) else [])
     checks = [("acceleration_deg_s2", 2, "deg/s²")] if trial.acceleration_measured else []
     if trial.velocity_measured:
@@ -333,6 +334,12 @@ def _markers(trial: Trial) -> list[str]:
 #: A pulse level below this is no recruitment a stimulator delivers: float noise where it delivered none.
 FAINT_PULSE = 1e-6
 
+#: Pulses on this many consecutive samples or more ...
+PULSE_RUN = 5
+#: ... at this rate [Hz] or faster (FES trains run at 20–50 Hz, rarely above 100 Hz) make a run
+#: that reads as a gate or a setting logged on every sample rather than the pulses delivered.
+PULSE_RUN_RATE_HZ = 100.0
+
 
 def _faint_pulses(trial: Trial) -> list[str]:
     """Pulses whose level is below :data:`FAINT_PULSE`, in words (each nonzero level is a pulse)."""
@@ -342,6 +349,29 @@ def _faint_pulses(trial: Trial) -> list[str]:
     return [f"stimulation holds {faint.size} level{'s' if faint.size > 1 else ''} above 0 and below {FAINT_PULSE:g}, "
             f"the first at time_s = {float(trial.time_s[faint[0]])!r}: each nonzero level is a pulse; float noise "
             "where no pulse was delivered? Write 0 there"]
+
+
+def _pulse_runs(trial: Trial) -> list[str]:
+    """Pulses on consecutive samples at :data:`PULSE_RUN_RATE_HZ` or faster, or on every sample of the
+    trial, in words: each nonzero level is one pulse delivered at that sample, so a stimulation
+    column that is nonzero throughout a train (a gate) or on every row (a setting) says pulses
+    that were never delivered."""
+    on = trial.stimulation > 0
+    if on.size < PULSE_RUN:
+        return []
+    runs = [(a, b) for a, b in stretches(on) if b - a >= PULSE_RUN]
+    rate = 1.0 / trial.sampling_period_s
+    if on.all():
+        what = f"every one of its {on.size} samples"
+    elif runs and rate >= PULSE_RUN_RATE_HZ:
+        a, b = max(runs, key=lambda r: r[1] - r[0])
+        what = (f"{len(runs)} run{'s' if len(runs) > 1 else ''} of consecutive samples, the longest {b - a} samples "
+                f"from time_s = {float(trial.time_s[a])!r} (pulses at {rate:g} Hz)")
+    else:
+        return []
+    return [f"stimulation is nonzero on {what}: each nonzero sample is one pulse delivered at that sample. Is the "
+            "column a gate (on while a train runs) or a stimulator setting logged on every row? Give a level only at "
+            "the samples where a pulse was delivered, 0 elsewhere"]
 
 
 def _glitches(trial: Trial) -> list[str]:
@@ -392,6 +422,10 @@ def _warn_implausible(cohort: Cohort, labels: Sequence[str]) -> None:
 
 
 # --------------------------------------------------------------------------- CSV tables
+#: Separators a spreadsheet in another locale writes instead of the comma, and their names.
+_OTHER_SEPARATORS = ((";", "semicolons (';')"), ("\t", "tabs"))
+
+
 @dataclasses.dataclass
 class _Table:
     """A CSV file split into header and data rows, with the line number of each row."""
@@ -454,22 +488,34 @@ def _read_table(
         return None
 
     known = tuple(required) + tuple(optional)
+    separator = next((sep for sep, label in _OTHER_SEPARATORS if len(header) == 1 and sep in header[0]), None)
+    if separator is not None:
+        label = dict(_OTHER_SEPARATORS)[separator]
+        shown = header[0] if len(header[0]) <= 60 else header[0][:57] + "..."
+        problems.append(Problem(file, None, header_line, f"the header is one field, {shown!r}: is the file separated "
+                                f"by {label} rather than commas? The format is comma-separated, with '.' as the "
+                                "decimal mark (a spreadsheet's 'CSV (comma delimited)' export)"))
     columns: dict[str, int] = {}
+    by_case = {name.lower(): name for name in known}
     for i, name in enumerate(header):
         if name in columns:
             problems.append(Problem(file, name, header_line, "duplicated column"))
         elif name not in known:
-            hint = difflib.get_close_matches(name, known, n=1)
+            hint = difflib.get_close_matches(name, known, n=1) or [
+                by_case[m] for m in difflib.get_close_matches(name.lower(), list(by_case), n=1)]
             label = "unnamed column" if not name else "unknown column"
             msg = f"{label} (position {i + 1}); expected {', '.join(known)}"
             if hint:
                 msg += f"; did you mean {hint[0]!r}?"
-            problems.append(Problem(file, name, header_line, msg))
+            if separator is None:
+                problems.append(Problem(file, name, header_line, msg))
         else:
             columns[name] = i
     for name in required:
         instead = (alternatives or {}).get(name, ())
         given = [c for c in instead if c in columns]
+        if separator is not None:
+            break  # the one problem above says why every column is missing
         if name not in columns and not given:
             also = f"; or give {' and/or '.join(instead)}" if instead else ""
             problems.append(Problem(file, name, header_line, f"missing column (header is: {','.join(header)}){also}"))
@@ -477,6 +523,8 @@ def _read_table(
             problems.append(Problem(file, given[0], header_line, f"give either {name} or {' and/or '.join(instead)}, "
                                     "not both"))
 
+    if separator is not None:
+        return None
     if not rows:
         problems.append(Problem(file, None, None, "no data rows (only the header)"))
         return None
@@ -487,7 +535,10 @@ def _read_table(
     if bad_rows:
         well_formed = False
         for line, row in bad_rows[:_MAX_PER_KIND]:
-            problems.append(Problem(file, None, line, f"{len(row)} fields, expected {n_fields} as in the header"))
+            # 0,25 for 0.25 splits each number in two: more fields than the header, each a run of digits
+            comma = len(row) > n_fields and all(re.fullmatch(r"\s*-?[0-9]+\s*", c) for c in row)
+            hint = "; decimal commas (0,25 for 0.25)? The format's decimal mark is '.'" if comma else ""
+            problems.append(Problem(file, None, line, f"{len(row)} fields, expected {n_fields} as in the header{hint}"))
         if len(bad_rows) > _MAX_PER_KIND:
             rest = bad_rows[_MAX_PER_KIND:]
             problems.append(
@@ -573,7 +624,9 @@ def _check_signals(
                     problems.append(
                         Problem(file, "time_s", int(lines[i + 1]),
                                 f"non-uniform sampling: step {step[i]:.6g} s from the previous row differs "
-                                f"from the median step {median:.6g} s by more than {UNIFORM_TOLERANCE:.0%}")
+                                f"from the median step {median:.6g} s by more than {UNIFORM_TOLERANCE:.0%} "
+                                "(irregular time stamps? `quadshank convert FOLDER OUT --resample PERIOD_S` puts "
+                                "them on a uniform grid)")
                     )
                 if sampling_period_s is not None and not math.isclose(
                     median, sampling_period_s, rel_tol=PERIOD_TOLERANCE, abs_tol=0.0
@@ -697,7 +750,30 @@ def _subject_problem(subject: str) -> str | None:
     if any(ord(ch) < 32 or ord(ch) == 127 for ch in subject):
         return (f"subject {subject!r} holds a control character (a line break, a tab); the name is written into "
                 "tables and file names")
+    hidden = [ch for ch in subject if unicodedata.category(ch) == "Cf"]
+    if hidden:
+        return (f"subject {ascii(subject)} holds an invisible character ({unicodedata.name(hidden[0], 'format')}, "
+                f"U+{ord(hidden[0]):04X}): it would be a subject of its own beside one whose name looks the same")
     return None
+
+
+def _composed(text: str) -> str:
+    """``text`` in Unicode's composed form (NFC): a name typed as 'ë' and one stored as 'e' + '¨' (as
+    some file systems and editors write it) are one name, compared and written alike."""
+    return unicodedata.normalize("NFC", text)
+
+
+def _on_disk(folder: Path, key: str) -> Path:
+    """The file ``key`` (a relative POSIX path) names in ``folder``: as written, or, where no such
+    file exists, its composed or decomposed Unicode form that does (a name looks the same either way)."""
+    candidate = folder.joinpath(*PurePosixPath(key).parts)
+    if candidate.exists() or key.isascii():
+        return candidate
+    for form in ("NFC", "NFD"):
+        other = folder.joinpath(*PurePosixPath(unicodedata.normalize(form, key)).parts)
+        if other.exists():
+            return other
+    return candidate
 
 
 def _period_problem(text: str, period: float) -> str | None:
@@ -771,7 +847,7 @@ def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry],
         def bad(column: str, message: str) -> None:
             problems.append(Problem(MANIFEST_NAME, column, line, message))
 
-        subject: str | None = row[col["subject"]].strip()
+        subject: str | None = _composed(row[col["subject"]].strip())
         if not subject:
             bad("subject", "empty subject")
             subject = None
@@ -830,7 +906,7 @@ def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry],
                 bad("file", "the manifest cannot list itself")
                 key = None
             else:
-                candidate = folder.joinpath(*PurePosixPath(key).parts)
+                candidate = _on_disk(folder, key)
                 if candidate.exists() and not candidate.resolve().is_relative_to(folder.resolve()):
                     bad("file", f"{file!r} is a link to a file outside the folder; copy the file into it")
                 elif candidate.is_file():
@@ -890,6 +966,8 @@ def _check_listing(
         # The row where the numbering jumps: the first trial numbered above the first gap.
         jump = min((e for e in rows if e.trial > missing[0]), key=lambda e: e.trial)
         shown = ", ".join(map(str, missing[:20])) + (", ..." if len(missing) > 20 else "")
+        if not key.isascii():  # a Cyrillic 'Т' looks like 'T': two subjects whose names look the same
+            shown += f" (the leg's name escaped: {ascii(key)})"
         problems.append(
             Problem(file, "trial", jump.line,
                     f"{key}: trial{'s' if len(missing) > 1 else ''} {shown} missing (trials of a leg must be "
@@ -942,6 +1020,7 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
     _check_listing(entries, complete, MANIFEST_NAME, problems)
 
     signals_of: dict[int, dict[str, np.ndarray | None]] = {}
+    notes: list[str] = []  # warnings, given once the folder is known to be valid
     seen_files: set[str] = set()
     for i, e in enumerate(entries):
         if e.path is None or e.key in seen_files:
@@ -963,6 +1042,7 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
             )
             _check_signals(e.file, table.lines, signals, e.sampling_period_s, origin, problems,
                            uniform=resample_s is None)
+            notes += _chargeless_pulses(e.file, table.lines, signals)
             time = signals.get("time_s")
             if e.span_ok and time is not None and time.size and (e.start_s is not None or e.end_s is not None):
                 span = _span(time, e.start_s, e.end_s)
@@ -978,6 +1058,8 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
                     problems.append(Problem(MANIFEST_NAME, column, e.line,
                                             f"start_s/end_s keep {kept} samples of {e.file}, of which {free} not "
                                             "excluded (its column 'exclude'); at least 2 are needed"))
+                else:
+                    notes += _bounds_outside(e, time)
         signals_of[i] = signals
 
     listed = {_file_id(e.path) for e in entries if e.path is not None}
@@ -990,6 +1072,8 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
 
     if problems:
         raise InterchangeError(problems, context)
+    for text in notes:
+        warnings.warn(text, DataWarning, stacklevel=2)
 
     relative = _relative_charges(entries, signals_of)
     scales = _charge_scales(entries, signals_of)
@@ -1022,6 +1106,42 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
     _warn_implausible(cohort, [str(folder / e.file) for e in entries])
     _warn_unselectable_subjects(entries)
     return cohort
+
+
+def _chargeless_pulses(file: str, lines: Sequence[int], signals: dict) -> list[str]:
+    """Where a trial gives both a stimulator's columns, samples at which one is nonzero and the
+    other 0, in words: the charge (width × current) is 0 there, no pulse, which a logger that
+    writes the set width on every row or drops a current reading also gives."""
+    width, current = (signals.get(c) for c in _STIMULATOR)
+    if width is None or current is None or width.size != current.size:
+        return []
+    found = []
+    for column, other, values, others in (("current_mA", "pulse_width_us", current, width),
+                                          ("pulse_width_us", "current_mA", width, current)):
+        at = np.flatnonzero((values == 0) & (others > 0))
+        if at.size:
+            i = int(at[0])
+            more = f" and at {at.size - 1} more such sample{'s' if at.size > 2 else ''}" if at.size > 1 else ""
+            found.append(f"{file}, column {column!r}, row {int(lines[i])}: 0 where {other} is "
+                         f"{float(others[i])!r}{more}: a pulse's charge is width × current, so no pulse is read "
+                         f"there. Write 0 in both where no pulse was delivered, or the {column} delivered")
+    return found
+
+
+def _bounds_outside(e: _Entry, time: np.ndarray) -> list[str]:
+    """A manifest row's ``start_s``/``end_s`` that lie beyond its recording by more than one
+    sample, in words: such a bound cuts nothing, and one in other units (ms) or typed for another
+    trial looks the same."""
+    dt = float(np.median(np.diff(time))) if time.size > 1 else 0.0
+    first, last = float(time[0]), float(time[-1])
+    found = []
+    for name, value, outside in (("start_s", e.start_s, e.start_s is not None and e.start_s < first - dt),
+                                 ("end_s", e.end_s, e.end_s is not None and e.end_s > last + dt)):
+        if outside:
+            found.append(f"{MANIFEST_NAME}, column {name!r}, row {e.line}: {value!r} s lies outside {e.file}'s "
+                         f"recording ({first:.6g} to {last:.6g} s) and cuts nothing; a time in other units, or "
+                         "for another trial? (leave the cell empty for no bound)")
+    return found
 
 
 def _warn_unselectable_subjects(entries: list[_Entry]) -> None:
