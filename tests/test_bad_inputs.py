@@ -784,3 +784,17 @@ def test_irregular_time_stamps_point_to_resampling(base, tmp_path):
     _set_cell(data / T1, 30, "time_s", "0.2805")
     _, error, _ = _read(data)
     assert f"{T1}, column 'time_s', row 30: non-uniform sampling" in error and "--resample" in error
+
+
+def test_a_stimulated_trial_resting_far_from_zero_is_named(base, tmp_path):
+    """Between its twitches a stimulated knee hangs near 0: a flexion angle (90° at rest) is named
+    with the file, the trial and the median; the same trial zeroed at rest draws nothing."""
+    data = _copy(base, tmp_path, "flexion")
+    _map_column(data / T1, "angle_deg", lambda v: v + 90.0)
+    _, error, warned = _read(data)
+    said = [w for w in warned if "where no twitch acts" in w]
+    assert error == "" and len(said) == 1 and T1 in said[0] and "(TN-left trial 1)" in said[0], warned
+    median = float(said[0].split("the angle's median is ")[1].split("°")[0])
+    assert 80.0 < median < 100.0, said[0]  # a sine about 90°, its quiet samples
+    _, _, warned = _read(_copy(base, tmp_path, "zeroed"))
+    assert not [w for w in warned if "where no twitch acts" in w]

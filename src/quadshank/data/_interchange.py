@@ -282,8 +282,9 @@ def plausibility(trial: Trial) -> list[str]:
     window = _smoothing_window(dt)
     if trial.n_samples < 3 * window:
         return glitches
+    stimulated = bool(np.any(trial.stimulation > 0))
     found = glitches + _markers(trial) + _faint_pulses(trial) + _pulse_runs(trial) \
-        + (_pendulum_plausibility(trial) if not np.any(trial.stimulation > 0) else [])
+        + (_rest_plausibility(trial) if stimulated else _pendulum_plausibility(trial))
     checks = [("acceleration_deg_s2", 2, "deg/s²")] if trial.acceleration_measured else []
     if trial.velocity_measured:
         checks.append(("velocity_deg_s", 1, "deg/s"))
@@ -413,6 +414,32 @@ def _pendulum_plausibility(trial: Trial) -> list[str]:
         found.append(f"the swing starts at {float(angle[0]):.1f}°, deep in flexion; a pendulum test is released "
                      "from extension (positive angle_deg): is the sign of angle_deg flipped?")
     return found
+
+
+#: A stimulated trial whose angle, where no twitch acts, has its median further than this [deg] from
+#: 0 (the shank hanging at rest) gets a warning: a flexion angle reads 90° there.
+REST_MEDIAN_DEG = 45.0
+
+
+def _rest_plausibility(trial: Trial) -> list[str]:
+    """A trial with pulses should rest near angle 0 between its twitches: the samples no twitch
+    reaches (none in the :data:`~quadshank.data._paper.TWITCH_REACH_S` after a pulse), not
+    excluded, at least a second of them, whose median lies beyond :data:`REST_MEDIAN_DEG` say that
+    the angle's zero or convention is off.  A trial stimulated throughout has no such samples and
+    is not judged."""
+    reach = max(1, int(round(TWITCH_REACH_S / trial.sampling_period_s)))
+    pulses = (trial.stimulation > 0).astype(float)
+    recent = np.convolve(pulses, np.ones(reach + 1))[: pulses.size] > 0  # a pulse at this sample or `reach` before
+    quiet = ~recent & ~trial.exclude
+    if np.count_nonzero(quiet) * trial.sampling_period_s < 1.0:
+        return []
+    median = float(np.median(trial.angle_deg[quiet]))
+    # a shank that went over the top (a simulated knee without an end of range) hangs at 360°
+    if abs(median - 360.0 * round(median / 360.0)) <= REST_MEDIAN_DEG:
+        return []
+    return [f"where no twitch acts ({np.count_nonzero(quiet)} samples) the angle's median is {median:.1f}°, where the "
+            "shank hanging at rest is 0: is angle_deg zeroed with the shank hanging, positive in extension? (a "
+            "flexion angle reads 90° at rest)"]
 
 
 def _warn_implausible(cohort: Cohort, labels: Sequence[str]) -> None:
