@@ -8,7 +8,7 @@ import numpyro.distributions as dist
 import pytest
 from numpyro.infer import MCMC, NUTS
 
-from quadshank.inference._jumps import JumpBlocks, ModeJumpNUTS
+from quadshank.inference._jumps import PRECISION_FLOOR, JumpBlocks, ModeJumpNUTS
 
 # three well-separated 2-D Gaussians of unequal weight, size and correlation: NUTS cannot cross
 # the valleys (tens of sds wide), and a jump that forgot its Jacobian or its check of the mode it
@@ -169,3 +169,52 @@ def test_the_jumps_can_be_switched_off_from_the_command_line():
         extra = ["d", "--out", "o"] if command == "fit" else ["--out", "o"]
         assert build_parser().parse_args([command, *extra]).mode_jumps is True
         assert build_parser().parse_args([command, *extra, "--no-mode-jumps"]).mode_jumps is False
+
+
+def test_refined_blocks_climb_to_the_mode_of_the_density_the_chains_sample():
+    """Two labels about as likely at one θ (their centres 0.8 sd apart) make one mode of the density
+    with the labels summed out, halfway between theirs: the refined slot sits there, where the
+    chains do, and the far third label keeps a slot of its own."""
+    from quadshank.inference._jumps import refine_blocks
+
+    centres = np.array([[[0.0, 0.0], [0.8, 0.0], [8.0, 1.0]]])  # (legs, labels, 2), unit covariances
+
+    def conditional_loglik(z):
+        return dist.MultivariateNormal(jnp.asarray(centres), jnp.eye(2)).log_prob(z["x"].reshape(1, 1, 2))
+
+    def prior_potential(z):
+        return 1e-8 * jnp.sum(z["x"] ** 2)
+
+    rough = JumpBlocks(index=np.array([[0, 1]]), mean=centres + 0.3, chol=np.tile(np.eye(2), (1, 3, 1, 1)),
+                       valid=np.ones((1, 3), bool), delays=np.array([[0, 1, 2]]), legs=("a",), leg=np.array([0]))
+    with jax.enable_x64(True):
+        new = refine_blocks(rough, {"x": jnp.zeros(2)}, conditional_loglik, prior_potential)
+    kept = new.mean[0][new.valid[0]]
+    assert len(kept) == 2
+    np.testing.assert_allclose(kept[0], [0.4, 0.0], atol=1e-3)  # the sum's mode, by symmetry
+    np.testing.assert_allclose(kept[1], [8.0, 1.0], atol=1e-3)
+
+
+def test_a_direction_the_data_leave_flat_keeps_the_mode_with_the_priors_width():
+    """A mode whose curvature is 0 along one direction (the data do not inform it) stays a slot, its
+    Gaussian as wide as the prior (unit precision on the standardised scale) along it."""
+    from quadshank.inference._jumps import refine_blocks
+
+    centres = np.array([[-3.0, 3.0]])  # (legs, labels): x0's mode per label; x1 no label informs
+
+    def conditional_loglik(z):
+        return -0.5 * ((z["x"][0] - jnp.asarray(centres)) / 0.5) ** 2
+
+    def prior_potential(z):
+        return 1e-8 * z["x"][0] ** 2
+
+    rough = JumpBlocks(index=np.array([[0, 1]]), mean=np.array([[[-2.5, 0.0], [2.5, 0.0]]]),
+                       chol=np.tile(np.eye(2), (1, 2, 1, 1)), valid=np.ones((1, 2), bool), delays=np.array([[0, 1]]),
+                       legs=("a",), leg=np.array([0]))
+    with jax.enable_x64(True):
+        new = refine_blocks(rough, {"x": jnp.zeros(2)}, conditional_loglik, prior_potential)
+    assert new is not None and new.valid.all()
+    np.testing.assert_allclose(new.mean[0, :, 0], [-3.0, 3.0], atol=1e-3)
+    cov = np.einsum("mij,mkj->mik", new.chol[0], new.chol[0])
+    np.testing.assert_allclose(cov[:, 0, 0], 0.25, rtol=1e-3)
+    np.testing.assert_allclose(cov[:, 1, 1], 1.0 / PRECISION_FLOOR, rtol=1e-6)

@@ -200,6 +200,14 @@ class ModeJumpNUTS(NUTS):
         return JumpState(*hmc, moved)
 
 
+#: The smallest precision of a refined Gaussian along any direction, on the fit's standardised scale
+#: (each leg's entries are its parameters standardised by their prior: unit precision is the prior's).
+#: On 20 legs × 1 min (model 3 + ``angle_delay``) one leg's curvature at five of its modes held an
+#: eigenvalue of −0.01 to −0.07 beside others near 1; dropping those modes dropped the one its chains
+#: sat in, and every jump from there was refused.
+PRECISION_FLOOR = 1.0
+
+
 def refine_blocks(blocks: JumpBlocks, z0: dict, conditional_loglik, prior_potential, max_iter: int = 300,
                   step: float = 1e-4) -> JumpBlocks | None:
     """The modes and Gaussians of ``blocks`` moved to the posterior's own; None where no leg keeps two modes.
@@ -211,10 +219,15 @@ def refine_blocks(blocks: JumpBlocks, z0: dict, conditional_loglik, prior_potent
     posterior given each leg's mode-m label: ``prior_potential(z) − Σ_j
     conditional_loglik(z)[leg_j, delays[j, m]]`` (L-BFGS in the coordinates each old Gaussian
     whitens, the other entries held at ``z0``); the likelihood is a sum over legs, so one
-    optimisation serves all legs.  Each leg's new Gaussian is the inverse of its block of the
-    curvature there (central differences of the gradient, all legs' entry c perturbed
-    together: the legs are coupled through the prior alone).  A slot whose optimum or
-    curvature is not finite keeps nothing: the leg loses that mode.
+    optimisation serves all legs.  From there a second optimisation climbs the fit's own
+    density, ``prior_potential(z) − Σ_j logsumexp_l conditional_loglik(z)[leg_j, l]``: the
+    chains sample θ with the labels summed out, and where two labels are about as likely at
+    one θ, that density's mode (where the chains sit) lies between the labels' own.  Slots
+    that climb to one mode are then one (below).  Each leg's new Gaussian is the inverse of its
+    block of the curvature there (central differences of the gradient, all legs' entry c perturbed
+    together: the legs are coupled through the prior alone), its precision's eigenvalues
+    floored at :data:`PRECISION_FLOOR`.  A slot whose optimum or curvature is not finite keeps
+    nothing: the leg loses that mode.
 
     ``conditional_loglik(z)``: (L, D) log p(y_ℓ, label | θ_ℓ) of every leg and label.
     """
@@ -225,45 +238,58 @@ def refine_blocks(blocks: JumpBlocks, z0: dict, conditional_loglik, prior_potent
     index = np.asarray(blocks.index)
     mean, chol, valid = np.array(blocks.mean, np.float64), np.array(blocks.chol, np.float64), np.array(blocks.valid)
 
-    def objective(u, labels, on, centre, scale):
+    def objective(u, labels, on, centre, scale, marginal):
         x = centre + jnp.einsum("jkl,jl->jk", scale, u.reshape(J, k))
         x = jnp.where(on[:, None], x, jnp.asarray(flat0)[index])
         z = unravel(jnp.asarray(flat0).at[index].set(x))
-        terms = conditional_loglik(z)[jnp.asarray(legs), labels]
+        by_label = conditional_loglik(z)[jnp.asarray(legs)]
+        terms = jnp.where(marginal, jax.scipy.special.logsumexp(by_label, axis=-1),
+                          jnp.take_along_axis(by_label, labels[:, None], axis=1)[:, 0])
         return prior_potential(z) - jnp.sum(jnp.where(on, terms, 0.0))
 
-    # one compilation for every slot: the slot's labels and Gaussians are arguments
+    # one compilation for every slot and stage: the slot's labels and Gaussians are arguments
     value_and_grad = jax.jit(jax.value_and_grad(objective))
     for m in range(M):
         if not valid[:, m].any():
             continue
         slot = (jnp.asarray(np.where(valid[:, m], blocks.delays[:, m], 0)), jnp.asarray(valid[:, m]),
                 jnp.asarray(mean[:, m]), jnp.asarray(chol[:, m]))
-        f0 = float(value_and_grad(jnp.zeros(J * k), *slot)[0])
+        u = np.zeros(J * k)
+        # first under each leg's label, which parts the slots; then under the fit's own density (the
+        # labels summed out) from there, to the mode of it the chains find: on 20 legs × 1 min one
+        # leg's chains sat four whitened sds from its label's mode, nearer one of the sum's
+        for marginal in (False, True):
+            stage = (*slot, jnp.asarray(marginal))
+            f0 = float(value_and_grad(jnp.asarray(u), *stage)[0])
 
-        def f(u):
-            # less the start's value: L-BFGS's test of relative reduction is otherwise met at the
-            # magnitude of a log density of thousands of samples, long before the mode
-            v, g = value_and_grad(jnp.asarray(u, jnp.float64), *slot)
-            return float(v) - f0, np.asarray(g, np.float64)
+            def f(v, stage=stage, f0=f0):
+                # less the start's value: L-BFGS's test of relative reduction is otherwise met at the
+                # magnitude of a log density of thousands of samples, long before the mode
+                val, g = value_and_grad(jnp.asarray(v, jnp.float64), *stage)
+                return float(val) - f0, np.asarray(g, np.float64)
 
-        res = optimize.minimize(f, np.zeros(J * k), jac=True, method="L-BFGS-B",
-                                options={"maxiter": max_iter, "gtol": 1e-4})
-        u = res.x.reshape(J, k)
+            res = optimize.minimize(f, u, jac=True, method="L-BFGS-B", options={"maxiter": max_iter, "gtol": 1e-4})
+            u = res.x
+        u = u.reshape(J, k)
         H = np.empty((J, k, k))
         for c in range(k):
             e = np.zeros((J, k))
             e[:, c] = step
             H[:, :, c] = (f((u + e).ravel())[1] - f((u - e).ravel())[1]).reshape(J, k) / (2.0 * step)
         for j in np.flatnonzero(valid[:, m]):
-            Hj = 0.5 * (H[j] + H[j].T)
-            w, V = np.linalg.eigh(Hj) if np.all(np.isfinite(Hj)) else (np.full(k, np.nan), None)
-            if not (np.isfinite(res.fun) and np.all(np.isfinite(u[j])) and np.all(w > 0)):
+            if not (np.isfinite(res.fun) and np.all(np.isfinite(u[j])) and np.all(np.isfinite(H[j]))):
                 valid[j, m] = False
                 continue
-            # x = mean + C u, and the curvature in u is Hj: the covariance in x is C Hj⁻¹ Cᵀ
+            # x = mean + C u, and the curvature in u is H[j]: the precision in x is C⁻ᵀ H[j] C⁻¹, its
+            # eigenvalues floored at the prior's unit precision, as the screen's are: a direction
+            # the data leave flat (its curvature a rounding error either side of 0) is no reason
+            # to lose the mode, which may be the one the chains sit in
             C = chol[j, m].copy()  # chol[j, m] is replaced below
-            cov = C @ ((V / w[None, :]) @ V.T) @ C.T
+            C_inv = np.linalg.solve(C, np.eye(k))
+            P = C_inv.T @ H[j] @ C_inv
+            w, V = np.linalg.eigh(0.5 * (P + P.T))
+            w = np.maximum(w, PRECISION_FLOOR)
+            cov = (V / w[None, :]) @ V.T
             try:
                 chol[j, m] = np.linalg.cholesky(0.5 * (cov + cov.T))
             except np.linalg.LinAlgError:
