@@ -798,3 +798,30 @@ def test_a_stimulated_trial_resting_far_from_zero_is_named(base, tmp_path):
     assert 80.0 < median < 100.0, said[0]  # a sine about 90°, its quiet samples
     _, _, warned = _read(_copy(base, tmp_path, "zeroed"))
     assert not [w for w in warned if "where no twitch acts" in w]
+
+
+def test_trials_at_different_periods_are_named_with_their_files(tmp_path):
+    """One model runs at one period: the refusal names each trial's file and period, and the
+    command that resamples them."""
+    t = np.arange(2 * N) * DT / 2
+    half = Trial.from_signals("JM", "right", 1, DT / 2, 25 * np.sin(4.4 * t), -25 * 4.4**2 * np.sin(4.4 * t),
+                              np.zeros(2 * N), time_s=t)
+    write_interchange(Cohort((_trial("TN", "left", 1, 0.0), half)), tmp_path / "data")
+    cohort = read_interchange(tmp_path / "data")
+    with pytest.raises(ValueError) as err:
+        cohort.sampling_period_s
+    assert f"TN-left trial 1 ({T1}): 10 ms, JM-right trial 1 ({J1}): 5 ms" in str(err.value)
+    assert "--resample" in str(err.value)
+
+
+def test_a_short_manifest_row_is_one_problem_not_also_an_unlisted_file(base, tmp_path):
+    data = _copy(base, tmp_path, "short")
+    rows = _rows(data / MAN)
+    rows[2] = rows[2][:3] + rows[2][3:4]  # subject, leg, trial, file: the other cells lost
+    rows[0] += ["start_s"]
+    for row in rows[1:]:
+        row += [""] if row is not rows[2] else []
+    _write_rows(data / MAN, rows)
+    _, error, _ = _read(data)
+    assert f"{MAN}, row 3: 4 fields, expected 6 as in the header" in error
+    assert "not listed" not in error, error

@@ -462,6 +462,8 @@ class _Table:
     rows: list[list[str]]
     lines: list[int]
     well_formed: bool  # every data row has as many fields as the header
+    #: the rows left out for a wrong number of fields (already reported)
+    dropped: list[list[str]] = dataclasses.field(default_factory=list)
 
 
 def _read_table(
@@ -572,10 +574,11 @@ def _read_table(
                 Problem(file, None, None, f"{len(rest)} more rows with a wrong number of fields "
                         f"(rows {rest[0][0]} to {rest[-1][0]})")
             )
+        dropped = [row for row in rows if len(row) != n_fields]
         keep = [i for i, row in enumerate(rows) if len(row) == n_fields]
         rows = [rows[i] for i in keep]
         lines = [lines[i] for i in keep]
-    return _Table(columns, header_line, rows, lines, well_formed)
+    return _Table(columns, header_line, rows, lines, well_formed, dropped if bad_rows else [])
 
 
 #: A number as the format writes it: ASCII digits, an optional sign, decimal point and exponent.
@@ -851,8 +854,10 @@ def _normalise_relative(text: str) -> str | None:
     return str(p)
 
 
-def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry], bool] | None:
-    """Manifest entries and whether the manifest has a ``sampling_period_s`` column."""
+def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry], bool, set[str]] | None:
+    """Manifest entries, whether the manifest has a ``sampling_period_s`` column, and the files
+    named in rows left out for a wrong number of fields (their problem is reported already; the
+    file is not also "not listed")."""
     path = folder / MANIFEST_NAME
     if path.exists() and not path.resolve().is_relative_to(folder.resolve()):
         problems.append(Problem(MANIFEST_NAME, None, None, "a link to a file outside the folder; copy the file into it"))
@@ -944,7 +949,8 @@ def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry],
                     bad("file", f"{file!r} does not exist")
         entries.append(_Entry(line, subject, leg, trial, file, key, file_path, period, span["start_s"], span["end_s"],
                               span_ok))
-    return entries, has_period
+    named = {_normalise_relative(c.strip()) for row in table.dropped for c in row if c.strip()}
+    return entries, has_period, {n for n in named if n}
 
 
 def _check_listing(
@@ -1042,7 +1048,7 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
     parsed = _read_manifest(folder, problems)
     if parsed is None:
         raise InterchangeError(problems, context)
-    entries, has_period = parsed
+    entries, has_period, named_in_bad_rows = parsed
     complete = all(e.subject is not None and e.leg is not None and e.trial is not None for e in entries)
     _check_listing(entries, complete, MANIFEST_NAME, problems)
 
@@ -1094,7 +1100,7 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
         rel = path.relative_to(folder).as_posix()
         if rel == MANIFEST_NAME:
             continue
-        if _file_id(path) not in listed:
+        if _file_id(path) not in listed and _composed(rel) not in {_composed(n) for n in named_in_bad_rows}:
             problems.append(Problem(rel, None, None, f"CSV file not listed in {MANIFEST_NAME}"))
 
     if problems:
