@@ -825,3 +825,23 @@ def test_a_short_manifest_row_is_one_problem_not_also_an_unlisted_file(base, tmp
     _, error, _ = _read(data)
     assert f"{MAN}, row 3: 4 fields, expected 6 as in the header" in error
     assert "not listed" not in error, error
+
+
+def test_a_spreadsheets_separator_line_is_read_past_and_a_comment_is_named(base, tmp_path):
+    """``sep=,`` above the header (a spreadsheet's note) is read past, the rows keep their line
+    numbers; a comment line above the header is one problem that says so."""
+    data = _copy(base, tmp_path, "sep_line")
+    (data / T1).write_text("sep=,\n" + (data / T1).read_text())
+    cohort, error, _ = _read(data)
+    assert error == "" and len(cohort.trials) == 3
+    text = (data / T1).read_text().splitlines()
+    text[11] = "abc" + text[11][text[11].index(","):]  # line 12: its first cell, time_s
+    (data / T1).write_text("\n".join(text) + "\n")
+    _, error, _ = _read(data)
+    assert error.endswith(f"{T1}, column 'time_s', row 12: non-numeric value 'abc'"), error
+
+    commented = _copy(base, tmp_path, "comment")
+    (commented / T1).write_text("# recorded with logger 2\n" + (commented / T1).read_text())
+    _, error, _ = _read(commented)
+    problems = [line for line in error.splitlines() if T1 in line]
+    assert len(problems) == 1 and f"{T1}, row 1: the first line, '# recorded with logger 2', is a comment?" in error

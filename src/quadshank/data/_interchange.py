@@ -495,6 +495,8 @@ def _read_table(
                     continue
                 if not row or (len(row) == 1 and not row[0].strip()):
                     continue  # blank line
+                if header is None and [c.strip().lower() for c in row] == ["sep=", ""]:
+                    continue  # a spreadsheet's note that the file is comma-separated, before the header
                 if header is None:
                     header = [c.strip() for c in row]
                     header_line = reader.line_num
@@ -517,6 +519,11 @@ def _read_table(
         return None
 
     known = tuple(required) + tuple(optional)
+    if header[0].startswith("#"):
+        problems.append(Problem(file, None, header_line, f"the first line, {','.join(header)[:60]!r}, is a comment? The "
+                                f"first line holds the column names ({', '.join(required)} ...); remove the lines "
+                                "above them"))
+        return None
     separator = next((sep for sep, label in _OTHER_SEPARATORS if len(header) == 1 and sep in header[0]), None)
     if separator is not None:
         label = dict(_OTHER_SEPARATORS)[separator]
