@@ -262,7 +262,7 @@ class Cohort:
         if not periods:
             raise ValueError("the cohort has no trials, so no sampling period")
         if periods[-1] - periods[0] > SAME_PERIOD_REL * periods[0]:
-            where = ", ".join(f"{t.key} trial {t.trial}" + (f" ({t.source})" if t.source else "")
+            where = ", ".join(f"{t.key} trial {t.trial}" + (f" ({t.source})" if t.source.lower().endswith(".csv") else "")
                               + f": {t.sampling_period_s * 1000:g} ms" for t in self.trials)
             raise ValueError(f"the trials are sampled at different periods ({where}); one model runs at one period: "
                              "`quadshank convert DATA OUT --resample PERIOD_S` puts every trial on one")
