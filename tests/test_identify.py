@@ -14,8 +14,8 @@ from quadshank.inference._identify import (
     identify_leg,
     identify_passive,
     isolated_twitches,
-    quiet_mask,
 )
+from quadshank.data._cohort import quiet_mask
 from quadshank.model._model import paper_model, passive_effects, simulate_angles
 from quadshank.data._paper import LEGS
 from quadshank.evaluation._classical_recovery import DELAY_TOLERANCE, TOLERANCES, recovery

@@ -104,6 +104,16 @@ ANGLE_LIMIT_DEG = 720.0
 MISSING_MARKERS = (-9999.0, 9999.0, -999.0, 999.0, -99999.0, 99999.0, -32768.0, 32767.0)
 
 
+def quiet_mask(stimulation: np.ndarray, quiet: int) -> np.ndarray:
+    """True where no pulse was delivered in the ``quiet`` samples up to and including k, and not
+    among the first ``quiet`` samples (the release, or a twitch from before the recording)."""
+    pulses = (np.asarray(stimulation) > 0).astype(int)
+    recent = np.convolve(pulses, np.ones(quiet + 1, dtype=int))[: len(pulses)]
+    mask = recent == 0
+    mask[:quiet] = False
+    return mask
+
+
 def _derived_by_stretch(derive, angle: np.ndarray, dt: float, exclude) -> np.ndarray:
     """``derive(angle, dt)``, run apart on each side of the excluded samples whose angle is no
     knee's (``exclude``: True on excluded samples, or None) and on those samples themselves."""

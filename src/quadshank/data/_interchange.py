@@ -114,7 +114,7 @@ from scipy.signal import savgol_filter
 
 from ..common._arrays import stretches
 from ..common._io import file_stem, temp_sibling
-from ._cohort import ANGLE_LIMIT_DEG, MAX_SAMPLING_PERIOD_S, MISSING_MARKERS, Cohort, Trial, leg_key
+from ._cohort import ANGLE_LIMIT_DEG, MAX_SAMPLING_PERIOD_S, MISSING_MARKERS, Cohort, Trial, leg_key, quiet_mask
 from ._paper import TWITCH_REACH_S
 from ._resample import resample_cohort, resample_trial
 
@@ -428,9 +428,7 @@ def _rest_plausibility(trial: Trial) -> list[str]:
     the angle's zero or convention is off.  A trial stimulated throughout has no such samples and
     is not judged."""
     reach = max(1, int(round(TWITCH_REACH_S / trial.sampling_period_s)))
-    pulses = (trial.stimulation > 0).astype(float)
-    recent = np.convolve(pulses, np.ones(reach + 1))[: pulses.size] > 0  # a pulse at this sample or `reach` before
-    quiet = ~recent & ~trial.exclude
+    quiet = quiet_mask(trial.stimulation, reach) & ~trial.exclude
     if np.count_nonzero(quiet) * trial.sampling_period_s < 1.0:
         return []
     median = float(np.median(trial.angle_deg[quiet]))

@@ -43,7 +43,7 @@ from ..common._arrays import stretches
 from ..common._io import nulls_as_nan
 from ..common._progress import progress_bar
 from ..common._results import Result
-from ..data._cohort import SAME_PERIOD_REL, Cohort, Trial
+from ..data._cohort import SAME_PERIOD_REL, Cohort, Trial, quiet_mask
 from ..data._interchange import DataWarning
 from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S, TWITCH_REACH_S, TWITCH_SAMPLES
 from ..model._likelihood import TWITCH_S, twitch_window
@@ -68,10 +68,6 @@ __all__ = [
     "models_from_summary",
     "load_identification",
 ]
-
-#: Samples after a pulse during which its twitch may still act on the shank, at the paper's 10 ms
-#: (:func:`quiet_samples` at any period).
-QUIET_AFTER_PULSE = MAX_DELAY + TWITCH_SAMPLES
 
 
 def quiet_samples(sampling_period_s: float) -> int:
@@ -202,15 +198,6 @@ def passive_model(passive: dict, sampling_period_s: float) -> Model:
 
 
 # ============================================================================ passive
-
-
-def quiet_mask(stimulation: np.ndarray, quiet: int = QUIET_AFTER_PULSE) -> np.ndarray:
-    """True where no pulse was delivered in the ``quiet`` samples up to and including k."""
-    pulses = (np.asarray(stimulation) > 0).astype(int)
-    recent = np.convolve(pulses, np.ones(quiet + 1, dtype=int))[: len(pulses)]
-    mask = recent == 0
-    mask[:quiet] = False
-    return mask
 
 
 def _passive_columns(angle, velocity, k2, gravity_offset: bool = False):
