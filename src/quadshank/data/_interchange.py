@@ -1101,11 +1101,12 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
         signals_of[i] = signals
 
     listed = {_file_id(e.path) for e in entries if e.path is not None}
+    named_in_bad_rows = {_composed(n) for n in named_in_bad_rows}
     for path in _csv_files(folder):
         rel = path.relative_to(folder).as_posix()
         if rel == MANIFEST_NAME:
             continue
-        if _file_id(path) not in listed and _composed(rel) not in {_composed(n) for n in named_in_bad_rows}:
+        if _file_id(path) not in listed and _composed(rel) not in named_in_bad_rows:
             problems.append(Problem(rel, None, None, f"CSV file not listed in {MANIFEST_NAME}"))
 
     if problems:
