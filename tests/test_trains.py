@@ -3,6 +3,7 @@ read from a stimulator's columns and fitted through a recruitment curve."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import jax.numpy as jnp
@@ -145,6 +146,66 @@ def test_the_charge_a_legs_levels_are_relative_to_is_kept_through_netcdf(train_d
     trial = Trial.from_signals("JM", "left", 1, DT, 20 * np.sin(np.arange(300) * 0.05), None,
                               np.r_[np.zeros(100), 1.0, np.zeros(199)])
     assert charge_scales(load_cohort(write_interchange(Cohort((trial,)), tmp_path / "levels"))) == {}
+
+
+def test_a_conversion_back_to_a_folder_keeps_the_charge(train_data, tmp_path):
+    """NetCDF back to a folder: the levels go to ``stimulation`` and the charge they are relative
+    to to ``charge_scale.json``, read back as it was; a cohort without one written over that folder
+    removes the file, so its levels are not given another cohort's charges."""
+    from quadshank.data import charge_scales, convert, load_cohort
+    from quadshank.data._interchange import CHARGE_SCALE_NAME
+
+    expected = charge_scales(load_cohort(train_data))
+    convert(train_data, tmp_path / "data.nc")
+    back = convert(tmp_path / "data.nc", tmp_path / "back")
+    assert "stimulation" in (back / "JM-left-trial1.csv").read_text().splitlines()[0].split(",")
+    assert json.loads((back / CHARGE_SCALE_NAME).read_text(encoding="utf-8")) == expected
+    again = load_cohort(back)
+    assert charge_scales(again) == expected
+    np.testing.assert_array_equal(again.trials[0].stimulation, load_cohort(train_data).trials[0].stimulation)
+    levels = Cohort((dataclasses.replace(again.trials[0]),))  # the same trial, no scale
+    write_interchange(levels, back, overwrite=True)
+    assert not (back / CHARGE_SCALE_NAME).exists() and charge_scales(load_cohort(back)) == {}
+
+
+@pytest.mark.parametrize("content, said", [
+    ("{not json", "not JSON text"),
+    ("[1, 2]", "must be a JSON object"),
+    ('{"TN-left": {"largest_charge": 400, "columns": ["pulse_width_us"], "unit": "µs"}}',
+     "names leg 'TN-left', which manifest.csv does not list"),
+    ('{"JM-left": {"largest_charge": -4, "columns": ["pulse_width_us"], "unit": "µs"}}',
+     "JM-left: largest_charge must be a positive number, not -4"),
+    ('{"JM-left": {"largest_charge": 4, "columns": ["width"], "unit": "µs"}}', "JM-left: columns must be"),
+    ('{"JM-left": {"largest_charge": 4, "columns": ["current_mA"], "unit": "µs"}}',
+     "JM-left: unit must be 'mA' for columns ['current_mA'], not 'µs'"),
+    ('{"JM-left": {"largest_charge": 4}}', "JM-left: must be {"),
+])
+def test_a_bad_charge_scale_file_is_named(tmp_path, content, said):
+    """A ``charge_scale.json`` that cannot be the charge of a listed leg's levels is refused,
+    named with what is wrong."""
+    from quadshank.data import InterchangeError, read_interchange
+
+    trial = Trial.from_signals("JM", "left", 1, DT, 20 * np.sin(np.arange(300) * 0.05), None,
+                              np.r_[np.zeros(100), 1.0, np.zeros(199)])
+    folder = write_interchange(Cohort((trial,)), tmp_path / "data")
+    (folder / "charge_scale.json").write_text(content, encoding="utf-8")
+    with pytest.raises(InterchangeError) as err:
+        read_interchange(folder)
+    assert "charge_scale.json" in str(err.value) and said in str(err.value), str(err.value)
+
+
+def test_a_charge_scale_file_cannot_overrule_a_stimulators_columns(train_data, tmp_path):
+    """A leg read from a stimulator's columns takes its scale from them: an entry for it is refused."""
+    import shutil
+
+    from quadshank.data import InterchangeError, read_interchange
+
+    folder = tmp_path / "data"
+    shutil.copytree(train_data, folder)
+    (folder / "charge_scale.json").write_text(
+        '{"JM-left": {"largest_charge": 4, "columns": ["pulse_width_us"], "unit": "µs"}}', encoding="utf-8")
+    with pytest.raises(InterchangeError, match="whose trials give a stimulator's columns"):
+        read_interchange(folder)
 
 
 def test_a_pulse_width_typo_and_mixed_encodings_are_named(train_data, tmp_path):

@@ -1109,13 +1109,14 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
         if _file_id(path) not in listed and _composed(rel) not in named_in_bad_rows:
             problems.append(Problem(rel, None, None, f"CSV file not listed in {MANIFEST_NAME}"))
 
+    kept_scales = _read_charge_scale_file(folder, entries, signals_of, problems)
     if problems:
         raise InterchangeError(problems, context)
     for text in notes:
         warnings.warn(text, DataWarning, stacklevel=2)
 
     relative = _relative_charges(entries, signals_of)
-    scales = _charge_scales(entries, signals_of)
+    scales = {**kept_scales, **_charge_scales(entries, signals_of)}
     trials = []
     for i, e in enumerate(entries):
         s = signals_of[i]
@@ -1259,12 +1260,72 @@ def _charge_scales(entries: Sequence[_Entry], signals_of: dict) -> dict[str, dic
 
 def charge_scales(cohort: Cohort) -> dict[str, dict]:
     """Leg -> ``{"largest_charge", "columns", "unit"}`` of the legs read from a stimulator's columns
-    (their ``stimulation`` is each pulse's charge over ``largest_charge``); empty for levels.  A
-    cohort read back from NetCDF holds it as JSON text."""
+    (their ``stimulation`` is each pulse's charge over ``largest_charge``), or whose levels a
+    folder's :data:`CHARGE_SCALE_NAME` gives it for; empty for levels.  A cohort read back from
+    NetCDF holds it as JSON text."""
     value = cohort.attrs.get(CHARGE_SCALE_ATTR)
     if isinstance(value, str):
         value = json.loads(value)
     return dict(value or {})
+
+
+#: The file beside the manifest that keeps, for legs whose trials give ``stimulation`` levels, the
+#: charge those levels are relative to (:func:`charge_scales`): what :func:`write_interchange`
+#: writes for a cohort read from a stimulator's columns, so that a conversion loses nothing.
+CHARGE_SCALE_NAME = "charge_scale.json"
+
+
+def _scale_problem(scale) -> str | None:
+    """Why ``scale`` is not one leg's ``{"largest_charge", "columns", "unit"}``, or None."""
+    if not isinstance(scale, dict) or set(scale) != {"largest_charge", "columns", "unit"}:
+        return 'must be {"largest_charge": number, "columns": [...], "unit": text}'
+    charge, columns = scale["largest_charge"], scale["columns"]
+    if isinstance(charge, bool) or not isinstance(charge, (int, float)) or not math.isfinite(charge) or charge <= 0:
+        return f"largest_charge must be a positive number, not {charge!r}"
+    if not isinstance(columns, list) or tuple(columns) not in _CHARGE_UNITS:
+        return f"columns must be {' or '.join(repr(list(k)) for k in _CHARGE_UNITS)}, not {columns!r}"
+    if scale["unit"] != _CHARGE_UNITS[tuple(columns)]:
+        return f"unit must be {_CHARGE_UNITS[tuple(columns)]!r} for columns {columns!r}, not {scale['unit']!r}"
+    return None
+
+
+def _read_charge_scale_file(folder: Path, entries: Sequence[_Entry], signals_of: dict,
+                            problems: list[Problem]) -> dict[str, dict]:
+    """The scales of :data:`CHARGE_SCALE_NAME`, where the folder has one: each for a leg the
+    manifest lists whose trials give ``stimulation`` levels (a leg read from a stimulator's
+    columns takes its scale from them)."""
+    path = folder / CHARGE_SCALE_NAME
+    if not path.is_file():
+        return {}
+    try:
+        value = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        problems.append(Problem(CHARGE_SCALE_NAME, None, None, f"not JSON text: {err}"))
+        return {}
+    if not isinstance(value, dict):
+        problems.append(Problem(CHARGE_SCALE_NAME, None, None,
+                                "must be a JSON object: leg (subject-leg) -> its largest charge, columns and unit"))
+        return {}
+    legs = {leg_key(e.subject, e.leg) for e in entries if e.subject is not None and e.leg is not None}
+    from_columns = {leg_key(entries[i].subject, entries[i].leg) for i, sig in signals_of.items()
+                    if sig.get("stimulation") is None}
+    out = {}
+    for key, scale in value.items():
+        leg = _composed(str(key))
+        if leg not in legs:
+            why = f"names leg {leg!r}, which {MANIFEST_NAME} does not list"
+        elif leg in from_columns:
+            why = (f"gives a scale for {leg}, whose trials give a stimulator's columns: their charges set its scale; "
+                   "remove the entry")
+        else:
+            why = _scale_problem(scale)
+            why = None if why is None else f"{leg}: {why}"
+        if why is None:
+            out[leg] = {"largest_charge": float(scale["largest_charge"]), "columns": list(scale["columns"]),
+                        "unit": scale["unit"]}
+        else:
+            problems.append(Problem(CHARGE_SCALE_NAME, None, None, why))
+    return out
 
 
 #: A leg's largest pulse charge this many times its next largest is named: every other pulse's level
@@ -1554,8 +1615,13 @@ def write_interchange(cohort: Cohort, folder: str | os.PathLike, *, overwrite: b
     ``{subject}-{leg}-trial{n}.csv``; velocity is written only when it was
     measured.
 
-    ``folder`` must be new or empty unless ``overwrite``; then the manifest and
-    the trial files of this cohort replace those of the same names, and nothing
+    A leg read from a stimulator's columns is written as its levels, and the
+    charge they are relative to goes to :data:`CHARGE_SCALE_NAME` beside the
+    manifest (:func:`charge_scales` of the folder read back is the cohort's).
+
+    ``folder`` must be new or empty unless ``overwrite``; then the manifest,
+    the trial files of this cohort and :data:`CHARGE_SCALE_NAME` replace those
+    of the same names (one the cohort has no scale for is removed), and nothing
     else in the folder is touched or deleted.  A CSV file already there that the
     new manifest would not list is refused (the folder would not read back):
     nothing is written.
@@ -1570,6 +1636,9 @@ def write_interchange(cohort: Cohort, folder: str | os.PathLike, *, overwrite: b
         raise NotADirectoryError(f"{folder}: exists and is not a folder")
     names = _file_names(cohort)
     problems = _check_cohort(cohort, names)
+    scales = {leg: v for leg, v in charge_scales(cohort).items() if leg in cohort.legs}
+    problems += [Problem(CHARGE_SCALE_NAME, None, None, f"{leg}: {why}") for leg, v in scales.items()
+                 if (why := _scale_problem(v)) is not None]
     if problems:
         raise InterchangeError(problems, f"cannot write {folder} as an interchange folder")
     if folder.is_dir() and any(not p.name.startswith(".") for p in folder.iterdir()):
@@ -1597,12 +1666,19 @@ def write_interchange(cohort: Cohort, folder: str | os.PathLike, *, overwrite: b
             tmp = temp_sibling(final)
             staged.append((tmp, final))
             _write_trial_csv(t, tmp)
+        if scales:
+            final = folder / CHARGE_SCALE_NAME
+            tmp = temp_sibling(final)
+            staged.append((tmp, final))
+            tmp.write_text(json.dumps(scales, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
         manifest = folder / MANIFEST_NAME
         tmp = temp_sibling(manifest)
         staged.append((tmp, manifest))
         _write_manifest(cohort, names, tmp)
         for tmp, final in staged:  # the manifest is last
             os.replace(tmp, final)
+        if not scales:  # one left by an earlier cohort would give these levels its charges
+            (folder / CHARGE_SCALE_NAME).unlink(missing_ok=True)
     except BaseException:
         for tmp, _ in staged:
             tmp.unlink(missing_ok=True)
