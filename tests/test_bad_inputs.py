@@ -683,6 +683,25 @@ def test_decimal_commas_and_upper_case_names_get_a_hint(base, tmp_path):
     assert f"{T2}, row 2: " in error and "decimal commas (0,25 for 0.25)?" in error
 
 
+def test_a_row_of_units_under_the_header_is_one_problem(base, tmp_path):
+    """A spreadsheet's units row (``s, deg, deg/s2, ...``) is named once, with its row, as units,
+    not cell by cell as non-numeric values; a row with one text cell among numbers is not units."""
+    data = _copy(base, tmp_path, "units")
+    rows = _rows(data / T1)
+    units = {"time_s": "s", "angle_deg": "deg", "acceleration_deg_s2": "deg/s2", "velocity_deg_s": "deg/s"}
+    rows.insert(1, [units.get(c, "") for c in rows[0]])
+    _write_rows(data / T1, rows)
+    _, error, _ = _read(data)
+    assert f"{T1}, row 2: holds no number ('s', 'deg', 'deg/s2'" in error and "a row of units" in error, error
+    assert "non-numeric" not in error, error
+    one = _copy(base, tmp_path, "one-cell")
+    rows = _rows(one / T1)
+    rows[1][rows[0].index("angle_deg")] = "deg"
+    _write_rows(one / T1, rows)
+    _, error, _ = _read(one)
+    assert f"{T1}, column 'angle_deg', row 2: non-numeric value 'deg'" in error and "a row of units" not in error, error
+
+
 def test_names_that_look_the_same_are_one_name_or_refused(base, tmp_path):
     """A subject typed 'Zoë' in one row and stored decomposed ('e' + '¨') in another is one subject,
     a file listed composed and stored decomposed (as some file systems write names) is found, and

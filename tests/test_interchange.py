@@ -795,6 +795,19 @@ def test_a_small_swing_in_degrees_is_not_taken_for_radians_where_the_acceleromet
         read_interchange(tmp_path / "small")
 
 
+def test_subjects_alike_but_for_case_are_named_in_a_warning(tmp_path):
+    """``TN`` and ``tn`` are two subjects to the reader, which says so once, with each one's first row."""
+    twins = Cohort((make_trial("TN", "left", 1, 0.0), make_trial("tn", "right", 1, 0.7),
+                    make_trial("tn", "right", 2, 1.3), make_trial("JM", "right", 1, 0.3)))
+    folder = write_interchange(twins, tmp_path / "twins")
+    with pytest.warns(DataWarning) as caught:
+        back = read_interchange(folder)
+    said = [str(w.message) for w in caught if "differ only in case" in str(w.message)]
+    assert said == ["manifest.csv: subjects 'TN' (row 2) and 'tn' (row 3) differ only in case and are read as 2 "
+                    "subjects; spell them alike if they are one"]
+    assert sorted({t.subject for t in back.trials}) == ["JM", "TN", "tn"]
+
+
 def test_a_subject_with_a_comma_is_read_and_named_in_a_warning(tmp_path):
     """A comma in a subject's name is valid data, but ``--legs`` (comma-separated) cannot name its
     legs: the reader says so once, with the manifest's row, and reads the trials as they are."""

@@ -583,7 +583,23 @@ def _read_table(
         keep = [i for i, row in enumerate(rows) if len(row) == n_fields]
         rows = [rows[i] for i in keep]
         lines = [lines[i] for i in keep]
+    if _units_row(rows, columns):
+        cells = ", ".join(repr(rows[0][i].strip()) for i in columns.values() if rows[0][i].strip())
+        problems.append(Problem(file, None, lines[0], f"holds no number ({cells}): a row of units under the header? "
+                                "The columns' names give their units; remove the row"))
+        rows, lines = rows[1:], lines[1:]  # its cells are not named again, column by column
     return _Table(columns, header_line, rows, lines, well_formed, dropped if bad_rows else [])
+
+
+def _units_row(rows: list[list[str]], columns: dict[str, int]) -> bool:
+    """Whether the first data row holds text (units, say) and no number in any known column,
+    where the next row holds numbers."""
+    if len(rows) < 2 or not columns:
+        return False
+    first = [rows[0][i].strip() for i in columns.values() if i < len(rows[0])]
+    second = [rows[1][i].strip() for i in columns.values() if i < len(rows[1])]
+    return (any(first) and all(parse_number(c) is None and not _NON_FINITE.fullmatch(c) for c in first)
+            and any(parse_number(c) is not None for c in second))
 
 
 #: A number as the format writes it: ASCII digits, an optional sign, decimal point and exponent.
@@ -1145,6 +1161,7 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
     cohort = Cohort(tuple(trials), attrs)
     _warn_implausible(cohort, [str(folder / e.file) for e in entries])
     _warn_unselectable_subjects(entries)
+    _warn_case_twins(entries)
     return cohort
 
 
@@ -1193,6 +1210,23 @@ def _warn_unselectable_subjects(entries: list[_Entry]) -> None:
         warnings.warn(f"{MANIFEST_NAME} row {line}: subject {subject!r} holds a comma, so its legs cannot be named "
                       "in --legs, which is comma-separated (without --legs every leg is used); rename the subject "
                       "to select its legs", DataWarning, stacklevel=3)
+
+
+def _warn_case_twins(entries: list[_Entry]) -> None:
+    """Warn where two subjects are spelled alike but for case (``TN`` and ``tn``): they are read
+    as two, each with its own place in the hierarchy (a leg is ``left`` or ``right``, exactly)."""
+    first: dict[str, int] = {}
+    for e in entries:
+        if e.subject is not None and e.subject not in first:
+            first[e.subject] = e.line
+    groups: dict[str, list[str]] = {}
+    for name in first:
+        groups.setdefault(name.casefold(), []).append(name)
+    for names in groups.values():
+        if len(names) > 1:
+            shown = " and ".join(f"{n!r} (row {first[n]})" for n in names)
+            warnings.warn(f"{MANIFEST_NAME}: subjects {shown} differ only in case and are read as {len(names)} "
+                          "subjects; spell them alike if they are one", DataWarning, stacklevel=3)
 
 
 def _warn_cut_twitch(whole: Trial, e: _Entry) -> None:
