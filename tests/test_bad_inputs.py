@@ -683,6 +683,34 @@ def test_decimal_commas_and_upper_case_names_get_a_hint(base, tmp_path):
     assert f"{T2}, row 2: " in error and "decimal commas (0,25 for 0.25)?" in error
 
 
+def test_a_dropout_left_out_may_be_empty_or_nan(base, tmp_path):
+    """A sensor's dropout on rows with exclude = 1 may be left empty or NaN: read, filled in
+    linearly between its neighbours (the model and the derivatives run through it), and the
+    trial otherwise as before; without exclude the cell is refused, with the way out."""
+    data = _copy(base, tmp_path, "dropout")
+    rows = _rows(data / T1)
+    if "exclude" not in rows[0]:
+        rows = [rows[0] + ["exclude"]] + [r + ["0"] for r in rows[1:]]
+    a, x = rows[0].index("angle_deg"), rows[0].index("exclude")
+    before = [float(r[a]) for r in rows[1:]]
+    for k, text in zip(range(50, 56), ["", "NaN", "nan", " ", "NAN", ""]):
+        rows[k][a], rows[k][x] = text, "1"
+    _write_rows(data / T1, rows)
+    cohort, error, _ = _read(data)
+    assert error == "", error
+    t = next(t for t in cohort.trials if t.source == T1)
+    got = t.angle_deg
+    line = np.interp(np.arange(49, 55), [48, 55], [before[48], before[55]])  # samples 49–54 are rows 51–56
+    np.testing.assert_allclose(got[49:55], line)
+    np.testing.assert_array_equal(np.delete(got, range(49, 55)), np.delete(before, range(49, 55)))
+    assert t.exclude[49:55].all() and np.isfinite(t.velocity_deg_s).all()
+    rows[60][a] = "NaN"  # not excluded
+    _write_rows(data / T1, rows)
+    _, error, _ = _read(data)
+    assert (f"{T1}, column 'angle_deg', row 61: non-finite value 'NaN' (NaN and infinity are not allowed; a sample "
+            "to leave out may be empty or NaN where its exclude is 1)") in error, error
+
+
 def test_a_row_of_units_under_the_header_is_one_problem(base, tmp_path):
     """A spreadsheet's units row (``s, deg, deg/s2, ...``) is named once, with its row, as units,
     not cell by cell as non-numeric values; a row with one text cell among numbers is not units."""

@@ -615,25 +615,56 @@ def parse_number(text: str) -> float | None:
     return float(text) if _NUMBER.fullmatch(text) else None
 
 
-def _parse_float_column(table: _Table, name: str, file: str, problems: list[Problem]) -> np.ndarray | None:
-    """The column as floats, or ``None`` (after reporting) when a cell is not a finite number."""
+#: Columns whose cells may be empty or NaN on a row with ``exclude`` = 1 (a sensor's dropout): the
+#: reader fills them in (:func:`_fill_missing`).
+_MAY_BE_MISSING = ("angle_deg", "acceleration_deg_s2", "velocity_deg_s")
+#: What a cell left without a value holds: nothing, or NaN.
+_MISSING = re.compile(r"(?:nan)?", re.IGNORECASE)
+
+
+def _parse_float_column(table: _Table, name: str, file: str, problems: list[Problem],
+                        excluded: np.ndarray | None = None) -> np.ndarray | None:
+    """The column as floats, or ``None`` (after reporting) when a cell is not a finite number.
+    ``excluded`` (True on rows with ``exclude`` = 1): those rows' cells may be empty or NaN, read
+    as NaN (the caller fills them in)."""
     idx = table.columns[name]
     cells = [row[idx] for row in table.rows]
     values = [parse_number(c) for c in cells]
+    if excluded is not None:
+        values = [math.nan if v is None and out and _MISSING.fullmatch(c.strip()) else v
+                  for c, v, out in zip(cells, values, excluded)]
     if None not in values:
         arr = np.array(values, dtype=float)
-        if np.isfinite(arr).all():  # an exponent can still overflow
-            return arr
+        if (np.isfinite(arr) | (np.isnan(arr) & (excluded if excluded is not None else False))).all():
+            return arr  # an exponent can still overflow
     non_numeric: list[tuple[int, str]] = []
     non_finite: list[tuple[int, str]] = []
-    for text, line, v in zip(cells, table.lines, values):
+    for k, (text, line, v) in enumerate(zip(cells, table.lines, values)):
+        if excluded is not None and excluded[k] and v is not None and math.isnan(v):
+            continue
         if v is None and not _NON_FINITE.fullmatch(text.strip()):
             non_numeric.append((line, text))
         elif v is None or not math.isfinite(v):
             non_finite.append((line, text))
-    _report_cells(problems, file, name, non_numeric, "non-numeric value {!r}")
-    _report_cells(problems, file, name, non_finite, "non-finite value {!r} (NaN and infinity are not allowed)")
+    leave_out = ("; a sample to leave out may be empty or NaN where its exclude is 1" if name in _MAY_BE_MISSING
+                 else "")
+    _report_cells(problems, file, name, non_numeric, "non-numeric value {!r}" + leave_out)
+    _report_cells(problems, file, name, non_finite,
+                  "non-finite value {!r} (NaN and infinity are not allowed" + leave_out + ")")
     return None
+
+
+def _fill_missing(values: np.ndarray) -> np.ndarray:
+    """NaN samples (cells left empty on excluded rows) filled in linearly between their finite
+    neighbours, and with the nearest finite value at either end: excluded, they are not compared
+    with the model, but the model and the derivatives run through them."""
+    missing = np.isnan(values)
+    if not missing.any() or missing.all():
+        return values
+    k = np.arange(values.size)
+    out = values.copy()
+    out[missing] = np.interp(k[missing], k[~missing], values[~missing])
+    return out
 
 
 # --------------------------------------------------------------------------- signal checks
@@ -1084,10 +1115,15 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
                             alternatives={"stimulation": _STIMULATOR})
         if table is None:
             continue
+        exclude = _parse_float_column(table, "exclude", e.file, problems) if "exclude" in table.columns else None
+        excluded = None if exclude is None else exclude == 1
         signals = {
-            name: _parse_float_column(table, name, e.file, problems) if name in table.columns else None
+            name: (exclude if name == "exclude" else _parse_float_column(
+                table, name, e.file, problems, excluded if name in _MAY_BE_MISSING else None))
+            if name in table.columns else None
             for name in _TRIAL_REQUIRED + _TRIAL_OPTIONAL
         }
+        signals.update({name: _fill_missing(signals[name]) for name in _MAY_BE_MISSING if signals[name] is not None})
         if table.well_formed:
             origin = (
                 f"in {MANIFEST_NAME} row {e.line}"
