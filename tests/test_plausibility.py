@@ -148,3 +148,21 @@ def test_float_noise_in_the_stimulation_is_named():
     (said,) = [f for f in plausibility(noisy) if "float noise" in f]
     zeros = int(np.count_nonzero(t.stimulation == 0))
     assert said.startswith(f"stimulation holds {zeros} levels above 0 and below 1e-06, the first at time_s = ")
+
+
+def test_an_angle_that_falls_after_the_pulses_asks_about_the_sign():
+    """The quadriceps lifts the shank: on the simulated cohort (with varying twitches too) no trial
+    is named, while every one whose angle and acceleration are both flipped (so that they still
+    agree with each other) is, with the number of pulses; a pendulum test has no pulses to judge."""
+    from quadshank.data._simulate import simulate_cohort
+
+    for effects in ((), ("twitch_variability",)):
+        cohort, _ = simulate_cohort(legs=("TN-left", "JM-right"), minutes=1.0, seed=2, effects=effects)
+        for t in cohort.trials:
+            assert not any("falls after the pulses" in f for f in plausibility(t)), (effects, t.key, t.trial)
+            flipped = t.replace(angle_deg=-t.angle_deg, acceleration_deg_s2=-t.acceleration_deg_s2)
+            found = [f for f in plausibility(flipped) if "falls after the pulses" in f]
+            assert len(found) == 1 and "positive in flexion" in found[0], (effects, t.key, t.trial, found)
+            n = int(found[0].split("after each of ")[1].split()[0])
+            assert n >= 8
+    assert not any("falls after the pulses" in f for f in plausibility(_trial().replace(angle_deg=-_trial().angle_deg)))

@@ -114,7 +114,8 @@ from scipy.signal import savgol_filter
 
 from ..common._arrays import stretches
 from ..common._io import file_stem, temp_sibling
-from ._cohort import ANGLE_LIMIT_DEG, MAX_SAMPLING_PERIOD_S, MISSING_MARKERS, Cohort, Trial, leg_key, quiet_mask
+from ._cohort import (ANGLE_LIMIT_DEG, MAX_SAMPLING_PERIOD_S, MISSING_MARKERS, Cohort, Trial, derive_acceleration, leg_key,
+                      quiet_mask)
 from ._paper import TWITCH_REACH_S
 from ._resample import resample_cohort, resample_trial
 
@@ -284,7 +285,7 @@ def plausibility(trial: Trial) -> list[str]:
         return glitches
     stimulated = bool(np.any(trial.stimulation > 0))
     found = glitches + _markers(trial) + _faint_pulses(trial) + _pulse_runs(trial) \
-        + (_rest_plausibility(trial) if stimulated else _pendulum_plausibility(trial))
+        + (_rest_plausibility(trial) + _twitch_direction(trial) if stimulated else _pendulum_plausibility(trial))
     checks = [("acceleration_deg_s2", 2, "deg/s²")] if trial.acceleration_measured else []
     if trial.velocity_measured:
         checks.append(("velocity_deg_s", 1, "deg/s"))
@@ -438,6 +439,43 @@ def _rest_plausibility(trial: Trial) -> list[str]:
     return [f"where no twitch acts ({np.count_nonzero(quiet)} samples) the angle's median is {median:.1f}°, where the "
             "shank hanging at rest is 0: is angle_deg zeroed with the shank hanging, positive in extension? (a "
             "flexion angle reads 90° at rest)"]
+
+
+#: Twitches that start after this many seconds without a pulse (the reach of one twitch) ...
+#: are compared: the angle's acceleration over :data:`TWITCH_LIFT_S` after the pulse against the
+#: :data:`TWITCH_BEFORE_S` before it; the quadriceps lifts the shank, so it rises.
+TWITCH_LIFT_S, TWITCH_BEFORE_S = 0.2, 0.1
+#: At least this many such pulses are needed ...
+TWITCH_ONSETS_MIN = 8
+#: ... and a mean fall of this many standard errors is named.
+TWITCH_FALL_SE = 3.0
+
+
+def _twitch_direction(trial: Trial) -> list[str]:
+    """A stimulated trial whose angle falls after its pulses: the quadriceps extends the knee, so
+    after a pulse that starts a twitch (none in the :data:`TWITCH_REACH_S` before it) the angle's
+    acceleration (derived from the angle, as the model sees it) should rise.  A fall of
+    :data:`TWITCH_FALL_SE` standard errors over :data:`TWITCH_ONSETS_MIN` pulses or more says that
+    the angle is positive in flexion, or that the muscle stimulated is a flexor."""
+    dt = trial.sampling_period_s
+    reach = max(1, int(round(TWITCH_REACH_S / dt)))
+    after, before = max(1, int(round(TWITCH_LIFT_S / dt))), max(1, int(round(TWITCH_BEFORE_S / dt)))
+    pulses = np.flatnonzero(trial.stimulation > 0)
+    gap = np.diff(pulses, prepend=-(reach + 1))
+    onsets = pulses[(gap > reach) & (pulses >= before) & (pulses + after <= trial.n_samples)]
+    onsets = [k for k in onsets if not trial.exclude[k - before:k + after].any()]
+    if len(onsets) < TWITCH_ONSETS_MIN:
+        return []
+    acc = derive_acceleration(trial.angle_deg, dt)
+    rise = np.array([acc[k:k + after].mean() - acc[k - before:k].mean() for k in onsets])
+    se = rise.std(ddof=1) / np.sqrt(rise.size)
+    if not se > 0 or rise.mean() > -TWITCH_FALL_SE * se:
+        return []
+    return [f"the angle falls after the pulses that start a twitch: its acceleration over the "
+            f"{TWITCH_LIFT_S * 1000:.0f} ms after each of {rise.size} such pulses is {-rise.mean():.3g} deg/s² below the "
+            f"{TWITCH_BEFORE_S * 1000:.0f} ms before ({-rise.mean() / se:.1f} standard errors), where the quadriceps "
+            "lifts the shank: is angle_deg positive in flexion? (positive angle = extension; the models describe an "
+            "extensor)"]
 
 
 def _warn_implausible(cohort: Cohort, labels: Sequence[str]) -> None:
