@@ -768,6 +768,17 @@ def _check_signals(
         stim = _charge(signals)  # for the radian rule below: where pulses were delivered
     elif stim is not None:
         out = np.flatnonzero((stim < 0) | (stim > 1))
+        pulses = stim[stim != 0]
+        if out.size and (pulses > 0).all() and np.mean(pulses > 1) >= 0.5:  # not a typo on one pulse
+            if np.all(pulses == pulses[0]):  # one value on every pulse, above 1: a trigger's level
+                hint = (f"every pulse is {float(pulses[0]):g}, outside [0, 1]: a trigger channel (in volts, say)? "
+                        "Write 1 for a pulse, or the level it recruits")
+            else:
+                hint = ("pulses of several sizes above 1, outside [0, 1]: " + ("levels in percent (divide by 100), or "
+                        if pulses.max() <= 100 else "") + "a stimulator's setting (a current in mA, a pulse width in "
+                        "µs)? Give a setting as the column current_mA or pulse_width_us instead of stimulation; the "
+                        "reader makes each pulse's charge a level")
+            problems.append(Problem(file, "stimulation", None, hint))
         _report_cells(
             problems, file, "stimulation", [(int(lines[i]), repr(float(stim[i]))) for i in out],
             "value {} outside [0, 1] (recruitment level of the pulse, 0 when none)",
