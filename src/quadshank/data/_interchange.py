@@ -769,7 +769,8 @@ def _check_signals(
     elif stim is not None:
         out = np.flatnonzero((stim < 0) | (stim > 1))
         pulses = stim[stim != 0]
-        if out.size and (pulses > 0).all() and np.mean(pulses > 1) >= 0.5:  # not a typo on one pulse
+        # most pulses above 1, three or more: not a typo on a pulse or two
+        if out.size and (pulses > 0).all() and np.mean(pulses > 1) >= 0.5 and np.count_nonzero(pulses > 1) >= 3:
             if np.all(pulses == pulses[0]):  # one value on every pulse, above 1: a trigger's level
                 hint = (f"every pulse is {float(pulses[0]):g}, outside [0, 1]: a trigger channel (in volts, say)? "
                         "Write 1 for a pulse, or the level it recruits")
