@@ -3,7 +3,6 @@ read from a stimulator's columns and fitted through a recruitment curve."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 
 import jax.numpy as jnp
@@ -163,7 +162,7 @@ def test_a_conversion_back_to_a_folder_keeps_the_charge(train_data, tmp_path):
     again = load_cohort(back)
     assert charge_scales(again) == expected
     np.testing.assert_array_equal(again.trials[0].stimulation, load_cohort(train_data).trials[0].stimulation)
-    levels = Cohort((dataclasses.replace(again.trials[0]),))  # the same trial, no scale
+    levels = Cohort(again.trials)  # the same trials, no scale
     write_interchange(levels, back, overwrite=True)
     assert not (back / CHARGE_SCALE_NAME).exists() and charge_scales(load_cohort(back)) == {}
 
