@@ -9,14 +9,14 @@ import pytest
 
 from pathlib import Path
 
-from quadshank.commands import Demo, PlanPrediction, Report, Reproduction
+from quadshank.commands import Check, Demo, PlanPrediction, Report, Reproduction
 from quadshank.common import SCHEMA_VERSION, Result, SchemaError
 from quadshank.evaluation import Evaluation, PosteriorEvaluation
 from quadshank.inference import FitResult, Identification, load_identification
 from quadshank.loop import Diagnosis, Discovery
 
 RESULTS = [FitResult, PosteriorEvaluation, Diagnosis, Discovery, Identification, Evaluation, Reproduction, Report, Demo,
-           PlanPrediction]
+           PlanPrediction, Check]
 SCHEMA_DOC = Path(__file__).resolve().parents[1] / "docs" / "results-schema.md"
 
 

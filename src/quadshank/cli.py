@@ -15,6 +15,7 @@ from pathlib import Path
 
 import matplotlib
 
+from .commands.check import Check, check_table, run_check
 from .commands.demo import Demo, run_demo
 from .commands.diagnose import run_diagnose
 from .commands.discover import run_discover
@@ -50,7 +51,10 @@ OUTPUT_KINDS = {
     "reproduce": {Reproduction.KIND}, "diagnose": {Diagnosis.KIND}, "discover": {Discovery.KIND},
     "compare": {PosteriorEvaluation.KIND}, "report": {Report.KIND}, "demo": {Demo.KIND}, "recovery": set(),
     "likelihood-check": set(), "simulate": set(), "convert": set(), "predict": {PlanPrediction.KIND},
+    "check": {Check.KIND},
 }
+#: Commands whose --out is optional (without it they write nothing).
+OPTIONAL_OUT = ("check",)
 #: Commands that build or load models, and so may need a user's effects (--effects-file).
 EFFECT_USERS = ("fit", "diagnose", "discover", "compare", "evaluate", "report", "predict", "recovery")
 #: Commands whose output folder is a folder of recordings.
@@ -193,6 +197,14 @@ def cmd_simulate(args) -> int:
     write_interchange(cohort, out, overwrite=True)  # the folder was checked before the work began
     write_truth(truth, out / "truth.json")
     _say(args, f"simulated {len(cohort)} trials of {len(legs)} legs -> {out}/manifest.csv (truth: {out}/truth.json)")
+    return 0
+
+
+def cmd_check(args) -> int:
+    result = run_check(args.data, args.out, identification_trial=args.trial)
+    print(check_table(result))
+    if args.out is not None:
+        _say(args, f"recordings.csv, a figure per trial and summary.json in {args.out}")
     return 0
 
 
@@ -618,6 +630,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the recordings' sampling period [ms], a whole number from 1 to 32 (default: the paper's 10)")
     s.set_defaults(func=cmd_simulate)
 
+    k = sub.add_parser("check", help="read recordings as every command does: every problem at once, or a row per "
+                                     "trial and what identify and fit can do with each leg")
+    k.add_argument("data", help="interchange folder or .nc cohort file")
+    k.add_argument("--out", default=None, help="also write recordings.csv, a figure per trial and summary.json here")
+    k.add_argument("--trial", type=int, default=1, help="the identification trial to judge (identify's --trial, default 1)")
+    k.set_defaults(func=cmd_check)
+
     c = sub.add_parser("convert", help="interchange folder <-> NetCDF file, losslessly (or resampled)")
     c.add_argument("src")
     c.add_argument("dst")
@@ -890,7 +909,7 @@ def main(argv: list[str] | None = None) -> int:
                 raise ValueError("convert: give the destination (a folder, or a file ending in .nc)")
             if Path(args.dst).suffix.lower() != ".nc":  # a folder of recordings
                 mark = prepare_output(Path(args.dst), "convert", _inputs(args), args.overwrite)
-        elif hasattr(args, "out"):
+        elif hasattr(args, "out") and not (args.command in OPTIONAL_OUT and args.out is None):
             if not (args.out or "").strip():
                 raise ValueError("--out: give the folder for the results (an empty name is the current folder)")
             mark = prepare_output(Path(args.out), args.command, _inputs(args), args.overwrite)

@@ -12,6 +12,7 @@ from ._figures import (
     plot_posterior_j_vs_horizon,
     plot_posterior_predictions,
     plot_predictions,
+    plot_recording,
     plot_signals,
     plot_twitch_dependence,
 )
@@ -51,6 +52,7 @@ from ._tables import (
 __all__ = [
     "plot_signals", "plot_twitch_dependence", "plot_predictions", "plot_j_vs_horizon", "plot_delay_scan",
     "plot_delay_angle", "plot_posterior_j_vs_horizon", "plot_posterior_predictions", "plot_plan_predictions",
+    "plot_recording",
     "plot_shrinkage", "plot_delay_posterior", "plot_leg_predictions", "write_report",
     "plot_trends", "plot_correlations", "plot_twitch_average", "plot_spectrum", "plot_loo_pit", "plot_elpd_in_time",
     "residual_figures", "predictive_checks", "ranking_markdown", "discovery_markdown",

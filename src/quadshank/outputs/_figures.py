@@ -10,7 +10,7 @@ from ..data._paper import HORIZONS_MS, TABLE_V
 
 __all__ = [
     "plot_signals", "plot_twitch_dependence", "plot_predictions", "plot_j_vs_horizon", "plot_delay_scan",
-    "plot_delay_angle", "plot_plan_predictions",
+    "plot_delay_angle", "plot_plan_predictions", "plot_recording",
 ]  # fmt: skip
 
 _MODEL_COLOURS = {"model1": "tab:blue", "model2": "tab:orange", "model3": "tab:green"}
@@ -286,6 +286,36 @@ def plot_plan_predictions(time_s, stimulation, bands: dict, label: str = "", yla
     axes[1].vlines(np.asarray(time_s)[k], 0, u[k], color="k", lw=0.8)
     axes[1].set_ylim(0, 1.05 * (1.0 if ylabel is None else max(float(u.max(initial=0.0)), 1e-12)))
     axes[1].set_ylabel("u" if ylabel is None else ylabel)
+    axes[1].set_xlabel("time [s]")
+    fig.tight_layout()
+    return fig
+
+
+def plot_recording(trial, isolated=None, summary: str = ""):
+    """A whole trial as read: the angle (the excluded stretches shaded) over the stimulation's
+    pulses at their levels, the isolated twitches the classical identification uses (``isolated``:
+    their sample indices) in red; ``summary`` and the signals the reader derived in the title."""
+    t = trial.time_s
+    fig, axes = plt.subplots(2, 1, figsize=(10, 5), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
+    axes[0].plot(t, trial.angle_deg, lw=0.7, color="tab:blue")
+    _shade_excluded(axes[0], trial, slice(0, trial.n_samples))
+    axes[0].set_ylabel("knee angle [deg]")
+    derived = [name for name, measured in (("velocity", trial.velocity_measured),
+                                           ("acceleration", trial.acceleration_measured)) if not measured]
+    note = "; ".join(x for x in (summary, f"{' and '.join(derived)} derived from the angle" if derived else "") if x)
+    axes[0].set_title(f"{trial.key}, trial {trial.trial}" + (f": {note}" if note else ""), fontsize=10)
+    u = trial.stimulation
+    k = u > 0
+    axes[1].vlines(t[k], 0, u[k], color="k", lw=0.6, label="pulse")
+    if isolated is not None and len(isolated):
+        i = np.asarray(isolated, int)
+        axes[1].vlines(t[i], 0, u[i], color="tab:red", lw=0.9, label="isolated twitch")
+    if k.any():
+        axes[1].legend(fontsize=7, loc="upper right", ncol=2)
+    if trial.exclude.any():
+        axes[0].legend(fontsize=8, loc="upper right")
+    axes[1].set_ylim(0, 1.3)
+    axes[1].set_ylabel("stimulation u")
     axes[1].set_xlabel("time [s]")
     fig.tight_layout()
     return fig

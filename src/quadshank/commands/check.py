@@ -1,0 +1,179 @@
+"""``quadshank check``: what quadshank reads in a folder (or file) of recordings, before any fit.
+
+A folder that does not read fails with every problem at once (the reader's error, naming file,
+column and row).  One that reads gets a row per trial (length, period, what is excluded, the
+pulses and how many are isolated twitches, the angle's range, which signals were measured and
+which derived) and, per leg, what ``identify`` and ``fit`` can do with it; the reader's
+plausibility warnings are kept with them.  With an output folder: ``recordings.csv``, a figure
+per trial (``recording_LEG_trialN.png``) and, last, ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import warnings
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+
+from ..common._io import atomic_write_text, save_figure
+from ..common._results import Result
+from ..data._cohort import Cohort, Trial
+from ..data._interchange import DataWarning, charge_scales, load_cohort
+from ..inference._identify import MIN_TWITCHES, isolated_twitches, twitch_epoch
+from ..outputs._figures import plot_recording
+
+__all__ = ["Check", "run_check", "check_table", "trial_row", "leg_uses", "TRIAL_COLUMNS"]
+
+#: The columns of a trial's row (``recordings.csv``, :attr:`Check.trials`).
+TRIAL_COLUMNS = (
+    "leg", "trial", "source", "seconds", "sampling_period_ms", "samples", "excluded_share", "pulses",
+    "isolated_twitches", "shortest_interval_ms", "stimulation", "angle_min_deg", "angle_max_deg",
+    "acceleration", "velocity",
+)  # fmt: skip
+
+#: What a trial's pulses are, as :func:`trial_row` names them.
+NO_PULSES, ISOLATED, TRAINS, FEW = "no pulses (a pendulum test)", "isolated twitches", "trains", "few"
+
+
+@dataclasses.dataclass
+class Check(Result):
+    """What ``quadshank check`` read: a row per trial (:data:`TRIAL_COLUMNS`), per leg what
+    ``identify`` and ``fit`` can do with it, and the reader's warnings."""
+
+    KIND: ClassVar[str] = "check"
+
+    data: str  # the folder or file read
+    sampling_period_s: float
+    identification_trial: int  # the trial ``identify`` would use (its --trial)
+    trials: list  # rows of TRIAL_COLUMNS
+    legs: dict  # leg -> {"identify": ..., "fit": ...}
+    warnings: list  # the reader's plausibility warnings, one line each
+    files: list = dataclasses.field(default_factory=list)  # written beside summary.json
+
+
+def _kind(pulses: int, isolated: int) -> str:
+    if pulses == 0:
+        return NO_PULSES
+    if isolated >= MIN_TWITCHES:
+        return ISOLATED
+    return FEW if isolated == pulses else TRAINS
+
+
+def trial_row(trial: Trial, scale: dict | None = None) -> dict:
+    """One trial's row of :data:`TRIAL_COLUMNS` plus ``pulse_kind`` (:data:`NO_PULSES`,
+    :data:`ISOLATED`, :data:`TRAINS` or :data:`FEW`).  ``scale``: the leg's charge scale
+    (:func:`~quadshank.data.charge_scales`) where its levels are charges."""
+    dt = trial.sampling_period_s
+    at = np.flatnonzero(trial.stimulation > 0)
+    isolated = isolated_twitches(trial.stimulation, twitch_epoch(dt), exclude=trial.exclude).size
+    kept = trial.angle_deg[~trial.exclude]
+    if scale:
+        stim = f"charge over the leg's largest ({scale.get('largest_charge', float('nan')):g} {scale.get('unit', '')})".strip()
+    else:
+        stim = "levels"
+    return {
+        "leg": trial.key,
+        "trial": int(trial.trial),
+        "source": Path(trial.source).name if trial.source else "",
+        "seconds": round(trial.n_samples * dt, 6),
+        "sampling_period_ms": round(dt * 1000.0, 6),
+        "samples": int(trial.n_samples),
+        "excluded_share": float(np.mean(trial.exclude)),
+        "pulses": int(at.size),
+        "isolated_twitches": int(isolated),
+        "shortest_interval_ms": round(float(np.min(np.diff(at))) * dt * 1000.0, 6) if at.size > 1 else None,
+        "stimulation": stim,
+        "angle_min_deg": round(float(np.min(kept)), 3),
+        "angle_max_deg": round(float(np.max(kept)), 3),
+        "acceleration": "measured" if trial.acceleration_measured else "derived from the angle",
+        "velocity": "measured" if trial.velocity_measured else "derived from the angle",
+        "pulse_kind": _kind(int(at.size), int(isolated)),
+    }
+
+
+def leg_uses(rows: list[dict], identification_trial: int = 1) -> dict:
+    """What ``identify`` (on ``identification_trial``) and ``fit`` (on the same trial) can do with
+    one leg, from its trials' rows (:func:`trial_row`): ``{"identify": ..., "fit": ...}``."""
+    by_trial = {r["trial"]: r for r in rows}
+    passive = [r["trial"] for r in rows if r["pulses"] == 0]
+    row = by_trial.get(identification_trial)
+    if row is None:
+        text = f"no trial {identification_trial} (choose one of {', '.join(map(str, sorted(by_trial)))})"
+        return {"identify": text, "fit": text}
+    also = (f"; the passive system from trial(s) {', '.join(map(str, passive))} (no pulses)"
+            if passive and row["pulses"] else "")
+    if row["pulses"] == 0:
+        identify = "the passive system only (no pulses: a pendulum test)"
+        fit = "--model passive (no pulses: a model with a muscle would learn its muscle from its prior alone)"
+    elif row["isolated_twitches"] >= MIN_TWITCHES:
+        identify = f"models 1-3 ({row['isolated_twitches']} isolated twitches){also}"
+        fit = "any model"
+    else:
+        identify = (f"no: {row['isolated_twitches']} isolated twitches of the {MIN_TWITCHES} needed "
+                    "(`fit` compares every sample, trains too)")
+        fit = "any model"
+    return {"identify": identify, "fit": fit}
+
+
+def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
+    """Read ``data`` (a folder of recordings or a ``.nc`` file) as every command does and say what
+    was read (:class:`Check`); the reader's warnings are returned and also issued again.  ``data``
+    may be a :class:`~quadshank.data.Cohort` in memory too.  ``out``: where to write
+    ``recordings.csv``, a figure per trial and ``summary.json`` (None: nothing written)."""
+    caught = []
+    if isinstance(data, Cohort):
+        cohort, data = data, "a cohort in memory"
+    else:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", DataWarning)
+            cohort = load_cohort(data)
+    said = []
+    for w in caught:
+        if issubclass(w.category, DataWarning):
+            said.append(str(w.message))
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    scales = charge_scales(cohort)
+    rows = [trial_row(t, scales.get(t.key)) for t in cohort]
+    legs = {leg: leg_uses([r for r in rows if r["leg"] == leg], identification_trial) for leg in cohort.legs}
+    result = Check(data=str(data), sampling_period_s=float(cohort.sampling_period_s),
+                   identification_trial=int(identification_trial), trials=rows, legs=legs, warnings=said)
+    if out is not None:
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow([*TRIAL_COLUMNS, "pulse_kind"])
+        for r in rows:
+            w.writerow(["" if r[c] is None else r[c] for c in (*TRIAL_COLUMNS, "pulse_kind")])
+        atomic_write_text(out / "recordings.csv", buf.getvalue())
+        files = ["recordings.csv"]
+        for t, r in zip(cohort, rows):
+            name = f"recording_{t.key}_trial{t.trial}.png"
+            isolated = isolated_twitches(t.stimulation, twitch_epoch(t.sampling_period_s), exclude=t.exclude)
+            said = f"{r['pulses']} pulses, {r['isolated_twitches']} isolated twitches" if r["pulses"] else NO_PULSES
+            save_figure(plot_recording(t, isolated, said), out / name)
+            files.append(name)
+        result.files = files
+        result.write(out)
+    return result
+
+
+def check_table(result: Check) -> str:
+    """The rows as a plain-text table for the console, then each leg's uses."""
+    head = ("leg", "trial", "s", "ms", "excluded", "pulses", "isolated", "angle [deg]", "acceleration")
+    body = [
+        (r["leg"], str(r["trial"]), f"{r['seconds']:.1f}", f"{r['sampling_period_ms']:g}",
+         f"{100 * r['excluded_share']:.1f} %", str(r["pulses"]), str(r["isolated_twitches"]),
+         f"{r['angle_min_deg']:.1f} to {r['angle_max_deg']:.1f}",
+         "measured" if r["acceleration"] == "measured" else "derived")
+        for r in result.trials
+    ]
+    widths = [max(len(x) for x in col) for col in zip(head, *body)]
+    lines = ["  ".join(x.ljust(w) for x, w in zip(line, widths)).rstrip() for line in (head, *body)]
+    for leg, uses in result.legs.items():
+        lines.append(f"{leg}: identify (trial {result.identification_trial}): {uses['identify']}; fit: {uses['fit']}")
+    return "\n".join(lines)

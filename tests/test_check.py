@@ -1,0 +1,165 @@
+"""`quadshank check`: what the reader makes of a folder of recordings, before any fit."""
+
+import contextlib
+import csv
+import io
+import json
+
+import numpy as np
+import pytest
+
+from quadshank.cli import main
+from quadshank.commands import Check, run_check
+from quadshank.data._interchange import DataWarning, write_interchange
+from quadshank.data._simulate import simulate_cohort
+
+N = 3000  # samples of a trial: 0.5 min at 10 ms
+EXCLUDED = 50  # the release of the pendulum test, left out
+
+
+def _rows(path):
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    return rows[0], rows[1:]
+
+
+def _write(path, head, body):
+    with open(path, "w", newline="") as f:
+        csv.writer(f).writerows([head, *body])
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    """Three legs, two trials each, as a lab's folder might hold them: TN-left's trial 2 a pendulum
+    test (no pulses) whose release is excluded, JM-left's trial 1 without an accelerometer, and
+    OT-left's trial 1 trains of 4 pulses 30 ms apart (no isolated twitch)."""
+    root = tmp_path_factory.mktemp("check") / "data"
+    cohort, _ = simulate_cohort(legs=["TN-left", "JM-left", "OT-left"], minutes=N / 6000, seed=1, trials=(1, 2))
+    write_interchange(cohort, root)
+
+    head, body = _rows(root / "TN-left-trial2.csv")
+    si = head.index("stimulation")
+    head.append("exclude")
+    for i, r in enumerate(body):
+        r[si] = "0"
+        r.append("1" if i < EXCLUDED else "0")
+    _write(root / "TN-left-trial2.csv", head, body)
+
+    head, body = _rows(root / "JM-left-trial1.csv")
+    ai = head.index("acceleration_deg_s2")
+    _write(root / "JM-left-trial1.csv", [c for j, c in enumerate(head) if j != ai],
+           [[c for j, c in enumerate(r) if j != ai] for r in body])
+
+    head, body = _rows(root / "OT-left-trial1.csv")
+    si = head.index("stimulation")
+    for i, r in enumerate(body):
+        r[si] = "0.6" if i >= 100 and i % 100 in (0, 3, 6, 9) else "0"
+    _write(root / "OT-left-trial1.csv", head, body)
+    return root
+
+
+def test_each_trial_is_summarised_from_its_file(folder, tmp_path):
+    result = run_check(folder, tmp_path / "out")
+    rows = {(r["leg"], r["trial"]): r for r in result.trials}
+    assert list(rows) == [(leg, t) for leg in ("TN-left", "JM-left", "OT-left") for t in (1, 2)]
+    for (leg, t), r in rows.items():
+        head, body = _rows(folder / f"{leg}-trial{t}.csv")
+        values = np.array([[float(c) for c in row] for row in body])
+        col = {name: values[:, j] for j, name in enumerate(head)}
+        keep = col["exclude"] == 0 if "exclude" in col else np.ones(len(body), bool)
+        assert r["samples"] == N and r["seconds"] == pytest.approx(30.0) and r["sampling_period_ms"] == pytest.approx(10.0)
+        assert r["pulses"] == int(np.count_nonzero(col["stimulation"]))
+        assert r["excluded_share"] == pytest.approx(np.mean(~keep))
+        assert r["angle_min_deg"] == pytest.approx(col["angle_deg"][keep].min(), abs=1e-3)
+        assert r["angle_max_deg"] == pytest.approx(col["angle_deg"][keep].max(), abs=1e-3)
+        assert r["acceleration"] == ("measured" if "acceleration_deg_s2" in col else "derived from the angle")
+        assert r["velocity"] == "derived from the angle" and r["stimulation"] == "levels"
+        assert r["source"] == f"{leg}-trial{t}.csv"
+
+    pendulum, trains = rows[("TN-left", 2)], rows[("OT-left", 1)]
+    assert pendulum["pulses"] == 0 and pendulum["pulse_kind"] == "no pulses (a pendulum test)"
+    assert pendulum["excluded_share"] == pytest.approx(EXCLUDED / N) and pendulum["shortest_interval_ms"] is None
+    assert trains["pulse_kind"] == "trains" and trains["isolated_twitches"] == 0
+    assert trains["shortest_interval_ms"] == pytest.approx(30.0)
+    # the simulator's random pulses leave isolated twitches in every other trial
+    assert all(r["pulse_kind"] == "isolated twitches" and r["isolated_twitches"] >= 8 for k, r in rows.items()
+               if k not in {("TN-left", 2), ("OT-left", 1)})
+
+
+def test_what_identify_and_fit_can_do_with_each_leg(folder):
+    first = run_check(folder).legs
+    assert first["TN-left"]["identify"].startswith("models 1-3 (")
+    assert "passive system from trial(s) 2 (no pulses)" in first["TN-left"]["identify"]
+    assert first["OT-left"]["identify"].startswith("no: 0 isolated twitches of the 8 needed")
+    assert first["OT-left"]["fit"] == "any model"
+    second = run_check(folder, identification_trial=2).legs
+    assert second["TN-left"]["identify"].startswith("the passive system only")
+    assert second["TN-left"]["fit"].startswith("--model passive")
+    third = run_check(folder, identification_trial=3).legs
+    assert third["JM-left"]["identify"].startswith("no trial 3")
+
+
+def test_the_output_folder_holds_the_table_a_figure_per_trial_and_the_summary(folder, tmp_path):
+    out = tmp_path / "out"
+    result = run_check(folder, out)
+    head, body = _rows(out / "recordings.csv")
+    assert len(body) == 6 and head[:3] == ["leg", "trial", "source"]
+    assert [r[:2] for r in body] == [[r["leg"], str(r["trial"])] for r in result.trials]
+    assert [int(r[head.index("pulses")]) for r in body] == [r["pulses"] for r in result.trials]
+    figures = [f for f in result.files if f.endswith(".png")]
+    assert len(figures) == 6 and "recording_TN-left_trial2.png" in figures
+    assert all((out / f).stat().st_size > 10_000 for f in figures)
+    back = Check.read(out)
+    assert back.to_json() == json.loads(json.dumps(result.to_json()))
+
+
+def test_the_readers_warnings_are_kept_and_said_again(folder, tmp_path):
+    """Two subjects that differ only in case draw the reader's warning; check keeps it."""
+    data = tmp_path / "data"
+    data.mkdir()
+    for p in folder.iterdir():
+        (data / p.name).write_bytes(p.read_bytes())
+    manifest = (data / "manifest.csv").read_text().replace("\nJM,", "\ntn,")
+    (data / "manifest.csv").write_text(manifest)
+    with pytest.warns(DataWarning, match="differ only in case"):
+        result = run_check(data)
+    assert any("differ only in case" in w for w in result.warnings)
+    assert "tn-left" in result.legs
+
+
+def test_on_the_command_line(folder, tmp_path, capsys):
+    assert main(["check", str(folder)]) == 0
+    said = capsys.readouterr().out
+    for leg in ("TN-left", "JM-left", "OT-left"):
+        assert f"{leg}: identify (trial 1):" in said
+    assert not (tmp_path / "out").exists()
+    assert main(["--quiet", "check", str(folder), "--out", str(tmp_path / "out")]) == 0
+    assert (tmp_path / "out" / "summary.json").is_file()
+
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for p in folder.iterdir():
+        (bad / p.name).write_bytes(p.read_bytes())
+    head, body = _rows(bad / "JM-left-trial2.csv")
+    body[3][head.index("angle_deg")] = "abc"
+    _write(bad / "JM-left-trial2.csv", head, body)
+    with contextlib.redirect_stderr(io.StringIO()) as err:
+        assert main(["check", str(bad)]) == 2
+    assert "JM-left-trial2.csv, column 'angle_deg', row 5" in err.getvalue()
+
+
+def test_a_leg_read_from_a_stimulators_columns_says_its_scale(folder, tmp_path):
+    data = tmp_path / "data"
+    data.mkdir()
+    for p in folder.iterdir():
+        (data / p.name).write_bytes(p.read_bytes())
+    for t in (1, 2):
+        head, body = _rows(data / f"JM-left-trial{t}.csv")
+        si = head.index("stimulation")
+        head[si] = "pulse_width_us"
+        for r in body:
+            r[si] = repr(400.0 * float(r[si]))
+        _write(data / f"JM-left-trial{t}.csv", head, body)
+    rows = {(r["leg"], r["trial"]): r for r in run_check(data).trials}
+    assert rows[("JM-left", 1)]["stimulation"] == "charge over the leg's largest (400 µs)"
+    assert rows[("TN-left", 1)]["stimulation"] == "levels"
