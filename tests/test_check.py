@@ -163,3 +163,12 @@ def test_a_leg_read_from_a_stimulators_columns_says_its_scale(folder, tmp_path):
     rows = {(r["leg"], r["trial"]): r for r in run_check(data).trials}
     assert rows[("JM-left", 1)]["stimulation"] == "charge over the leg's largest (400 µs)"
     assert rows[("TN-left", 1)]["stimulation"] == "levels"
+
+
+def test_a_period_too_short_for_the_delays_considered_is_said():
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.1, seed=1, trials=(1,), sampling_period_s=0.005)
+    with pytest.warns(DataWarning, match="delays considered reach 10 samples = 50 ms"):
+        result = run_check(cohort)
+    assert result.data == "a cohort in memory" and result.sampling_period_s == pytest.approx(0.005)
+    assert any("resample" in w for w in result.warnings)
+    assert result.trials[0]["sampling_period_ms"] == pytest.approx(5.0)

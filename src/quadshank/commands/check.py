@@ -23,7 +23,7 @@ from ..common._io import atomic_write_text, save_figure
 from ..common._results import Result
 from ..data._cohort import Cohort, Trial
 from ..data._interchange import DataWarning, charge_scales, load_cohort
-from ..inference._identify import MIN_TWITCHES, isolated_twitches, twitch_epoch
+from ..inference._identify import MIN_TWITCHES, check_delay_range, isolated_twitches, twitch_epoch
 from ..outputs._figures import plot_recording
 
 __all__ = ["Check", "run_check", "check_table", "trial_row", "leg_uses", "TRIAL_COLUMNS"]
@@ -121,16 +121,17 @@ def leg_uses(rows: list[dict], identification_trial: int = 1) -> dict:
 
 def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
     """Read ``data`` (a folder of recordings or a ``.nc`` file) as every command does and say what
-    was read (:class:`Check`); the reader's warnings are returned and also issued again.  ``data``
+    was read (:class:`Check`); the reader's warnings (and a sampling period too short for the
+    delays considered) are returned and also issued again.  ``data``
     may be a :class:`~quadshank.data.Cohort` in memory too.  ``out``: where to write
     ``recordings.csv``, a figure per trial and ``summary.json`` (None: nothing written)."""
-    caught = []
-    if isinstance(data, Cohort):
-        cohort, data = data, "a cohort in memory"
-    else:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", DataWarning)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DataWarning)
+        if isinstance(data, Cohort):
+            cohort, data = data, "a cohort in memory"
+        else:
             cohort = load_cohort(data)
+        check_delay_range(cohort.sampling_period_s)  # what fit and identify would warn of at this period
     said = []
     for w in caught:
         if issubclass(w.category, DataWarning):
