@@ -166,3 +166,34 @@ def test_an_angle_that_falls_after_the_pulses_asks_about_the_sign():
             n = int(found[0].split("after each of ")[1].split()[0])
             assert n >= 8
     assert not any("falls after the pulses" in f for f in plausibility(_trial().replace(angle_deg=-_trial().angle_deg)))
+
+
+def test_pulses_that_leave_the_angle_unchanged_are_named():
+    """A twitch moves the shank: an angle that reads exactly the same for 250 ms after a pulse
+    (a stuck or saturated sensor) is named where 3 pulses or more, and a fifth of them, do so;
+    an angle quantised to 0.1° still moves after every pulse, and an excluded stretch is not judged."""
+    from quadshank.data._simulate import simulate_cohort
+
+    cohort, _ = simulate_cohort(legs=("TN-left",), minutes=1.0, seed=2, trials=(1,))
+    t = cohort.trials[0]
+    words = "exactly unchanged"
+    assert not any(words in f for f in plausibility(t))
+    assert not any(words in f for f in plausibility(t.replace(angle_deg=np.round(t.angle_deg, 1))))
+    stuck = t.angle_deg.copy()
+    a, b = 2000, 5000  # 20 s to 50 s the sensor holds one reading
+    stuck[a:b] = stuck[a]
+    pulses = np.flatnonzero(t.stimulation > 0)
+    inside = int(np.count_nonzero((pulses >= a) & (pulses + 25 < b)))
+    assert inside >= 10
+    (said,) = [f for f in plausibility(t.replace(angle_deg=stuck)) if words in f]
+    assert said.startswith(f"{inside} of {pulses.size} pulses leave angle_deg exactly unchanged for 250 ms")
+    first = pulses[(pulses >= a) & (pulses + 25 < b)][0]
+    assert f"(the first at {t.time_s[first]:.3f} s)" in said and "exclude = 1" in said
+    excluded = np.zeros(t.n_samples, bool)
+    excluded[a:b] = True
+    assert not any(words in f for f in plausibility(t.replace(angle_deg=stuck, exclude=excluded)))
+    few = t.angle_deg.copy()
+    two = pulses[(pulses > 200) & (np.diff(pulses, append=10**9) > 60)][:2]
+    for k in two:
+        few[k:k + 26] = few[k]
+    assert not any(words in f for f in plausibility(t.replace(angle_deg=few)))

@@ -285,7 +285,8 @@ def plausibility(trial: Trial) -> list[str]:
         return glitches
     stimulated = bool(np.any(trial.stimulation > 0))
     found = glitches + _markers(trial) + _faint_pulses(trial) + _pulse_runs(trial) \
-        + (_rest_plausibility(trial) + _twitch_direction(trial) if stimulated else _pendulum_plausibility(trial))
+        + (_rest_plausibility(trial) + _twitch_direction(trial) + _unmoved_pulses(trial) if stimulated
+           else _pendulum_plausibility(trial))
     checks = [("acceleration_deg_s2", 2, "deg/s²")] if trial.acceleration_measured else []
     if trial.velocity_measured:
         checks.append(("velocity_deg_s", 1, "deg/s"))
@@ -476,6 +477,29 @@ def _twitch_direction(trial: Trial) -> list[str]:
             f"{TWITCH_BEFORE_S * 1000:.0f} ms before ({-rise.mean() / se:.1f} standard errors), where the quadriceps "
             "lifts the shank: is angle_deg positive in flexion? (positive angle = extension; the models describe an "
             "extensor)"]
+
+
+#: A pulse is followed by a twitch: the angle over this many seconds after it should change ...
+UNMOVED_S = 0.25
+#: ... and where it stays exactly the same after this many pulses or more, and this share of them, that is named.
+UNMOVED_MIN, UNMOVED_SHARE = 3, 0.2
+
+
+def _unmoved_pulses(trial: Trial) -> list[str]:
+    """Pulses after which the angle does not change at all: a twitch moves the shank, so an
+    angle that reads exactly the same for :data:`UNMOVED_S` after a pulse (none of those samples
+    excluded) was not measuring, or the pulse recruited nothing or was not delivered."""
+    n = max(1, int(round(UNMOVED_S / trial.sampling_period_s)))
+    pulses = np.flatnonzero(trial.stimulation > 0)
+    pulses = pulses[pulses + n < trial.n_samples]
+    pulses = [k for k in pulses if not trial.exclude[k:k + n + 1].any()]
+    flat = [k for k in pulses if np.ptp(trial.angle_deg[k:k + n + 1]) == 0]
+    if len(flat) < UNMOVED_MIN or len(flat) < UNMOVED_SHARE * len(pulses):
+        return []
+    return [f"{len(flat)} of {len(pulses)} pulses leave angle_deg exactly unchanged for {UNMOVED_S * 1000:.0f} ms after "
+            f"them (the first at {float(trial.time_s[flat[0]]):.3f} s), where a twitch moves the shank: was the sensor "
+            "stuck or saturated there, the pulse too weak to recruit, or not delivered? Leave such stretches out "
+            "with exclude = 1"]
 
 
 def _warn_implausible(cohort: Cohort, labels: Sequence[str]) -> None:
