@@ -10,7 +10,7 @@ import pytest
 
 from quadshank.cli import main
 from quadshank.commands import Check, run_check
-from quadshank.data._interchange import DataWarning, write_interchange
+from quadshank.data._interchange import DataWarning, convert, write_interchange
 from quadshank.data._simulate import simulate_cohort
 
 N = 3000  # samples of a trial: 0.5 min at 10 ms
@@ -160,9 +160,18 @@ def test_a_leg_read_from_a_stimulators_columns_says_its_scale(folder, tmp_path):
         for r in body:
             r[si] = repr(400.0 * float(r[si]))
         _write(data / f"JM-left-trial{t}.csv", head, body)
-    rows = {(r["leg"], r["trial"]): r for r in run_check(data).trials}
+    result = run_check(data)
+    rows = {(r["leg"], r["trial"]): r for r in result.trials}
     assert rows[("JM-left", 1)]["stimulation"] == "charge over the leg's largest (400 µs)"
     assert rows[("TN-left", 1)]["stimulation"] == "levels"
+    assert "--add-effect recruitment_sigmoid" in result.legs["JM-left"]["fit"]
+    assert "recruitment" not in result.legs["TN-left"]["fit"]
+
+
+def test_a_cohort_file_reads_as_its_folder(folder, tmp_path):
+    nc = convert(folder, tmp_path / "cohort.nc")
+    from_file, from_folder = run_check(nc), run_check(folder)
+    assert from_file.trials == from_folder.trials and from_file.legs == from_folder.legs
 
 
 def test_a_period_too_short_for_the_delays_considered_is_said():

@@ -109,13 +109,15 @@ def leg_uses(rows: list[dict], identification_trial: int = 1) -> dict:
     if row["pulses"] == 0:
         identify = "the passive system only (no pulses: a pendulum test)"
         fit = "--model passive (no pulses: a model with a muscle would learn its muscle from its prior alone)"
-    elif row["isolated_twitches"] >= MIN_TWITCHES:
-        identify = f"models 1-3 ({row['isolated_twitches']} isolated twitches){also}"
-        fit = "any model"
     else:
-        identify = (f"no: {row['isolated_twitches']} isolated twitches of the {MIN_TWITCHES} needed "
-                    "(`fit` compares every sample, trains too)")
+        if row["isolated_twitches"] >= MIN_TWITCHES:
+            identify = f"models 1-3 ({row['isolated_twitches']} isolated twitches){also}"
+        else:
+            identify = (f"no: {row['isolated_twitches']} isolated twitches of the {MIN_TWITCHES} needed "
+                        "(`fit` compares every sample, trains too)")
         fit = "any model"
+        if row["stimulation"] != "levels":  # charges, which the muscle does not follow linearly
+            fit += "; the levels are charges: add the recruitment curve (--add-effect recruitment_sigmoid)"
     return {"identify": identify, "fit": fit}
 
 
