@@ -72,7 +72,8 @@ def trial_row(trial: Trial, scale: dict | None = None) -> dict:
     isolated = isolated_twitches(trial.stimulation, twitch_epoch(dt), exclude=trial.exclude).size
     kept = trial.angle_deg[~trial.exclude]
     if scale:
-        stim = f"charge over the leg's largest ({scale.get('largest_charge', float('nan')):g} {scale.get('unit', '')})".strip()
+        largest = f"{scale.get('largest_charge', float('nan')):g} {scale.get('unit', '')}".strip()
+        stim = f"charge over the leg's largest ({largest})"
     else:
         stim = "levels"
     return {
@@ -122,11 +123,11 @@ def leg_uses(rows: list[dict], identification_trial: int = 1) -> dict:
 
 
 def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
-    """Read ``data`` (a folder of recordings or a ``.nc`` file) as every command does and say what
-    was read (:class:`Check`); the reader's warnings (and a sampling period too short for the
-    delays considered) are returned and also issued again.  ``data``
-    may be a :class:`~quadshank.data.Cohort` in memory too.  ``out``: where to write
-    ``recordings.csv``, a figure per trial and ``summary.json`` (None: nothing written)."""
+    """Read ``data`` (a folder of recordings or a ``.nc`` file; or a :class:`~quadshank.data.Cohort`
+    in memory) as every command does and say what was read (:class:`Check`); the reader's warnings
+    (and a sampling period too short for the delays considered) are returned and issued again.
+    ``out``: where to write ``recordings.csv``, a figure per trial and ``summary.json`` (None:
+    nothing written)."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", DataWarning)
         if isinstance(data, Cohort):
@@ -157,8 +158,8 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
         for t, r in zip(cohort, rows):
             name = f"recording_{t.key}_trial{t.trial}.png"
             isolated = isolated_twitches(t.stimulation, twitch_epoch(t.sampling_period_s), exclude=t.exclude)
-            said = f"{r['pulses']} pulses, {r['isolated_twitches']} isolated twitches" if r["pulses"] else NO_PULSES
-            save_figure(plot_recording(t, isolated, said), out / name)
+            title = f"{r['pulses']} pulses, {r['isolated_twitches']} isolated twitches" if r["pulses"] else NO_PULSES
+            save_figure(plot_recording(t, isolated, title), out / name)
             files.append(name)
         result.files = files
         result.write(out)

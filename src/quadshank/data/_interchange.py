@@ -488,7 +488,8 @@ UNMOVED_MIN, UNMOVED_SHARE = 3, 0.2
 def _unmoved_pulses(trial: Trial) -> list[str]:
     """Pulses after which the angle does not change at all: a twitch moves the shank, so an
     angle that reads exactly the same for :data:`UNMOVED_S` after a pulse (none of those samples
-    excluded) was not measuring, or the pulse recruited nothing or was not delivered."""
+    excluded) was not measuring (or the knee was held at a stop), or the pulse recruited nothing or
+    was not delivered."""
     n = max(1, int(round(UNMOVED_S / trial.sampling_period_s)))
     pulses = np.flatnonzero(trial.stimulation > 0)
     pulses = pulses[pulses + n < trial.n_samples]
@@ -498,8 +499,8 @@ def _unmoved_pulses(trial: Trial) -> list[str]:
         return []
     return [f"{len(flat)} of {len(pulses)} pulses leave angle_deg exactly unchanged for {UNMOVED_S * 1000:.0f} ms after "
             f"them (the first at {float(trial.time_s[flat[0]]):.3f} s), where a twitch moves the shank: was the sensor "
-            "stuck or saturated there, the pulse too weak to recruit, or not delivered? Leave such stretches out "
-            "with exclude = 1"]
+            "stuck or saturated there, the knee held at the end of its range, the pulse too weak to recruit, or not "
+            "delivered? Leave such stretches out with exclude = 1"]
 
 
 def _warn_implausible(cohort: Cohort, labels: Sequence[str]) -> None:
