@@ -63,13 +63,19 @@ def _kind(pulses: int, isolated: int) -> str:
     return FEW if isolated == pulses else TRAINS
 
 
-def trial_row(trial: Trial, scale: dict | None = None) -> dict:
+def _isolated(trial: Trial) -> np.ndarray:
+    """The trial's isolated twitches as the classical identification finds them (sample indices)."""
+    return isolated_twitches(trial.stimulation, twitch_epoch(trial.sampling_period_s), exclude=trial.exclude)
+
+
+def trial_row(trial: Trial, scale: dict | None = None, isolated: np.ndarray | None = None) -> dict:
     """One trial's row of :data:`TRIAL_COLUMNS` plus ``pulse_kind`` (:data:`NO_PULSES`,
     :data:`ISOLATED`, :data:`TRAINS` or :data:`FEW`).  ``scale``: the leg's charge scale
-    (:func:`~quadshank.data.charge_scales`) where its levels are charges."""
+    (:func:`~quadshank.data.charge_scales`) where its levels are charges; ``isolated``: the
+    trial's isolated twitches where already found."""
     dt = trial.sampling_period_s
     at = np.flatnonzero(trial.stimulation > 0)
-    isolated = isolated_twitches(trial.stimulation, twitch_epoch(dt), exclude=trial.exclude).size
+    isolated = int((_isolated(trial) if isolated is None else isolated).size)
     kept = trial.angle_deg[~trial.exclude]
     if scale:
         largest = f"{scale.get('largest_charge', float('nan')):g} {scale.get('unit', '')}".strip()
@@ -85,14 +91,14 @@ def trial_row(trial: Trial, scale: dict | None = None) -> dict:
         "samples": int(trial.n_samples),
         "excluded_share": float(np.mean(trial.exclude)),
         "pulses": int(at.size),
-        "isolated_twitches": int(isolated),
+        "isolated_twitches": isolated,
         "shortest_interval_ms": round(float(np.min(np.diff(at))) * dt * 1000.0, 6) if at.size > 1 else None,
         "stimulation": stim,
         "angle_min_deg": round(float(np.min(kept)), 3),
         "angle_max_deg": round(float(np.max(kept)), 3),
         "acceleration": "measured" if trial.acceleration_measured else "derived from the angle",
         "velocity": "measured" if trial.velocity_measured else "derived from the angle",
-        "pulse_kind": _kind(int(at.size), int(isolated)),
+        "pulse_kind": _kind(int(at.size), isolated),
     }
 
 
@@ -141,7 +147,8 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
             said.append(str(w.message))
         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     scales = charge_scales(cohort)
-    rows = [trial_row(t, scales.get(t.key)) for t in cohort]
+    isolated = [_isolated(t) for t in cohort]
+    rows = [trial_row(t, scales.get(t.key), i) for t, i in zip(cohort, isolated)]
     legs = {leg: leg_uses([r for r in rows if r["leg"] == leg], identification_trial) for leg in cohort.legs}
     result = Check(data=str(data), sampling_period_s=float(cohort.sampling_period_s),
                    identification_trial=int(identification_trial), trials=rows, legs=legs, warnings=said)
@@ -155,11 +162,10 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
             w.writerow(["" if r[c] is None else r[c] for c in (*TRIAL_COLUMNS, "pulse_kind")])
         atomic_write_text(out / "recordings.csv", buf.getvalue())
         files = ["recordings.csv"]
-        for t, r in zip(cohort, rows):
+        for t, r, i in zip(cohort, rows, isolated):
             name = f"recording_{t.key}_trial{t.trial}.png"
-            isolated = isolated_twitches(t.stimulation, twitch_epoch(t.sampling_period_s), exclude=t.exclude)
             title = f"{r['pulses']} pulses, {r['isolated_twitches']} isolated twitches" if r["pulses"] else NO_PULSES
-            save_figure(plot_recording(t, isolated, title), out / name)
+            save_figure(plot_recording(t, i, title), out / name)
             files.append(name)
         result.files = files
         result.write(out)
