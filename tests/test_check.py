@@ -106,6 +106,7 @@ def test_the_output_folder_holds_the_table_a_figure_per_trial_and_the_summary(fo
     assert len(body) == 6 and head[:3] == ["leg", "trial", "source"]
     assert [r[:2] for r in body] == [[r["leg"], str(r["trial"])] for r in result.trials]
     assert [int(r[head.index("pulses")]) for r in body] == [r["pulses"] for r in result.trials]
+    assert "| TN-left | 2 |" in (out / "recordings.md").read_text()
     figures = [f for f in result.files if f.endswith(".png")]
     assert len(figures) == 6 and "recording_TN-left_trial2.png" in figures
     assert all((out / f).stat().st_size > 10_000 for f in figures)

@@ -204,7 +204,7 @@ def cmd_check(args) -> int:
     result = run_check(args.data, args.out, identification_trial=args.trial)
     print(check_table(result))
     if args.out is not None:
-        _say(args, f"recordings.csv, a figure per trial and summary.json in {args.out}")
+        _say(args, f"recordings.csv and .md, a figure per trial and summary.json in {args.out}")
     return 0
 
 
@@ -633,7 +633,7 @@ def build_parser() -> argparse.ArgumentParser:
     k = sub.add_parser("check", help="read recordings as every command does: every problem at once, or a row per "
                                      "trial and what identify and fit can do with each leg")
     k.add_argument("data", help="interchange folder or .nc cohort file")
-    k.add_argument("--out", default=None, help="also write recordings.csv, a figure per trial and summary.json here")
+    k.add_argument("--out", default=None, help="also write recordings.csv and .md, a figure per trial and summary.json here")
     k.add_argument("--trial", type=int, default=1, help="the identification trial to judge (identify's --trial, default 1)")
     k.set_defaults(func=cmd_check)
 

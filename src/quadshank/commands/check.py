@@ -4,27 +4,26 @@ A folder that does not read fails with every problem at once (the reader's error
 column and row).  One that reads gets a row per trial (length, period, what is excluded, the
 pulses and how many are isolated twitches, the angle's range, which signals were measured and
 which derived) and, per leg, what ``identify`` and ``fit`` can do with it; the reader's
-plausibility warnings are kept with them.  With an output folder: ``recordings.csv``, a figure
-per trial (``recording_LEG_trialN.png``) and, last, ``summary.json``.
+plausibility warnings are kept with them.  With an output folder: ``recordings.csv`` and
+``recordings.md``, a figure per trial (``recording_LEG_trialN.png``) and, last, ``summary.json``.
 """
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import warnings
 from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
 
-from ..common._io import atomic_write_text, save_figure
+from ..common._io import save_figure
 from ..common._results import Result
 from ..data._cohort import Cohort, Trial
 from ..data._interchange import DataWarning, charge_scales, load_cohort
 from ..inference._identify import MIN_TWITCHES, check_delay_range, isolated_twitches, twitch_epoch
 from ..outputs._figures import plot_recording
+from ..outputs._tables import write_table
 
 __all__ = ["Check", "run_check", "check_table", "trial_row", "leg_uses", "TRIAL_COLUMNS"]
 
@@ -132,8 +131,8 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
     """Read ``data`` (a folder of recordings or a ``.nc`` file; or a :class:`~quadshank.data.Cohort`
     in memory) as every command does and say what was read (:class:`Check`); the reader's warnings
     (and a sampling period too short for the delays considered) are returned and issued again.
-    ``out``: where to write ``recordings.csv``, a figure per trial and ``summary.json`` (None:
-    nothing written)."""
+    ``out``: where to write ``recordings.csv`` and ``recordings.md``, a figure per trial and
+    ``summary.json`` (None: nothing written)."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", DataWarning)
         if isinstance(data, Cohort):
@@ -155,13 +154,8 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        buf = io.StringIO()
-        w = csv.writer(buf, lineterminator="\n")
-        w.writerow([*TRIAL_COLUMNS, "pulse_kind"])
-        for r in rows:
-            w.writerow(["" if r[c] is None else r[c] for c in (*TRIAL_COLUMNS, "pulse_kind")])
-        atomic_write_text(out / "recordings.csv", buf.getvalue())
-        files = ["recordings.csv"]
+        write_table(rows, out, "recordings", "The recordings as read")
+        files = ["recordings.csv", "recordings.md"]
         for t, r, i in zip(cohort, rows, isolated):
             name = f"recording_{t.key}_trial{t.trial}.png"
             title = f"{r['pulses']} pulses, {r['isolated_twitches']} isolated twitches" if r["pulses"] else NO_PULSES
