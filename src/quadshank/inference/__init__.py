@@ -20,6 +20,7 @@ from ._fitio import (
     sampled_vars,
     save_fit,
     to_inference_data,
+    weakly_informed,
 )
 from ._identify import (
     Identification,
@@ -53,7 +54,7 @@ __all__ = [
     "Identification", "models_from_summary", "load_identification",
     "FitSettings", "fit", "run_nuts", "BlockDraws", "convergence_status", "FitRun", "FitResult", "fit_screen", "build_model", "model_params", "delay_prior_from", "numpyro_model",
     "LaplaceFit", "laplace_fit", "leg_draw_models", "delay_evidence", "delay_modes", "DelayModes", "delta_elpd",
-    "to_inference_data", "save_fit", "load_fit", "read_summary", "fit_summary", "diagnose_sampling", "sampled_vars",
+    "to_inference_data", "save_fit", "load_fit", "read_summary", "fit_summary", "diagnose_sampling", "sampled_vars", "weakly_informed",
     "posterior_models", "leg_models", "FitFolderError", "THRESHOLDS", "check_fit_files",
     "INTERVAL", "interval", "pooled_draws",
 ]  # fmt: skip

@@ -51,6 +51,7 @@ __all__ = [
     "diagnose_sampling",
     "delay_splits",
     "delay_missed",
+    "weakly_informed",
     "fit_summary",
     "save_fit",
     "load_fit",
@@ -259,6 +260,53 @@ def delay_missed(idata) -> dict[str, dict[int, list[float]]]:
     return out
 
 
+#: A leg's parameter whose posterior sd is at least this many of its prior's scale (the sd of its
+#: standardised site ``NAME_s_leg``) is barely informed by the data: a quarter of the prior's
+#: precision or less.  In the demo's fit (model3s, two legs of the simulated cohort) none lies above 0.1.
+WEAK_SD = 0.5
+
+
+def weakly_informed(idata) -> dict[str, dict[str, float]]:
+    """Legs' parameters the data barely inform: ``{leg: {parameter: posterior sd in prior scales}}``.
+
+    A leg's parameter θ = loc + scale·z (z on the log scale for a lognormal prior) is sampled as
+    its standardised ``z``, whose prior sd is 1 at the population's level (wider with the spreads
+    between subjects and legs).  Where z's posterior sd is :data:`WEAK_SD` or more, θ's value is
+    mostly the prior's and the other legs', not the leg's data's, and NUTS moves through such a
+    wide, often curved stretch slowly (the exponential elasticity's k1 and k2 on recordings
+    that never reach deep flexion, say).  A vector parameter's component is named ``a[1]``.
+    """
+    post = idata.posterior
+    out: dict[str, dict[str, float]] = {}
+    for v in post.data_vars:
+        if not str(v).endswith("_s_leg") or "leg" not in post[v].dims:
+            continue
+        name = str(v)[: -len("_s_leg")]
+        sd = post[v].std(dim=("chain", "draw"))
+        others = [d for d in sd.dims if d != "leg"]
+        sd = sd.transpose("leg", *others)
+        for leg, row in zip(sd["leg"].values, np.asarray(sd, np.float64)):
+            for index, value in np.ndenumerate(row):
+                if np.isfinite(value) and value >= WEAK_SD:
+                    label = name + "".join(f"[{i}]" for i in index)
+                    out.setdefault(str(leg), {})[label] = round(float(value), 2)
+    order = [str(leg) for leg in post["leg"].values] if "leg" in post.coords else sorted(out)
+    return {leg: out[leg] for leg in order if leg in out}
+
+
+def _weak_lagging(worst: dict | None, weak: dict) -> str | None:
+    """``"k1 of AA-left"`` where a failing check's worst entry is a parameter the data barely
+    inform (of that leg, or of its subject where the entry is a subject's value)."""
+    if not worst or not worst.get("at"):
+        return None
+    base = worst["variable"].removesuffix("_s_leg").removesuffix("_subject")
+    at = [a.strip() for a in worst["at"].split(",")]
+    for leg, params in weak.items():
+        if any(p.split("[")[0] == base for p in params) and (leg in at or leg.rsplit("-", 1)[0] in at):
+            return f"{base} of {leg}"
+    return None
+
+
 #: P(d) at the longest delay considered from which a fit's summary warns that the delay may lie beyond it.
 DELAY_EDGE_P = 0.2
 
@@ -381,6 +429,16 @@ def diagnose_sampling(idata) -> dict:
             + ("; resampled to 10 ms (`quadshank convert DATA data.nc --resample 0.01`) the delays considered reach "
                "100 ms" if period < SAMPLING_PERIOD_S * (1 - 1e-6) else "")
         )
+    weak = weakly_informed(idata)
+    if weak:
+        cautions.append(
+            "the data barely inform "
+            + "; ".join(f"{leg}'s {', '.join(f'{p} ({sd:.2g})' for p, sd in params.items())}" for leg, params in weak.items())
+            + f": in parentheses, each posterior's sd in units of its prior's scale ({WEAK_SD:g} or more; the spreads "
+            "between subjects and legs let it exceed 1), so its value is mostly the prior's and the other legs', not "
+            "an estimate from the leg's data. Recordings that reach where such a parameter acts inform it (deep "
+            "flexion for the elasticity's k1 and k2)"
+        )
     if not ess_bulk_min >= ess_needed:
         problems.append(f"bulk ESS {ess_bulk_min:.0f}{_named(worst['ess_bulk'])} < {ess_needed} "
                         f"({THRESHOLDS['ess_per_chain']} per chain)")
@@ -395,6 +453,10 @@ def diagnose_sampling(idata) -> dict:
     if not bfmi_min > THRESHOLDS["bfmi_min"]:
         problems.append(f"E-BFMI {bfmi_min:.2f} ≤ {THRESHOLDS['bfmi_min']}: poor exploration of the energy")
         advice.append("lengthen the warm-up (--warmup) and let it adapt the metric (--adapt-metric), or fit more data")
+    lagging = next(filter(None, (_weak_lagging(w, weak) for w in worst.values())), None) if problems else None
+    if lagging:
+        advice.append(f"{lagging} holds the fit back and the data barely inform it: chains cross its wide posterior "
+                      "slowly, so draw to an ESS (--target-ess 400 --time-limit SECONDS), or fit recordings that inform it")
     return {
         "ok": not problems,
         "rhat_max": rhat_max,
@@ -406,6 +468,7 @@ def diagnose_sampling(idata) -> dict:
         "delay_splits": splits,
         "delay_missed": missed,
         "delay_at_edge": edge,
+        "weakly_informed": weak,
         "mode_jumps": mode_jumps,
         "chains": int(chains),
         "draws": int(idata.posterior.sizes["draw"]),

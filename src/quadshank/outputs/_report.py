@@ -293,6 +293,11 @@ def _diagnostics_section(d: dict) -> str:
         # a warning (the evidence is of each leg alone), not a failed check
         rows.append(["delays weighed by a Laplace approximation per delay, of each leg alone, that no chain visited",
                      _e(cell), "none (a warning)", '<span class="ok">pass</span>' if not missed else "<b>look</b>"])
+    if "weakly_informed" in d:
+        weak = d["weakly_informed"]
+        cell = "; ".join(f"{leg}: {', '.join(ps)}" for leg, ps in weak.items()) or "none"
+        rows.append(["parameters the data barely inform (posterior sd ≥ half the prior's)",
+                     _e(cell), "none (a warning)", '<span class="ok">pass</span>' if not weak else "<b>look</b>"])
     head = (f"<p>{_e(d.get('chains'))} chain(s) of {_e(d.get('draws'))} draws. Overall: "
             + ('<span class="ok">the fit passed its checks.</span>' if d.get("ok")
                else '<span class="fail">the fit FAILED its checks.</span>') + "</p>")
@@ -336,15 +341,21 @@ def _diagnosis_section(diagnosis: dict | None) -> str:
     return "\n".join(parts)
 
 
-def _param_rows(rows: dict, prior_only=()) -> list[list[str]]:
+def _param_rows(rows: dict, prior_only=(), barely=()) -> list[list[str]]:
     """Table rows of a leg's parameters; those in ``prior_only`` (the leg's data do not inform
-    them) say so beside their interval."""
+    them) say so beside their interval, and so do those in ``barely`` (a posterior nearly as wide
+    as the prior: :func:`quadshank.inference.weakly_informed`; a component as ``a[1]``)."""
     def base(label: str) -> str:
         return label.split("[")[0]
 
+    def mark(name: str) -> str:
+        if base(name) in prior_only:
+            return ' <span class="prior-only">prior only</span>'
+        return ' <span class="prior-only">barely informed</span>' if name in barely or base(name) in barely else ""
+
     return [
         [f"<code>{_e(name)}</code>", _e(r["units"]),
-         _q(r["leg"]) + (' <span class="prior-only">prior only</span>' if base(name) in prior_only else ""),
+         _q(r["leg"]) + mark(name),
          _q(r["subject"]), _q(r["population"]), f'<span class="doc">{_e(r.get("doc") or "")}</span>']
         for name, r in rows.items()
     ]
@@ -529,7 +540,8 @@ def write_report(
                 body.append(f"<p>{_delay_angle_html(s['delay_angle'])}.</p>")
             body.append(f"<h3>Credible parameters of {_e(leg)}</h3>")
             body.append(_table(["parameter", "units", f"leg {leg}", f"subject {subject}", "population", "meaning"],
-                               _param_rows(params[leg]["params"], u["params"] if u else ()), (2, 3, 4)))
+                               _param_rows(params[leg]["params"], u["params"] if u else (),
+                                           ((fs.diagnostics or {}).get("weakly_informed") or {}).get(leg, {})), (2, 3, 4)))
             charge = _in_charge_html(leg, params[leg]["params"], (fs.charge_scale or {}).get(leg), fs.effects)
             if charge:
                 body.append(charge)
