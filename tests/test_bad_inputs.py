@@ -216,6 +216,20 @@ def quoted_line_break(folder: Path):
     return [MAN, "row 2", "line break"]
 
 
+def latin1_cell(folder: Path):
+    """A degree sign saved by a spreadsheet in Windows-1252, far beyond the first kilobytes of the file."""
+    rows = _rows(folder / T1)
+    rows[299][rows[0].index("angle_deg")] += "\u00b0"
+    (folder / T1).write_bytes(("\n".join(",".join(r) for r in rows) + "\n").encode("latin-1"))
+    return [T1, "'angle_deg'", "row 300", "not UTF-8 text: byte 0xb0", "°'"]
+
+
+def manifest_a_folder(folder: Path):
+    (folder / MAN).unlink()
+    (folder / MAN).mkdir()
+    return [MAN, "not a regular file"]
+
+
 CSV_CASES = {
     "text in a cell": cell(T1, "angle_deg", 17, "abc"),
     "digit separators": cell(T1, "acceleration_deg_s2", 5, "1_000"),
@@ -264,6 +278,8 @@ CSV_CASES = {
     "line break in a quoted subject": quoted_line_break,
     "period in milliseconds": manifest_cell(2, "sampling_period_s", "10", "milliseconds"),
     "subject with a control character": manifest_cell(2, "subject", "T\tN", "control character"),
+    "a cell in Latin-1": latin1_cell,
+    "the manifest a folder": manifest_a_folder,
 }
 
 
@@ -894,3 +910,87 @@ def test_a_spreadsheets_separator_line_is_read_past_and_a_comment_is_named(base,
     _, error, _ = _read(commented)
     problems = [line for line in error.splitlines() if T1 in line]
     assert len(problems) == 1 and f"{T1}, row 1: the first line, '# recorded with logger 2', is a comment?" in error
+
+
+def _same_trials(a: Cohort, b: Cohort) -> None:
+    assert [(t.key, t.trial, t.source) for t in a.trials] == [(t.key, t.trial, t.source) for t in b.trials]
+    for x, y in zip(a.trials, b.trials):
+        for name in ("time_s", "angle_deg", "acceleration_deg_s2", "stimulation", "velocity_deg_s", "exclude"):
+            np.testing.assert_array_equal(getattr(x, name), getattr(y, name), err_msg=f"{x.key} {x.trial} {name}")
+
+
+def test_empty_cells_and_trailing_separators_are_read_past(base, tmp_path):
+    """A separator after the last field of every line (a logger's), or only after the data's; a
+    spreadsheet's empty columns after the last (``,,``) and its rows of empty cells (``,,,``), in
+    the middle or at the end: nothing is lost or invented; a trailing column that holds a value
+    without a name is still refused."""
+    data = _copy(base, tmp_path, "trailing")
+    text = (data / T1).read_text().splitlines()
+    (data / T1).write_text("".join(f"{line},\n" for line in text))  # header too
+    text = (data / T2).read_text().splitlines()
+    (data / T2).write_text("\n".join(text[:1] + [f"{line},," for line in text[1:]]) + "\n")
+    text = (data / J1).read_text().splitlines()
+    (data / J1).write_text("\n".join(text[:100] + [",,,"] + text[100:] + [",,,", ",,,"]) + "\n")
+    text = (data / MAN).read_text().splitlines()
+    (data / MAN).write_text("".join(f"{line},\n" for line in text) + ",,,,,\n")
+    cohort, error, _ = _read(data)
+    assert error == "", error
+    _same_trials(cohort, read_interchange(base / "data"))
+
+    named = _copy(base, tmp_path, "a value without a name")
+    rows = _rows(named / T1)
+    _write_rows(named / T1, [rows[0] + [""]] + [r + (["7"] if i == 10 else [""]) for i, r in enumerate(rows[1:])])
+    _, error, _ = _read(named)
+    assert f"{T1}, column '', row 1: unnamed column (position 5)" in error, error
+
+
+def test_a_file_not_in_utf8_names_its_row_and_column(base, tmp_path):
+    """A spreadsheet's Windows-1252 (Latin-1) export: the first byte that is not UTF-8 is named
+    with its row (counted in the whole file, not in a block read), the column the header names
+    there and what the cell reads as in Windows-1252; in the header, the row alone."""
+    data = _copy(base, tmp_path, "latin1")
+    latin1_cell(data)
+    text = (data / MAN).read_text().replace("JM,", "Jo\u00eb,")
+    (data / MAN).write_bytes(text.encode("latin-1"))
+    _, error, _ = _read(data)
+    assert f"{MAN}, column 'subject', row 4: not UTF-8 text: byte 0xeb (invalid continuation byte); in Windows-1252 " \
+           "(Latin-1) it reads 'Joë': save the file as UTF-8" in error, error
+
+    header = _copy(base, tmp_path, "latin1 header")
+    text = (header / T2).read_text().replace("angle_deg", "angle [\u00b0]", 1)
+    (header / T2).write_bytes(text.replace("\n", "\r\n").encode("latin-1"))
+    _, error, _ = _read(header)
+    assert f"{T2}, row 1: not UTF-8 text: byte 0xb0 (invalid start byte); in Windows-1252 (Latin-1) it reads " \
+           "'angle [°]'" in error, error
+
+
+def test_utf16_with_its_byte_order_mark_is_read(base, tmp_path):
+    """A spreadsheet's Unicode export (UTF-16, its byte-order mark first) reads as the UTF-8 file;
+    one cut short is named as not UTF-16."""
+    data = _copy(base, tmp_path, "utf16")
+    for name in (T1, MAN):
+        (data / name).write_bytes((data / name).read_text().encode("utf-16"))
+    cohort, error, _ = _read(data)
+    assert error == "", error
+    _same_trials(cohort, read_interchange(base / "data"))
+    (data / T1).write_bytes((data / T1).read_bytes()[:-1])
+    _, error, _ = _read(data)
+    assert f"{T1}: not UTF-16 text, as its byte-order mark says" in error, error
+
+
+def test_a_comma_or_a_character_outside_ascii_in_a_number_gets_a_hint(base, tmp_path):
+    """A quoted decimal comma ("0,25") keeps the row's fields and is one cell that is no number: it
+    says what it looks like and what the format writes; a typographic minus, which looks like '-',
+    is shown escaped."""
+    data = _copy(base, tmp_path, "hints")
+    _set_cell(data / T1, 11, "angle_deg", '"9,25"')
+    _set_cell(data / T1, 12, "acceleration_deg_s2", '"1,234.5"')
+    _set_cell(data / T1, 30, "angle_deg", "\u22121.5")
+    _set_cell(data / MAN, 2, "sampling_period_s", '"0,01"')
+    _, error, _ = _read(data)
+    assert f"{T1}, column 'angle_deg', row 11: non-numeric value '9,25' (a decimal comma, 0,25 for 0.25, or digits " \
+           "grouped, 1,234.5? A number is written with '.' as its decimal mark and without grouping)" in error, error
+    assert f"{T1}, column 'acceleration_deg_s2', row 12: non-numeric value '1,234.5' (a decimal comma" in error, error
+    assert f"{T1}, column 'angle_deg', row 30: non-numeric value '\u22121.5' (written '\\u22121.5': a number is " \
+           "ASCII digits" in error, error
+    assert f"{MAN}, column 'sampling_period_s', row 2: non-numeric value '0,01' (a decimal comma" in error, error

@@ -10,10 +10,11 @@ it finds, each with file, column and line, before anything is loaded;
 Interchange folder format
 =========================
 
-A folder holding ``manifest.csv`` and one CSV file per trial (UTF-8, comma
-separated, first line a header; a UTF-8 byte-order mark and blank lines are
-tolerated; the row numbers quoted in error messages are line numbers as an
-editor shows them, the header being line 1).
+A folder holding ``manifest.csv`` and one CSV file per trial (UTF-8, or UTF-16
+with its byte-order mark; comma separated, first line a header; a UTF-8
+byte-order mark, blank lines, rows of empty cells and a separator after the
+last field of a line are tolerated; the row numbers quoted in error messages
+are line numbers as an editor shows them, the header being line 1).
 
 ``manifest.csv`` — one row per trial:
 
@@ -66,9 +67,10 @@ All files are checked and all problems are collected; if there is any, an
    listed file exists (inside the folder); per leg the trials are numbered
    1..n without gaps; every CSV file in the folder (recursively; hidden files
    and folders excepted) is listed in the manifest.
-3. **Trial CSV structure**: required columns present, no unknown or duplicated
-   column; at least two data rows; every row has as many fields as the header;
-   every cell a finite number (`nan`, `inf` are rejected).
+3. **Trial CSV structure**: UTF-8 text (the first byte that is not is named
+   with its row); required columns present, no unknown or duplicated column;
+   at least two data rows; every row has as many fields as the header; every
+   cell a finite number (`nan`, `inf` are rejected).
 4. **Time**: strictly increasing; uniform (each step within 1 % of the median
    step); the median step equals the manifest's `sampling_period_s` within a
    relative 1e-3.
@@ -97,6 +99,7 @@ trials' own fields are not stored in an interchange folder.
 
 from __future__ import annotations
 
+import codecs
 import csv
 import dataclasses
 import difflib
@@ -541,8 +544,9 @@ def _read_table(
     rows: list[list[str]] = []
     lines: list[int] = []
     reader = None
+    encoding = _encoding(path)
     try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:
+        with open(path, newline="", encoding=encoding) as fh:
             reader = csv.reader(fh)
             end = 0
             for row in reader:
@@ -554,8 +558,8 @@ def _read_table(
                                             "hold a line break"))
                     spanning = True
                     continue
-                if not row or (len(row) == 1 and not row[0].strip()):
-                    continue  # blank line
+                if not any(c.strip() for c in row):
+                    continue  # blank line, or a spreadsheet's row of empty cells (",,,")
                 if header is None and [c.strip().lower() for c in row] == ["sep=", ""]:
                     continue  # a spreadsheet's note that the file is comma-separated, before the header
                 if header is None:
@@ -565,7 +569,8 @@ def _read_table(
                     rows.append(row)
                     lines.append(reader.line_num)
     except UnicodeDecodeError as exc:
-        problems.append(Problem(file, None, None, f"not UTF-8 text ({exc.reason} at byte {exc.start})"))
+        problems.append(_not_utf8(path, file) if encoding == "utf-8-sig" else
+                        Problem(file, None, None, f"not UTF-16 text, as its byte-order mark says ({exc.reason})"))
         return None
     except csv.Error as exc:
         line = reader.line_num if reader is not None else None
@@ -578,6 +583,16 @@ def _read_table(
     if header is None:
         problems.append(Problem(file, None, None, "empty file (expected a header line and data rows)"))
         return None
+
+    # a separator after the last field of every line (some loggers write one), or a spreadsheet's empty
+    # columns after the last: no name, no value; read as absent
+    named = len(header)
+    while named > 1 and not header[named - 1]:
+        named -= 1
+    if all(not c.strip() for row in rows for c in row[named:]):
+        header = header[:named]
+    rows = [row[:len(header)] if len(row) > len(header) and not any(c.strip() for c in row[len(header):]) else row
+            for row in rows]
 
     known = tuple(required) + tuple(optional)
     if header[0].startswith("#"):
@@ -654,6 +669,46 @@ def _read_table(
     return _Table(columns, header_line, rows, lines, well_formed, dropped if bad_rows else [])
 
 
+def _encoding(path: Path) -> str:
+    """The text encoding of a CSV file: UTF-16 where it starts with that byte-order mark (a
+    spreadsheet's Unicode export), else UTF-8 (a byte-order mark read past)."""
+    try:
+        with open(path, "rb") as fh:
+            start = fh.read(2)
+    except OSError:
+        return "utf-8-sig"  # reading it again says why it cannot be read
+    return "utf-16" if start in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE) else "utf-8-sig"
+
+
+def _not_utf8(path: Path, file: str) -> Problem:
+    """The problem of a file that is not UTF-8: the row of its first byte that is not (and the
+    column, where the header names it), and what the cell reads as in Windows-1252 (Latin-1), the
+    encoding a spreadsheet saves in where it is not told UTF-8 (a degree sign is one byte there)."""
+    data = path.read_bytes()
+    skip = len(codecs.BOM_UTF8) if data.startswith(codecs.BOM_UTF8) else 0
+    try:
+        data[skip:].decode("utf-8")
+        return Problem(file, None, None, "not UTF-8 text")
+    except UnicodeDecodeError as exc:
+        at, reason = skip + exc.start, exc.reason
+    lines = re.split(rb"\r\n|\r|\n", data.removeprefix(codecs.BOM_UTF8))
+    before = re.split(rb"\r\n|\r|\n", data[skip:at])
+    row, line = len(before), lines[len(before) - 1]  # row: 1-based, as an editor counts lines
+    # the header: the first line that the reader does not read past (blank, empty cells, "sep=,")
+    head = next((i for i, x in enumerate(lines) if x.replace(b",", b"").strip()
+                 and x.replace(b" ", b"").lower() != b"sep=,"), 0)
+    column, cell = None, line
+    if b'"' not in line:  # without quotes, the commas before the byte count the fields
+        field = before[-1].count(b",")
+        cell = line.split(b",")[field]
+        names = lines[head].split(b",")
+        if row - 1 > head and field < len(names) and names[field].strip().isascii():
+            column = names[field].strip().decode("ascii")
+    shown = cell.strip().decode("cp1252", errors="replace")[:60]
+    return Problem(file, column, row, f"not UTF-8 text: byte 0x{data[at]:02x} ({reason}); in Windows-1252 (Latin-1) "
+                   f"it reads {shown!r}: save the file as UTF-8 (a spreadsheet's 'CSV UTF-8')")
+
+
 def _units_row(rows: list[list[str]], columns: dict[str, int]) -> bool:
     """Whether the first data row holds text (units, say) and no number in any known column,
     where the next row holds numbers."""
@@ -669,6 +724,18 @@ def _units_row(rows: list[list[str]], columns: dict[str, int]) -> bool:
 #: (Python's ``float`` also takes ``1_000``, non-ASCII digits and ``infinity``; the format does not.)
 _NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 _NON_FINITE = re.compile(r"[+-]?(?:nan|inf|infinity)", re.IGNORECASE)
+
+
+def _number_hint(text: str) -> str:
+    """Why a cell that looks like a number is not one as the format writes it (a decimal comma, digits
+    grouped, a character outside ASCII such as a typographic minus), or ''."""
+    text = text.strip()
+    if re.fullmatch(r"[+-]?[0-9]+(?:,[0-9]+)+(?:\.[0-9]*)?(?:[eE][+-]?[0-9]+)?", text):
+        return (" (a decimal comma, 0,25 for 0.25, or digits grouped, 1,234.5? A number is written with '.' as its "
+                "decimal mark and without grouping)")
+    if not text.isascii():
+        return f" (written {ascii(text)}: a number is ASCII digits with '-', '+', '.' and 'e'; no other character)"
+    return ""
 
 
 def parse_number(text: str) -> float | None:
@@ -706,12 +773,12 @@ def _parse_float_column(table: _Table, name: str, file: str, problems: list[Prob
         if excluded is not None and excluded[k] and v is not None and math.isnan(v):
             continue
         if v is None and not _NON_FINITE.fullmatch(text.strip()):
-            non_numeric.append((line, text))
+            non_numeric.append((line, f"{text!r}{_number_hint(text)}"))
         elif v is None or not math.isfinite(v):
             non_finite.append((line, text))
     leave_out = ("; a sample to leave out may be empty or NaN where its exclude is 1" if name in _MAY_BE_MISSING
                  else "")
-    _report_cells(problems, file, name, non_numeric, "non-numeric value {!r}" + leave_out)
+    _report_cells(problems, file, name, non_numeric, "non-numeric value {}" + leave_out)
     _report_cells(problems, file, name, non_finite,
                   "non-finite value {!r} (NaN and infinity are not allowed" + leave_out + ")")
     return None
@@ -989,6 +1056,9 @@ def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry],
     if path.exists() and not path.resolve().is_relative_to(folder.resolve()):
         problems.append(Problem(MANIFEST_NAME, None, None, "a link to a file outside the folder; copy the file into it"))
         return None
+    if path.exists() and not path.is_file():
+        problems.append(Problem(MANIFEST_NAME, None, None, "not a regular file (a folder?); the manifest is a CSV file"))
+        return None
     if not path.is_file():
         problems.append(
             Problem(MANIFEST_NAME, None, None,
@@ -1031,7 +1101,8 @@ def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry],
             if period is None and _NON_FINITE.fullmatch(text):
                 bad("sampling_period_s", f"{text!r} is not a positive finite number of seconds")
             elif period is None:
-                bad("sampling_period_s", f"non-numeric value {text!r}; expected the sampling period in s")
+                bad("sampling_period_s", f"non-numeric value {text!r}{_number_hint(text)}; expected the sampling period "
+                    "in s")
             elif _period_problem(text, period):
                 bad("sampling_period_s", _period_problem(text, period))
                 period = None
