@@ -454,8 +454,8 @@ def diagnose_sampling(idata) -> dict:
         problems.append(f"E-BFMI {bfmi_min:.2f} ≤ {THRESHOLDS['bfmi_min']}: poor exploration of the energy")
         advice.append("lengthen the warm-up (--warmup) and let it adapt the metric (--adapt-metric), or fit more data")
     lagging = next(filter(None, (_weak_lagging(w, weak) for w in worst.values())), None) if problems else None
-    if lagging:
-        advice.append(f"{lagging} holds the fit back and the data barely inform it: chains cross its wide posterior "
+    if lagging:  # the most specific advice comes first
+        advice.insert(0, f"{lagging} holds the fit back and the data barely inform it: chains cross its wide posterior "
                       "slowly, so draw to an ESS (--target-ess 400 --time-limit SECONDS), or fit recordings that inform it")
     return {
         "ok": not problems,
