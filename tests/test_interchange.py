@@ -224,6 +224,33 @@ def test_netcdf_to_interchange_to_netcdf(tmp_path):
     assert [t.velocity_measured for t in load_cohort(nc2)] == [False, False, True]
 
 
+def test_a_netcdf_file_whose_values_changed_after_writing_is_refused(tmp_path):
+    """NetCDF keeps no checksum: a value changed after writing (a damaged copy, another program's
+    edit) reads back as another number.  The recordings' fingerprint written with the file
+    tells: such a file is refused, naming it; without the attribute (a file written before it,
+    or an edit the user keeps) it is read as it is."""
+    import xarray as xr
+
+    from quadshank.data._cohort import FINGERPRINT_ATTR
+
+    original = make_cohort()
+    nc = original.save_netcdf(tmp_path / "a.nc")
+    with xr.open_dataset(nc, engine="h5netcdf") as ds:
+        assert ds.attrs[FINGERPRINT_ATTR] == original.fingerprint()
+        edited = ds.load()
+    assert FINGERPRINT_ATTR not in Cohort.load_netcdf(nc).attrs  # not carried into the cohort, nor written twice
+    edited["velocity_deg_s"][0, 40] = edited["velocity_deg_s"][0, 40] + 0.06
+    edited.to_netcdf(tmp_path / "edited.nc", engine="h5netcdf")
+    with pytest.raises(InterchangeError) as err:
+        load_cohort(tmp_path / "edited.nc")
+    assert "edited.nc: not a readable quadshank cohort file (the recordings read differ from those the file was " \
+           "written with" in str(err.value) and FINGERPRINT_ATTR in str(err.value)
+    del edited.attrs[FINGERPRINT_ATTR]
+    edited.to_netcdf(tmp_path / "kept.nc", engine="h5netcdf")
+    kept = load_cohort(tmp_path / "kept.nc")
+    assert kept.trials[0].velocity_deg_s[40] == pytest.approx(original.trials[0].velocity_deg_s[40] + 0.06)
+
+
 def test_source_with_subfolder_is_kept(folder, tmp_path):
     (folder / "trials").mkdir()
     rows = read_rows(folder / MAN)

@@ -34,6 +34,8 @@ VELOCITY_WINDOW = 7
 VELOCITY_POLYORDER = 2
 
 FORMAT_VERSION = "quadshank-cohort/1"
+#: The attribute of a cohort's NetCDF file that holds its recordings' fingerprint, checked on reading.
+FINGERPRINT_ATTR = "recordings_fingerprint"
 #: Relative difference below which two sampling periods are the same period.
 SAME_PERIOD_REL = 1e-6
 _SIGNALS = ("time_s", "angle_deg", "velocity_deg_s", "acceleration_deg_s2", "stimulation")
@@ -378,13 +380,16 @@ class Cohort:
                     **sig,
                 )
             )
-        attrs = {k: v for k, v in ds.attrs.items() if k != "format"}
+        attrs = {k: v for k, v in ds.attrs.items() if k not in ("format", FINGERPRINT_ATTR)}
         return cls(tuple(trials), attrs)
 
     def save_netcdf(self, path: str | os.PathLike) -> Path:
-        """Write the cohort to ``path`` atomically (temporary file, then rename)."""
+        """Write the cohort to ``path`` atomically (temporary file, then rename), with the
+        recordings' :meth:`fingerprint`, which :meth:`load_netcdf` checks."""
+        ds = self.to_dataset()
+        ds.attrs[FINGERPRINT_ATTR] = self.fingerprint()
         with atomic_path(path) as tmp:
-            self.to_dataset().to_netcdf(tmp, engine="h5netcdf")
+            ds.to_netcdf(tmp, engine="h5netcdf")
         return Path(path)
 
     @classmethod
@@ -396,7 +401,19 @@ class Cohort:
                     f"{path}: not a quadshank cohort file (attribute 'format' is "
                     f"{ds.attrs.get('format')!r}, expected {FORMAT_VERSION!r})"
                 )
-            return cls.from_dataset(ds.load())
+            cohort = cls.from_dataset(ds.load())
+            stored = ds.attrs.get(FINGERPRINT_ATTR)
+        # NetCDF keeps no checksum of its values: bytes changed on a disk or in a copy read back as
+        # other numbers, silently; the fingerprint written with them tells (files written before it
+        # have none and are read as they are)
+        if stored is not None and str(stored) != cohort.fingerprint():
+            raise ValueError(
+                f"{path}: the recordings read differ from those the file was written with (fingerprint "
+                f"{cohort.fingerprint()}, written {stored}): the file is damaged, or was edited by another "
+                f"program. Convert it again from its source; to keep an edit, delete the file's attribute "
+                f"{FINGERPRINT_ATTR!r}"
+            )
+        return cohort
 
 
 def _attr_value(v):
