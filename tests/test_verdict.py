@@ -175,3 +175,24 @@ def test_nothing_found_names_the_features_the_residuals_were_screened_against():
     said = nothing_found({"screened": {"angle": {}, "velocity": {}, "time": {}}})
     assert said == "The residuals change with none of knee angle, angular velocity and time in trial beyond chance."
     assert nothing_found({"screened": {}}) == NOTHING_FOUND
+
+
+def test_an_effect_on_the_accelerometer_alone_must_not_raise_j():
+    """An accelerometer's effect cannot improve an angle prediction, so its bar is the evidence;
+    but where J rises beyond the bands with it, it has moved the dynamics to absorb their misfit:
+    it does not clear the bar, and the sentence says why.  A noise effect's bar stays the evidence."""
+    accel = registered_effects()["accel_resonance"]
+    assert not accel.predicts_angle and accel.kind != "noise"
+    worse = _draws([1.0, 2.0, 4.5, 6.6])  # J at 500 and 1000 ms beyond the bands
+    same = _draws([1.0, 2.0, 4.0, 6.0])
+    row = evidence_bar(108.0, 25.0, BEFORE, worse, False, accel.acts_at_ms, None, accel.kind)
+    assert row["supported"] and row["J_raised_at_ms"] == [500, 1000] and not row["clears_bar"]
+    assert evidence_bar(108.0, 25.0, BEFORE, same, False, accel.acts_at_ms, None, accel.kind)["clears_bar"]
+    noise = registered_effects()["twitch_variability"]
+    assert evidence_bar(108.0, 25.0, BEFORE, worse, False, noise.acts_at_ms, None, noise.kind)["clears_bar"]
+
+    rows = [{"effect": "accel_resonance", **row}, _row("fatigue", 20.0, 30.0, same, (500, 1000))]
+    said = verdict_sentence(_ranking(rows, "none"))
+    assert "accel_resonance has evidence (ΔELPD 108 ± 25) but acts on what the accelerometer reads alone, and with it " \
+           "J rises beyond the bands (" in said and "° → 4.50° at 500 ms" in said, said
+    assert "changes J little" not in said  # the note of a lead whose J does not move is not said of it

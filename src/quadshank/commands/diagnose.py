@@ -89,7 +89,7 @@ def confirm_with_nuts(
         "model": s.model,
         "folder": str(Path(out)),
         **evidence_bar(d, se, J_base, J_ext, registered_effects()[effect].predicts_angle,
-                       registered_effects()[effect].acts_at_ms, checked),
+                       registered_effects()[effect].acts_at_ms, checked, registered_effects()[effect].kind),
         "pareto_k_max": float(np.max(np.asarray(loo_b.pareto_k))),
         "diagnostics": s.diagnostics,
         "banner": s.banner,

@@ -21,8 +21,11 @@ lowers J beyond the bands (the extension's upper 90 % limit below the model's
 lower one) at every horizon where it acts (the effect's ``acts_at_ms``: a
 delay at 100 and 250 ms, where a prediction feels it; the others at 500 and
 1000 ms); an effect on what the accelerometer reads alone (``predicts_angle =
-False``: a skin-motion resonance) cannot change an angle prediction, and its
-bar is ΔELPD alone.  The candidates are ranked by the evidence among those
+False``: a skin-motion resonance) cannot improve an angle prediction, and its
+bar is ΔELPD, with J not raised beyond the bands where it is judged: an effect
+on the sensor alone that makes the angle's predictions worse has moved the
+dynamics' parameters to absorb a misfit of the dynamics, which is not the
+sensor's.  A noise effect's bar is ΔELPD alone.  The candidates are ranked by the evidence among those
 that clear the bar, then the rest; the verdict is the first, or ``none``: a
 misfit that some effect absorbs a little of (ΔELPD of a few units, within
 noise on J) is not called a missing effect.  The verdict's sentence says when
@@ -318,7 +321,7 @@ def rank_effects(
         J_draws[name] = J1
         row = {
             "effect": name,
-            **evidence_bar(d, se, J0, J1, known[name].predicts_angle, known[name].acts_at_ms, checked),
+            **evidence_bar(d, se, J0, J1, known[name].predicts_angle, known[name].acts_at_ms, checked, known[name].kind),
             "pareto_k_max": float(np.nanmax(ext.pareto_k)),
             # how well the Laplace Gaussian stands for the posterior (n_draws: exactly)
             "importance_ess_min": float(np.min(ext.weights_ess)),
@@ -352,22 +355,28 @@ def k_checked_difference(a_i, b_i, k_b) -> tuple[float, float, float]:
 
 
 def evidence_bar(d: float, se: float, J0: np.ndarray, J1: np.ndarray, predicts_angle: bool,
-                 acts_at_ms=(500, 1000), k_checked: tuple | None = None) -> dict:
+                 acts_at_ms=(500, 1000), k_checked: tuple | None = None, kind: str = "") -> dict:
     """Whether an extension is supported by the evidence and clears the bar (module docs):
     ΔELPD ± SE, J at J_HORIZONS_MS before and after (from per-draw J, (draws, horizons)), judged
     at the horizons ``acts_at_ms`` where the effect acts.  ``k_checked``: ΔELPD, SE and the share
-    of segments left out by :func:`k_checked_difference`; the evidence must hold there too."""
+    of segments left out by :func:`k_checked_difference`; the evidence must hold there too.
+    ``kind``: the effect's; an effect that does not predict the angle and is not a noise effect
+    (an accelerometer's) must not raise J beyond the bands where it is judged."""
     out = {"delta_elpd": d, "delta_elpd_se": se}
-    lowered = []
+    lowered, raised = [], []
     for j, h in enumerate(J_HORIZONS_MS):
         b, x = interval(J0[:, j]), interval(J1[:, j])
         out[f"J_{h}ms"] = {"before": b, "after": x, "change": x["median"] - b["median"]}
         if x["hi"] < b["lo"]:
             lowered.append(h)
+        if x["lo"] > b["hi"]:
+            raised.append(h)
     judged = [int(h) for h in acts_at_ms]
     out["judged_at_ms"] = judged
     out["J_lowered_at_ms"] = lowered
+    out["J_raised_at_ms"] = raised
     out["J_lowered_beyond_bands"] = all(h in lowered for h in judged)
+    out["sensor_raises_J"] = sensor_raises_J = not predicts_angle and kind != "noise" and any(h in raised for h in judged)
     out["predicts_angle"] = bool(predicts_angle)
     out["supported"] = bool(d > ELPD_SE_BAR * se)
     if k_checked is not None:
@@ -376,7 +385,8 @@ def evidence_bar(d: float, se: float, J0: np.ndarray, J1: np.ndarray, predicts_a
         out["pareto_k_high_share"] = float(share)
         if share <= K_SHARE_MAX:
             out["supported"] = bool(out["supported"] and d_k > ELPD_SE_BAR * se_k)
-    out["clears_bar"] = bool(out["supported"] and (out["J_lowered_beyond_bands"] or not predicts_angle))
+    out["clears_bar"] = bool(out["supported"] and (out["J_lowered_beyond_bands"] or not predicts_angle)
+                             and not sensor_raises_J)
     return out
 
 
@@ -389,6 +399,12 @@ def _j_change(r: dict, horizons) -> str:
     return ", ".join(parts)
 
 
+def _sensor_raises_j(r: dict) -> bool:
+    """Whether a ranking row is of an effect on the accelerometer alone that raises J beyond the
+    bands where it is judged (:func:`evidence_bar`)."""
+    return bool(r.get("sensor_raises_J"))
+
+
 def evidence_notes(ranking: Ranking) -> str:
     """What the verdict alone does not say: a candidate with more evidence than the verdict that
     changes J little where it acts, and candidates that lower J there without being the best
@@ -399,7 +415,7 @@ def evidence_notes(ranking: Ranking) -> str:
     lead = max(rows, key=lambda r: r["delta_elpd"])
     chosen = next((r for r in rows if r["effect"] == ranking.verdict), None)
     notes = []
-    if lead["supported"] and not lead["clears_bar"]:
+    if lead["supported"] and not lead["clears_bar"] and not _sensor_raises_j(lead):
         notes.append(
             f"{lead['effect']} has the most evidence (ΔELPD {lead['delta_elpd']:.0f} ± {lead['delta_elpd_se']:.0f}) "
             f"but changes J little where it acts ({_j_change(lead, lead['judged_at_ms'])}; the bands overlap), so it is "
@@ -421,6 +437,14 @@ def evidence_notes(ranking: Ranking) -> str:
             f"of the segments): without them it is {r['delta_elpd_k_checked']:.0f} ± {r['delta_elpd_k_checked_se']:.0f}, so it "
             "is not counted as supported; NUTS (--confirm) can settle it."
         )
+    for r in filter(_sensor_raises_j, rows):
+        if r["supported"]:
+            notes.append(
+                f"{r['effect']} has evidence (ΔELPD {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f}) but acts on what the "
+                f"accelerometer reads alone, and with it J rises beyond the bands ({_j_change(r, r['judged_at_ms'])}): "
+                "it moves the dynamics' parameters to absorb a misfit of the dynamics, so it is not added."
+            )
+            break
     best = chosen if chosen is not None else lead
     others = [r for r in rows if r is not best and r.get("predicts_angle", True) and r["J_lowered_beyond_bands"]
               and r["supported"] and r["delta_elpd"] < best["delta_elpd"]]
