@@ -393,7 +393,9 @@ class Cohort:
         return Path(path)
 
     @classmethod
-    def load_netcdf(cls, path: str | os.PathLike) -> Cohort:
+    def load_netcdf(cls, path: str | os.PathLike, check_fingerprint: bool = True) -> Cohort:
+        """The cohort of ``path``; with ``check_fingerprint``, refused where its recordings differ
+        from those it was written with (:meth:`save_netcdf`, :func:`fingerprint_problem`)."""
         path = Path(path)
         with xr.open_dataset(path, engine="h5netcdf") as ds:
             if ds.attrs.get("format") != FORMAT_VERSION:
@@ -403,17 +405,30 @@ class Cohort:
                 )
             cohort = cls.from_dataset(ds.load())
             stored = ds.attrs.get(FINGERPRINT_ATTR)
-        # NetCDF keeps no checksum of its values: bytes changed on a disk or in a copy read back as
-        # other numbers, silently; the fingerprint written with them tells (files written before it
-        # have none and are read as they are)
-        if stored is not None and str(stored) != cohort.fingerprint():
-            raise ValueError(
-                f"{path}: the recordings read differ from those the file was written with (fingerprint "
-                f"{cohort.fingerprint()}, written {stored}): the file is damaged, or was edited by another "
-                f"program. Convert it again from its source; to keep an edit, delete the file's attribute "
-                f"{FINGERPRINT_ATTR!r}"
-            )
+        problem = fingerprint_problem(cohort, stored) if check_fingerprint else None
+        if problem:
+            raise ValueError(f"{path}: {problem}")
         return cohort
+
+
+def stored_fingerprint(path: str | os.PathLike) -> str | None:
+    """The recordings' fingerprint a cohort's NetCDF file was written with (None: a file written
+    without one)."""
+    with xr.open_dataset(path, engine="h5netcdf") as ds:
+        stored = ds.attrs.get(FINGERPRINT_ATTR)
+    return None if stored is None else str(stored)
+
+
+def fingerprint_problem(cohort: Cohort, stored) -> str | None:
+    """Why ``cohort``, read from a NetCDF file that was written with the fingerprint ``stored``,
+    cannot be trusted, or None.  NetCDF keeps no checksum of its values: bytes changed on a disk or
+    in a copy read back as other numbers, silently, and the fingerprint written with them tells.
+    A file written without one (None) is read as it is."""
+    if stored is None or str(stored) == cohort.fingerprint():
+        return None
+    return (f"the recordings read differ from those the file was written with (fingerprint {cohort.fingerprint()}, "
+            f"written {stored}): the file is damaged, or was edited by another program. Convert it again from its "
+            f"source; to keep an edit, delete the file's attribute {FINGERPRINT_ATTR!r}")
 
 
 def _attr_value(v):
