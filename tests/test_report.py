@@ -435,15 +435,15 @@ def test_parameters_the_data_barely_inform_are_a_row_of_the_checks_and_marked_in
     component alone where only it is named; "prior only" (no pulses) takes precedence."""
     base = {"rhat_max": 1.0, "ess_bulk_min": 900.0, "ess_tail_min": 900.0, "divergences": 0, "bfmi_min": 0.9,
             "ok": True, "chains": 2, "draws": 500, "thresholds": {"rhat_max": 1.01, "ess_min": 200, "bfmi_min": 0.3}}
-    weak = report._diagnostics_section({**base, "weakly_informed": {"AA-left": {"k1": 1.8, "a[1]": 0.7}}})
+    weak = report._diagnostics_section({**base, "weakly_informed": {"AA-left": {"k1": 1.8, "a[2]": 0.7}}})
     row = weak[weak.index("barely inform"):]
     row = row[: row.index("</tr>")]
-    assert "AA-left: k1, a[1]" in row and "look" in row and "FAIL" not in row
+    assert "AA-left: k1, a[2]" in row and "look" in row and "FAIL" not in row
     assert "pass" in report._diagnostics_section({**base, "weakly_informed": {}}).split("barely inform")[1].split("</tr>")[0]
     assert "barely inform" not in report._diagnostics_section(base)
 
     unit = {"units": "", "leg": {"median": 1.0, "lo": 0.5, "hi": 2.0}, "subject": None, "population": None}
-    rows = {"k1": unit, "k2": unit, "a[0]": unit, "a[1]": unit, "gain": unit}
-    marked = {r[0]: r[2] for r in report._param_rows(rows, prior_only=("gain",), barely={"k1": 1.8, "a[1]": 0.7})}
-    assert [k for k, v in marked.items() if "barely informed" in v] == ["<code>k1</code>", "<code>a[1]</code>"]
+    rows = {"k1": unit, "k2": unit, "a[1]": unit, "a[2]": unit, "gain": unit}
+    marked = {r[0]: r[2] for r in report._param_rows(rows, prior_only=("gain",), barely={"k1": 1.8, "a[2]": 0.7})}
+    assert [k for k, v in marked.items() if "barely informed" in v] == ["<code>k1</code>", "<code>a[2]</code>"]
     assert "prior only" in marked["<code>gain</code>"] and "barely" not in marked["<code>gain</code>"]

@@ -274,7 +274,8 @@ def weakly_informed(idata) -> dict[str, dict[str, float]]:
     between subjects and legs).  Where z's posterior sd is :data:`WEAK_SD` or more, θ's value is
     mostly the prior's and the other legs', not the leg's data's, and NUTS moves through such a
     wide, often curved stretch slowly (the exponential elasticity's k1 and k2 on recordings
-    that never reach deep flexion, say).  A vector parameter's component is named ``a[1]``.
+    that never reach deep flexion, say).  A vector parameter's component is named as in the
+    report, counted from 1: ``a[2]``.
     """
     post = idata.posterior
     out: dict[str, dict[str, float]] = {}
@@ -288,7 +289,7 @@ def weakly_informed(idata) -> dict[str, dict[str, float]]:
         for leg, row in zip(sd["leg"].values, np.asarray(sd, np.float64)):
             for index, value in np.ndenumerate(row):
                 if np.isfinite(value) and value >= WEAK_SD:
-                    label = name + "".join(f"[{i}]" for i in index)
+                    label = name + "".join(f"[{i + 1}]" for i in index)  # counted from 1, as the report's a[1], a[2]
                     out.setdefault(str(leg), {})[label] = round(float(value), 2)
     order = [str(leg) for leg in post["leg"].values] if "leg" in post.coords else sorted(out)
     return {leg: out[leg] for leg in order if leg in out}
