@@ -393,9 +393,19 @@ class Cohort:
         return Path(path)
 
     @classmethod
-    def load_netcdf(cls, path: str | os.PathLike, check_fingerprint: bool = True) -> Cohort:
-        """The cohort of ``path``; with ``check_fingerprint``, refused where its recordings differ
-        from those it was written with (:meth:`save_netcdf`, :func:`fingerprint_problem`)."""
+    def load_netcdf(cls, path: str | os.PathLike) -> Cohort:
+        """The cohort of ``path``, refused where its recordings differ from those it was written
+        with (:meth:`save_netcdf`, :func:`fingerprint_problem`)."""
+        cohort, stored = cls.read_netcdf_unchecked(path)
+        problem = fingerprint_problem(cohort, stored)
+        if problem:
+            raise ValueError(f"{path}: {problem}")
+        return cohort
+
+    @classmethod
+    def read_netcdf_unchecked(cls, path: str | os.PathLike) -> tuple[Cohort, str | None]:
+        """The cohort of ``path`` and the recordings' fingerprint it was written with (None: a file
+        written without one), not compared: :func:`quadshank.data.read_netcdf` checks the rules first."""
         path = Path(path)
         with xr.open_dataset(path, engine="h5netcdf") as ds:
             if ds.attrs.get("format") != FORMAT_VERSION:
@@ -403,20 +413,8 @@ class Cohort:
                     f"{path}: not a quadshank cohort file (attribute 'format' is "
                     f"{ds.attrs.get('format')!r}, expected {FORMAT_VERSION!r})"
                 )
-            cohort = cls.from_dataset(ds.load())
             stored = ds.attrs.get(FINGERPRINT_ATTR)
-        problem = fingerprint_problem(cohort, stored) if check_fingerprint else None
-        if problem:
-            raise ValueError(f"{path}: {problem}")
-        return cohort
-
-
-def stored_fingerprint(path: str | os.PathLike) -> str | None:
-    """The recordings' fingerprint a cohort's NetCDF file was written with (None: a file written
-    without one)."""
-    with xr.open_dataset(path, engine="h5netcdf") as ds:
-        stored = ds.attrs.get(FINGERPRINT_ATTR)
-    return None if stored is None else str(stored)
+            return cls.from_dataset(ds.load()), None if stored is None else str(stored)
 
 
 def fingerprint_problem(cohort: Cohort, stored) -> str | None:

@@ -118,7 +118,7 @@ from scipy.signal import savgol_filter
 from ..common._arrays import stretches
 from ..common._io import file_stem, temp_sibling
 from ._cohort import (ANGLE_LIMIT_DEG, MAX_SAMPLING_PERIOD_S, MISSING_MARKERS, Cohort, Trial, derive_acceleration,
-                      fingerprint_problem, leg_key, quiet_mask, stored_fingerprint)
+                      fingerprint_problem, leg_key, quiet_mask)
 from ._paper import TWITCH_REACH_S
 from ._resample import resample_cohort, resample_trial
 
@@ -1925,8 +1925,7 @@ def read_netcdf(path: str | os.PathLike) -> Cohort:
     try:
         # the fingerprint is checked after the rules: a file edited elsewhere that breaks one is
         # told which, before it is told that it was edited
-        cohort = Cohort.load_netcdf(path, check_fingerprint=False)
-        stored = stored_fingerprint(path)
+        cohort, stored = Cohort.read_netcdf_unchecked(path)
     except Exception as exc:  # noqa: BLE001 - whatever a foreign or damaged file raises, it is not a cohort file
         reason = str(exc).removeprefix(f"{path}: ") or type(exc).__name__
         raise InterchangeError(
