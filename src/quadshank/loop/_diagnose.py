@@ -399,12 +399,6 @@ def _j_change(r: dict, horizons) -> str:
     return ", ".join(parts)
 
 
-def _sensor_raises_j(r: dict) -> bool:
-    """Whether a ranking row is of an effect on the accelerometer alone that raises J beyond the
-    bands where it is judged (:func:`evidence_bar`)."""
-    return bool(r.get("sensor_raises_J"))
-
-
 def evidence_notes(ranking: Ranking) -> str:
     """What the verdict alone does not say: a candidate with more evidence than the verdict that
     changes J little where it acts, and candidates that lower J there without being the best
@@ -415,7 +409,7 @@ def evidence_notes(ranking: Ranking) -> str:
     lead = max(rows, key=lambda r: r["delta_elpd"])
     chosen = next((r for r in rows if r["effect"] == ranking.verdict), None)
     notes = []
-    if lead["supported"] and not lead["clears_bar"] and not _sensor_raises_j(lead):
+    if lead["supported"] and not lead["clears_bar"] and not lead.get("sensor_raises_J"):
         notes.append(
             f"{lead['effect']} has the most evidence (ΔELPD {lead['delta_elpd']:.0f} ± {lead['delta_elpd_se']:.0f}) "
             f"but changes J little where it acts ({_j_change(lead, lead['judged_at_ms'])}; the bands overlap), so it is "
@@ -437,14 +431,14 @@ def evidence_notes(ranking: Ranking) -> str:
             f"of the segments): without them it is {r['delta_elpd_k_checked']:.0f} ± {r['delta_elpd_k_checked_se']:.0f}, so it "
             "is not counted as supported; NUTS (--confirm) can settle it."
         )
-    for r in filter(_sensor_raises_j, rows):
-        if r["supported"]:
-            notes.append(
-                f"{r['effect']} has evidence (ΔELPD {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f}) but acts on what the "
-                f"accelerometer reads alone, and with it J rises beyond the bands ({_j_change(r, r['judged_at_ms'])}): "
-                "it moves the dynamics' parameters to absorb a misfit of the dynamics, so it is not added."
-            )
-            break
+    raised = next((r for r in rows if r.get("sensor_raises_J") and r["supported"]), None)
+    if raised is not None:
+        notes.append(
+            f"{raised['effect']} has evidence (ΔELPD {raised['delta_elpd']:.0f} ± {raised['delta_elpd_se']:.0f}) but acts on "
+            f"what the accelerometer reads alone, and with it J rises beyond the bands "
+            f"({_j_change(raised, raised['judged_at_ms'])}): it moves the dynamics' parameters to absorb a misfit of the "
+            "dynamics, so it is not added."
+        )
     best = chosen if chosen is not None else lead
     others = [r for r in rows if r is not best and r.get("predicts_angle", True) and r["J_lowered_beyond_bands"]
               and r["supported"] and r["delta_elpd"] < best["delta_elpd"]]
