@@ -68,3 +68,29 @@ def test_a_candidate_screened_from_the_baseline_stops_at_its_mode():
         polished = optimize.minimize(f, ext.mode[0], jac=True, method="L-BFGS-B", options={"maxiter": 2000})
         assert abs(f(ext.mode[0])[0] - ext.neg_logpost[0]) < 1e-6  # the mode is where the value was taken
     assert ext.neg_logpost[0] - polished.fun < 0.1, (ext.neg_logpost[0], polished.fun, polished.nit)
+
+
+def test_the_screens_draws_in_batches_equal_each_draw_alone():
+    """The screen evaluates its Laplace draws in batches (:func:`~quadshank.inference._draws.over_draws`);
+    seven draws (a remainder after the batches of four) give each draw's own log-likelihoods."""
+    cohort, _ = simulate_cohort(legs=["JM-left"], minutes=0.5, seed=1, trials=(1,))
+    model = build_model("model3s")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit = _screen.laplace_fit(cohort, model, n_draws=7, loo=False)
+    data, specs = fit.data, list(fit.specs)
+    with jax.enable_x64(True):
+        joint, _, joint_b, _, pw, _ = _screen._compiled(model, specs, data.response_length, data.max_shift,
+                                                         data.n_segments, data.objective)
+        x = {k: v[0] for k, v in _screen._leg_arrays64(data).items()}
+        V = jnp.asarray(fit.draws[0], jnp.float64)
+        d = jnp.asarray(fit.delays[0], jnp.int32)
+        k = jnp.asarray(fit.shifts[0], jnp.int32)
+        batched = np.asarray(joint_b(V, x))
+        alone = np.stack([np.asarray(jax.jit(joint)(v, x)[0]) for v in V])
+        np.testing.assert_allclose(batched, alone, rtol=1e-12)
+        assert batched.shape == (7, *alone.shape[1:]) and np.ptp(batched[:, :, 0], axis=0).max() > 0
+        pointwise = np.asarray(pw(V, d, k, x))
+        one_by_one = np.concatenate([np.asarray(pw(V[i : i + 1], d[i : i + 1], k[i : i + 1], x)) for i in range(7)])
+        np.testing.assert_allclose(pointwise, one_by_one, rtol=1e-12)
+        assert np.ptp(pointwise.sum(axis=1)) > 0  # the draws differ

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..data._cohort import Cohort
+from ..inference._draws import over_draws
 from ..inference._screen import LaplaceFit, leg_draw_models
 from ..model._likelihood import leg_window_cdf, segment_samples
 from ..model._model import Model
@@ -52,7 +53,7 @@ def _window_cdfs(models: Model, delays, shifts, log_noise, x: dict, R: int, K: i
     def one(m, d, shift, ln):
         return leg_window_cdf(m, {"sigma": jnp.exp(ln[0]), "nu": jnp.exp(ln[1])}, x, d, R, K, shift)
 
-    return jax.vmap(one)(models, delays, shifts, log_noise)
+    return over_draws(one, models, delays, shifts, log_noise)
 
 
 def elpd_in_time(fit: LaplaceFit, cohort: Cohort, leg: str) -> list[dict]:

@@ -51,7 +51,7 @@ from ..model._likelihood import (
     prepare,
 )
 from ..model._model import Model
-from ._draws import sample_delays
+from ._draws import over_draws, sample_delays
 from ._priors import (
     NU_PRIOR,
     SIGMA_PRIOR,
@@ -247,9 +247,9 @@ def _compiled(model: Model, specs: list[_Spec], R: int, K: int, n_segments: int,
     out = (
         joint,
         jax.jit(jax.value_and_grad(neg_logpost)),
-        jax.jit(jax.vmap(lambda v, x: joint(v, x)[0], in_axes=(0, None))),
+        jax.jit(lambda V, x: over_draws(lambda v: joint(v, x)[0], V)),
         jax.jit(jax.vmap(lambda v: _log_prior(specs, v, sigma_prior))),
-        jax.jit(jax.vmap(pointwise_one, in_axes=(0, 0, 0, None))),
+        jax.jit(lambda V, d, k, x: over_draws(lambda v, di, ki: pointwise_one(v, di, ki, x), V, d, k)),
         jax.jit(jax.value_and_grad(_neg_logpost_at_delay(joint))),  # compiled on first use (delay_modes)
     )
     _COMPILED[key] = out
