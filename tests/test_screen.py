@@ -87,7 +87,8 @@ def test_the_screens_draws_in_batches_equal_each_draw_alone():
         d = jnp.asarray(fit.delays[0], jnp.int32)
         k = jnp.asarray(fit.shifts[0], jnp.int32)
         batched = np.asarray(joint_b(V, x))
-        alone = np.stack([np.asarray(jax.jit(joint)(v, x)[0]) for v in V])
+        joint_one = jax.jit(joint)
+        alone = np.stack([np.asarray(joint_one(v, x)[0]) for v in V])
         np.testing.assert_allclose(batched, alone, rtol=1e-12)
         assert batched.shape == (7, *alone.shape[1:]) and np.ptp(batched[:, :, 0], axis=0).max() > 0
         pointwise = np.asarray(pw(V, d, k, x))
