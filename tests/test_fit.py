@@ -599,10 +599,13 @@ def test_a_fit_jumps_between_the_delay_modes_its_evidence_weighs():
 
 
 def test_vectorized_and_sequential_chains_give_the_same_draws():
+    """In double precision the batched and the one-by-one programs round alike, and the chains
+    give the same draws.  (At mixed precision their single-precision terms round differently, and
+    the trajectories, each a chaotic map, part after a few draws: the same posterior, other draws.)"""
     cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.3, seed=2, trials=(1,))
     draws = {}
     for method in ("vectorized", "sequential"):
-        settings = FitSettings(chains=2, warmup=20, draws=10, seed=5, chain_method=method, start="prior")
+        settings = FitSettings(chains=2, warmup=20, draws=10, seed=5, chain_method=method, start="prior", precision="double")
         mcmc, _ = fit(cohort, build_model("model1"), settings, progress=False)
         draws[method] = np.asarray(mcmc.get_samples(group_by_chain=True)["gain"])
     assert draws["vectorized"].shape[:2] == (2, 10)
@@ -624,6 +627,25 @@ def test_auto_chain_method_runs_large_data_one_chain_after_another():
     assert chain_method(FitSettings(chain_method="sequential"), small) == "sequential"
     with pytest.raises(ValueError, match="chain_method must be one of"):
         FitSettings(chain_method="threads")
+
+
+def test_the_fit_takes_single_precision_data_at_mixed_precision_on_the_acceleration_alone():
+    """``precision="mixed"`` (the default) gives the fit's density the data's floating arrays in single
+    precision on the acceleration, in double otherwise; the index arrays are left as they are."""
+    from quadshank.inference._nuts import fit_arrays
+    from quadshank.model._likelihood import prepare
+
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.2, seed=0, trials=(1,))
+    assert FitSettings().precision == "mixed"
+    with pytest.raises(ValueError, match="precision must be one of"):
+        FitSettings(precision="single")
+    with jax.enable_x64(True):
+        for objective, precision, want in (("acceleration", "mixed", jnp.float32), ("acceleration", "double", jnp.float64),
+                                           ("angle", "mixed", jnp.float64)):
+            data = prepare(cohort, build_model("model3"), objective=objective)
+            x = fit_arrays(data, FitSettings(precision=precision))
+            assert x["angle"].dtype == want and x["acceleration"].dtype == want, (objective, precision)
+            assert x["window"].dtype == data.window.dtype
 
 
 def test_the_noise_starts_at_the_fits_own_density_where_the_screen_held_a_threshold(monkeypatch):

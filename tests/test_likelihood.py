@@ -406,11 +406,11 @@ def test_pulse_level_path_equals_the_pulse_lag_path(cohort_truth, effect, cv):
     n_pulses = int((data.pulse_u[0] > 0).sum())
     n_slots = int(data.slot_mask[0].sum())
     assert n_slots < n_pulses - 10  # several windows hold more than one pulse
-    x = {k: jnp.asarray(v[0], jnp.float64) if jnp.issubdtype(v.dtype, jnp.floating) else v[0] for k, v in data.leg_arrays().items()}
     noise = {"sigma": 40.0, "nu": 6.0}
     R, K = data.response_length, data.max_shift
     allowed = np.arange(K + 1)[None, :] <= np.arange(MAX_DELAY + 1)[:, None]  # shift ≤ d
-    with jax.enable_x64(True):  # in double precision (as the fit runs) the two agree to rounding
+    with jax.enable_x64(True):  # in double precision the two agree to rounding
+        x = {k: jnp.asarray(v[0], jnp.float64) if jnp.issubdtype(v.dtype, jnp.floating) else v[0] for k, v in data.leg_arrays().items()}
         model = model.with_params(jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), model.params()))
         # the twitch's sum Σh is taken at the data's single precision on the pulse-level path, so a
         # window's variance (a square of sums) agrees to single precision's rounding of Σh²
@@ -467,3 +467,59 @@ def test_a_leg_without_a_requested_trial_is_refused(cohort_truth):
     short = type(cohort)(tuple(t for t in cohort.trials if not (t.key == "JM-right" and t.trial == 2)), cohort.attrs)
     with pytest.raises(KeyError, match=r"leg JM-right has no trial 2 \(it has \[1\]\)"):
         L.prepare(short, _true_model(3, truth, "TN-left"), trials=(1, 2))
+
+
+def _ops(jaxpr):
+    """Every equation of a jaxpr and of the jaxprs inside it: (primitive, output dtype, output size)."""
+    for eqn in jaxpr.eqns:
+        for v in eqn.outvars:
+            yield eqn.primitive.name, v.aval.dtype, int(np.prod(v.aval.shape))
+        for p in eqn.params.values():
+            for sub in p if isinstance(p, (list, tuple)) else (p,):
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    yield from _ops(inner)
+
+
+def test_sums_at_mixed_precision_are_taken_in_double():
+    """The likelihood's sums over a leg's terms are taken in double precision (where JAX's x64 is
+    on) whatever the terms' precision: 100 001 terms of 0.1 in single precision sum to 100 001
+    times 0.1f to double's rounding, which no single-precision sum can (its neighbouring values
+    lie 1e-3 apart there)."""
+    with jax.enable_x64(True):
+        a = jnp.full(100_001, 0.1, jnp.float32)
+        want = 100_001 * float(np.float32(0.1))
+        assert L._total(a).dtype == jnp.float64
+        assert float(L._total(a)) == pytest.approx(want, rel=1e-12)
+        assert abs(float(jnp.sum(a)) - want) > 1e-9 * want  # what the sum in single precision gives
+    assert L._total(jnp.ones(3, jnp.float32)).dtype == jnp.float32  # without x64 there is no double
+
+
+@pytest.mark.parametrize("general", [False, True])
+def test_mixed_precision_computes_each_term_in_single_and_agrees_with_double(cohort_truth, general):
+    """Given single-precision data and double-precision parameters (the fit's ``precision="mixed"``),
+    the windows' log density kernels are computed in single precision, and the leg's log-likelihood
+    of every delay, shift and threshold state agrees with the one computed in double throughout to
+    within 2e-3 (on values of ~1e4), on the pulse-level path and on the (pulse, lag) path."""
+    cohort, truth = cohort_truth
+    leg = "TN-left"
+    model = _true_model(3, truth, leg).add(AngleDelay(threshold=-20.0))
+    data = L.prepare(cohort, model, trials=(1, 2), legs=[leg])
+    R, K = data.response_length, data.max_shift
+    with jax.enable_x64(True):
+        model = model.with_params(jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), model.params()))
+        noise = {"sigma": jnp.float64(40.0), "nu": jnp.float64(6.0)}
+        x32 = {k: jnp.asarray(v[0]) for k, v in data.leg_arrays().items()}
+        x64 = {k: v.astype(jnp.float64) if jnp.issubdtype(v.dtype, jnp.floating) else v for k, v in x32.items()}
+        if general:
+            x32, x64 = _general(x32), _general(x64)
+        mixed = np.asarray(L.leg_loglik_by_threshold(model, noise, x32, R, K))
+        double = np.asarray(L.leg_loglik_by_threshold(model, noise, x64, R, K))
+        assert mixed.dtype == np.float64 and np.abs(double).max() > 5e3
+        np.testing.assert_allclose(mixed, double, rtol=0, atol=2e-3)
+        ops = list(_ops(jax.make_jaxpr(lambda x: L.leg_loglik_by_threshold(model, noise, x, R, K))(x32).jaxpr))
+        W = x32["window_mask"].shape[-1]
+        assert any(p == "log1p" and d == jnp.float32 and n >= W for p, d, n in ops)  # the windows' kernels
+        assert not any(p == "log1p" and d == jnp.float64 and n >= W for p, d, n in ops)
+        ops = list(_ops(jax.make_jaxpr(lambda x: L.leg_loglik_by_threshold(model, noise, x, R, K))(x64).jaxpr))
+        assert not any(p == "log1p" and d == jnp.float32 for p, d, n in ops)  # double data: double throughout

@@ -322,6 +322,7 @@ def cmd_fit(args) -> int:
         target_accept=args.target_accept,
         chain_method=args.chain_method,
         likelihood=args.likelihood,
+        precision=args.precision,
     )
     legs = _csv_list(args.legs) if args.legs else None
     summary = run_fit(
@@ -682,6 +683,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "the angle of runs from the measured state (output error: free swings for --model passive, "
                         "1-s shooting segments for a model with a muscle and no delay or noise effect); auto "
                         "(default): the angle for --model passive, the acceleration otherwise")
+    f.add_argument("--precision", choices=("mixed", "double"), default="mixed",
+                   help="the sampled density's precision: mixed (default: each sample's terms at the data's single "
+                        "precision, their sums in double) or double throughout; the angle likelihood is always double")
     f.add_argument("--trials", default="1", help="identification trials, comma-separated (default 1, as the paper)")
     f.add_argument("--legs", default="", help="legs, comma-separated (default: all in the data)")
     f.add_argument("--chains", type=int, default=4)

@@ -64,6 +64,8 @@ __all__ = [
 STARTS = ("screen", "classical", "prior")
 #: What :attr:`FitSettings.chain_method` takes.
 CHAIN_METHODS = ("auto", "vectorized", "sequential", "parallel")
+#: The precisions the fit's density can be evaluated at (:attr:`FitSettings.precision`).
+PRECISIONS = ("mixed", "double")
 #: Compared samples (all legs) from which chain_method "auto" runs the chains one after another.
 SEQUENTIAL_FROM_SAMPLES = 100_000
 #: The least P(d | data) (a leg alone, per-delay Laplace) of a delay whose mode the chains jump to
@@ -126,6 +128,11 @@ class FitSettings:
     #: effect) or "auto": the angle for the pendulum alone, the acceleration with a muscle
     #: (:func:`quadshank.model._likelihood.resolve_objective`).
     likelihood: str = "auto"
+    #: The precision of the density NUTS samples: "mixed" (each sample's and window's terms at
+    #: the data's single precision, as recorded, their sums and the parameters in double;
+    #: :func:`quadshank.model._likelihood._at_data_precision`), or "double" throughout.  The
+    #: angle objective is always double: its runs accumulate along the trial.
+    precision: str = "mixed"
 
     def __post_init__(self):
         if self.start not in STARTS:
@@ -143,6 +150,8 @@ class FitSettings:
             raise ValueError(f"target_ess must be at least 1, not {self.target_ess}")
         if self.likelihood not in OBJECTIVES + ("auto",):
             raise ValueError(f"likelihood must be one of auto, {', '.join(OBJECTIVES)}, not {self.likelihood!r}")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, not {self.precision!r}")
         if not self.time_limit_s > 0:
             raise ValueError(f"time_limit_s must be positive, not {self.time_limit_s}")
 
@@ -467,11 +476,11 @@ def run_nuts(
     :func:`fit_screen`), each leg's delays weighed and the screen restarted where it missed the
     best (:func:`delay_start`), then NUTS.  ``log_delay_prior``: see :func:`delay_prior_from`.
 
-    Samples in double precision, as the screen optimises: the log density of five
-    5-minute legs is ~1e6, where single precision rounds it to ~0.06, and NUTS,
-    seeing that noise in every energy difference, shrinks its step until the trees
-    reach their depth (model 3 + angle_delay, 5 legs × 5 min: 255 leapfrog steps per
-    draw in single precision, 12 in double).
+    The log density NUTS samples is summed in double precision: that of five 5-minute
+    legs is ~1e6, where single precision rounds it to ~0.06, and NUTS, seeing that noise
+    in every energy difference, shrinks its step until the trees reach their depth (model
+    3 + angle_delay, 5 legs × 5 min: 255 leapfrog steps per draw in single precision, 12 in
+    double).  Its terms are computed at the data's precision (:attr:`FitSettings.precision`).
     """
     t0 = time.perf_counter()
     screen = fit_screen(cohort, model, settings, legs=legs, progress=progress)
@@ -492,6 +501,14 @@ def run_nuts(
     return FitRun(mcmc, data, evidence, moved, evidence_seconds, sampling, target)
 
 
+def fit_arrays(data: LikelihoodData, settings: FitSettings) -> dict:
+    """The leg arrays the fit's density takes (under JAX's x64): the data's floating arrays at
+    their single precision for ``precision="mixed"`` on the acceleration, else in double."""
+    single = settings.precision == "mixed" and data.objective == "acceleration"
+    return {k: v.astype(jnp.float32 if single else jnp.float64) if jnp.issubdtype(v.dtype, jnp.floating) else v
+            for k, v in data.leg_arrays().items()}
+
+
 def fit(
     cohort: Cohort,
     model: Model,
@@ -507,7 +524,7 @@ def fit(
 
 def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen, started=None, jumps=None):
     data = prepare(cohort, model, trials=settings.trials, legs=legs, objective=settings.likelihood)
-    arrays = {k: v.astype(jnp.float64) if jnp.issubdtype(v.dtype, jnp.floating) else v for k, v in data.leg_arrays().items()}
+    arrays = fit_arrays(data, settings)
     if log_delay_prior is not None:
         log_delay_prior = np.asarray(log_delay_prior, np.float32)
         if log_delay_prior.shape != (data.n_legs, N_DELAYS):
