@@ -93,6 +93,12 @@ The angle, for a model with a muscle (multiple shooting)
     acceleration, one run per d.  Not for models with a delay effect or a noise effect: those
     are summed out window by window on the acceleration.
 
+Precision
+    In the likelihood NUTS samples (:func:`leg_loglik_by_delay`, :func:`leg_loglik_by_threshold`)
+    each term (a sample's passive acceleration, a window's sum, its log density kernel) is
+    computed at the precision of the data given, and every sum over samples, windows, pulses
+    and threshold states in double where JAX's x64 is on (:func:`_at_data_precision`): the fit
+    gives single-precision data by default and double with ``precision="double"``.
 Units for PSIS-LOO
     Windows are summed into segments of SEGMENT_S (1 s) per trial: the
     residual's correlation (twitch-shape misfit, resonance) dies out within a
@@ -1162,12 +1168,12 @@ def _at_data_precision(model: Model, x: dict) -> Model:
     """``model`` with its floating parameters at the precision of the leg's data.
 
     The fit's likelihood is a sum of about 10⁵ terms: each term is computed at the data's
-    precision and the terms are summed at the parameters' (:func:`_total`).  Given single-precision
-    data (as recorded) and double-precision parameters (as the fit samples), each sample's
-    passive acceleration, window sum and log density kernel cost half as much memory traffic
-    and vector width as in double precision, while the sums, whose rounding in single
-    precision (~0.1 on a log density of 10⁶) NUTS would see in every energy difference, stay
-    in double.  Given double-precision data, everything is double as before."""
+    precision and the terms are summed in double where JAX's x64 is on (:func:`_total`).  Given
+    single-precision data (as :func:`prepare` stores them) and double-precision parameters (as
+    the fit samples), each sample's passive acceleration, window sum and log density kernel
+    cost half the memory traffic and vector width of double precision, while the sums, whose
+    rounding in single precision (0.06 on a log density of 10⁶) NUTS would see in every energy
+    difference, stay in double.  Given double-precision data, everything is double."""
     dtype = x["acceleration"].dtype
 
     def cast(v):
