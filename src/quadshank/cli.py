@@ -36,7 +36,7 @@ from .evaluation._posterior import PosteriorEvaluation, check_fit_legs, load_fit
 from .evaluation._prediction import Evaluation
 from .inference._fitio import FitResult, read_summary
 from .inference._identify import Identification, load_identification
-from .inference._nuts import SEQUENTIAL_FROM_SAMPLES, STARTS, FitSettings
+from .inference._nuts import PRECISIONS, SEQUENTIAL_FROM_SAMPLES, STARTS, FitSettings
 from .loop._diagnose import SCREEN_STARTS, Diagnosis, Discovery
 from .model._model import FIT_MODELS
 from .model._plugins import load_effects_file, load_entry_point_effects
@@ -683,7 +683,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "the angle of runs from the measured state (output error: free swings for --model passive, "
                         "1-s shooting segments for a model with a muscle and no delay or noise effect); auto "
                         "(default): the angle for --model passive, the acceleration otherwise")
-    f.add_argument("--precision", choices=("mixed", "double"), default="mixed",
+    f.add_argument("--precision", choices=PRECISIONS, default=FitSettings.precision,
                    help="the sampled density's precision: mixed (default: each sample's terms at the data's single "
                         "precision, their sums in double) or double throughout; the angle likelihood is always double")
     f.add_argument("--trials", default="1", help="identification trials, comma-separated (default 1, as the paper)")

@@ -1183,16 +1183,21 @@ def _at_data_precision(model: Model, x: dict) -> Model:
     return jax.tree_util.tree_map(cast, model)
 
 
+def _fine_dtype(dtype):
+    """``dtype`` or the finest floating precision enabled, whichever is finer (double where JAX's x64 is on)."""
+    return jnp.promote_types(dtype, jax.dtypes.canonicalize_dtype(jnp.float64))
+
+
 def _fine(a):
-    """``a`` at the finest floating precision enabled (double where JAX's x64 is on)."""
+    """``a`` at the finest floating precision enabled (:func:`_fine_dtype`)."""
     a = jnp.asarray(a)
-    return a.astype(jnp.promote_types(a.dtype, jax.dtypes.canonicalize_dtype(jnp.float64)))
+    return a.astype(_fine_dtype(a.dtype))
 
 
 def _total(a, axis=None):
     """Σ of ``a`` along ``axis`` at the finest precision enabled (:func:`_at_data_precision`)."""
     a = jnp.asarray(a)
-    return jnp.sum(a, axis=axis, dtype=_fine(a).dtype)
+    return jnp.sum(a, axis=axis, dtype=_fine_dtype(a.dtype))
 
 
 def _cumsum(x, block: int = 32):
