@@ -8,8 +8,11 @@ record keeps, round by round, the screen's leader and its ΔELPD, NUTS's ΔELPD 
 clears the bar there, whether each NUTS fit passed its checks, and the model the loop ends with.
 
     python benchmarks/bench_loop_confirm.py [--leg JM-left] [--minutes 2] [--seed 1]
-        [--hidden none,torque_angle_peak,hill_velocity,angle_delay]
-        [--out results/benchmarks.md] [--record results/bench_loop_confirm.json]
+        [--hidden none,torque_angle_peak,hill_velocity,angle_delay,fatigue,potentiation,goniometer_offset]
+        [--keep] [--out results/benchmarks.md] [--record results/bench_loop_confirm.json]
+
+``--keep`` keeps the record's rows of the hidden effects not named in ``--hidden`` (same leg,
+minutes and seed), each with the date it was measured: one row can be rerun alone.
 """
 
 from __future__ import annotations
@@ -19,12 +22,15 @@ import json
 import shlex
 import sys
 import tempfile
+from datetime import date
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from results_md import discover_rounds, publish, run_quadshank  # noqa: E402
 
 SECTION = "bench_loop_confirm"
+#: Every effect hidden by default: each built-in one the loop is expected to find on these data, and none.
+HIDDEN = ("none", "torque_angle_peak", "hill_velocity", "angle_delay", "fatigue", "potentiation", "goniometer_offset")
 
 
 def rounds(out: Path) -> list[dict]:
@@ -67,8 +73,8 @@ def render(record: dict) -> str:
         "a round whose screen names no leader ends the loop. *fits passed*: the NUTS fits that passed their "
         "checks (R-hat, ESS, divergences, E-BFMI), of all made.",
         "",
-        "| hidden | rounds: screen leader (ΔELPD ± SE) → NUTS (ΔELPD ± SE) | candidates screened | final model | NUTS fits passed | wall [s] |",
-        "|---|---|---|---|---|---|",
+        "| hidden | rounds: screen leader (ΔELPD ± SE) → NUTS (ΔELPD ± SE) | candidates screened | final model | NUTS fits passed | wall [s] | measured |",
+        "|---|---|---|---|---|---|---|",
     ]
     for r in record["rows"]:
         said = []
@@ -84,14 +90,14 @@ def render(record: dict) -> str:
         fits = [f for f in fits if f is not None]
         screened = max((x["screened"] for x in r["rounds"]), default=0)
         lines.append(f"| {r['hidden']} | {'; '.join(said)} | {screened} | {r['final_model']} | "
-                     f"{sum(fits)} of {len(fits)} | {r['seconds']:.0f} |")
+                     f"{sum(fits)} of {len(fits)} | {r['seconds']:.0f} | {r.get('date', record['date'])} |")
     failed = [f"{r['hidden']}, {where}: {banner}" for r in record["rows"]
               for where, banner in [("the start model", r.get("start_fit_banner"))]
               + [(x["model"] + " + " + x["screen_verdict"], (x.get("nuts") or {}).get("banner")) for x in r["rounds"]]
               if banner]
     if failed:
         lines += ["", "NUTS fits that failed their checks: " + "; ".join(failed) + "."]
-    lines += ["", f"Measured {record['date']} on {record['machine']}."]
+    lines += ["", f"Measured on {record['machine']}; a row is rerun alone with `--hidden NAME --keep`."]
     return "\n".join(lines)
 
 
@@ -100,14 +106,20 @@ def main() -> None:
     ap.add_argument("--leg", default="JM-left")
     ap.add_argument("--minutes", type=float, default=2.0)
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--hidden", default="none,torque_angle_peak,hill_velocity,angle_delay")
+    ap.add_argument("--hidden", default=",".join(HIDDEN))
+    ap.add_argument("--keep", action="store_true", help="keep the record's rows of the effects not rerun")
     ap.add_argument("--out", default="results/benchmarks.md")
     ap.add_argument("--record", default="results/bench_loop_confirm.json")
     args = ap.parse_args()
     record = {"command": "python benchmarks/bench_loop_confirm.py " + shlex.join(sys.argv[1:]), "leg": args.leg,
               "minutes": args.minutes, "seed": args.seed, "rows": []}
+    hidden_now = args.hidden.split(",")
+    kept = kept_rows(args.record, record, hidden_now) if args.keep else []
+    if args.keep:
+        record["command"] = "python benchmarks/bench_loop_confirm.py"  # the rows together: what every row's run amounts to
+    today = date.today().isoformat()
     with tempfile.TemporaryDirectory() as tmp:
-        for hidden in args.hidden.split(","):
+        for hidden in hidden_now:
             data, out = Path(tmp) / f"data-{hidden}", Path(tmp) / f"discover-{hidden}"
             effects = "twitch_variability" + ("" if hidden == "none" else f",{hidden}")
             run_quadshank("simulate", "--out", str(data), "--legs", args.leg, "--minutes", str(args.minutes),
@@ -116,9 +128,28 @@ def main() -> None:
             summary = json.loads((out / "summary.json").read_text())
             passed, banner = start_fit(out)
             record["rows"].append({"hidden": hidden, "seconds": seconds, "rounds": rounds(out), "final_model": summary["final_model"],
-                                   "start_fit_passed": passed, "start_fit_banner": banner})
+                                   "start_fit_passed": passed, "start_fit_banner": banner, "date": today})
             print(hidden, f"{seconds:.0f} s", summary["final_model"], flush=True)
-            publish(dict(record), args.record, args.out, SECTION, render)  # what is measured so far is kept
+            publish(in_order(record, kept), args.record, args.out, SECTION, render)  # what is measured so far is kept
+
+
+def kept_rows(path: str | Path, record: dict, rerun: list[str]) -> list[dict]:
+    """The rows of the record at ``path`` for the effects not in ``rerun``, each with its date; none
+    where there is no record or it was made on other data (leg, minutes, seed)."""
+    path = Path(path)
+    if not path.exists():
+        return []
+    old = json.loads(path.read_text())
+    if any(old.get(k) != record[k] for k in ("leg", "minutes", "seed")):
+        return []
+    return [{**r, "date": r.get("date", old.get("date"))} for r in old.get("rows", []) if r["hidden"] not in rerun]
+
+
+def in_order(record: dict, kept: list[dict]) -> dict:
+    """``record`` with the ``kept`` rows beside its own, in the order of :data:`HIDDEN` (others last)."""
+    rank = {h: i for i, h in enumerate(HIDDEN)}
+    rows = sorted(kept + record["rows"], key=lambda r: rank.get(r["hidden"], len(rank)))
+    return {**record, "rows": rows}
 
 
 if __name__ == "__main__":
