@@ -11,8 +11,9 @@ clears the bar there, whether each NUTS fit passed its checks, and the model the
         [--hidden none,torque_angle_peak,hill_velocity,angle_delay,fatigue,potentiation,goniometer_offset]
         [--keep] [--out results/benchmarks.md] [--record results/bench_loop_confirm.json]
 
-``--keep`` keeps the record's rows of the hidden effects not named in ``--hidden`` (same leg,
-minutes and seed), each with the date it was measured: one row can be rerun alone.
+``--keep`` keeps the record's rows (same leg and seed) other than those rerun (the effects of
+``--hidden`` at ``--minutes``), each with the date it was measured: one row can be rerun alone, and
+an effect that the default length does not show can be measured on longer data beside it.
 """
 
 from __future__ import annotations
@@ -28,9 +29,13 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from results_md import discover_rounds, publish, run_quadshank  # noqa: E402
 
+from quadshank.loop import ELPD_SE_BAR  # noqa: E402
+
 SECTION = "bench_loop_confirm"
 #: Every effect hidden by default: each built-in one the loop is expected to find on these data, and none.
 HIDDEN = ("none", "torque_angle_peak", "hill_velocity", "angle_delay", "fatigue", "potentiation", "goniometer_offset")
+#: Minutes of trial 1 by default; a row on other data says its length.
+MINUTES = 2.0
 
 
 def rounds(out: Path) -> list[dict]:
@@ -39,7 +44,9 @@ def rounds(out: Path) -> list[dict]:
     for s, top in discover_rounds(out):
         row = {"model": s.get("model"), "verdict": s.get("verdict"), "screen_verdict": s.get("screen_verdict", s.get("verdict")),
                "leader": top.get("effect"), "delta_elpd": top.get("delta_elpd"), "delta_elpd_se": top.get("delta_elpd_se"),
-               "clears_bar": top.get("clears_bar"), "screened": len(s.get("ranking") or [])}
+               "clears_bar": top.get("clears_bar"), "supported": top.get("supported"),
+               "judged_at_ms": top.get("judged_at_ms"), "J_lowered_at_ms": top.get("J_lowered_at_ms"),
+               "screened": len(s.get("ranking") or [])}
         nuts = top.get("nuts")
         if nuts:
             row["nuts"] = {"delta_elpd": nuts.get("delta_elpd"), "delta_elpd_se": nuts.get("delta_elpd_se"),
@@ -65,12 +72,12 @@ def render(record: dict) -> str:
         "",
         f"Command: `{record['command']}`",
         "",
-        f"{record['leg']}, {record['minutes']:g} min of trial 1 (seed {record['seed']}), simulated with "
+        f"{record['leg']}, {MINUTES:g} min of trial 1 (longer where a row says; seed {record['seed']}), simulated with "
         "`twitch_variability` (a log-normal gain per pulse, CV 0.2) and the hidden effect besides; "
         "`quadshank discover DATA --confirm` (model3s, every registered candidate, up to three rounds; each NUTS "
         "fit of 2 chains drawn in blocks to an ESS of 400). Each round: the screen's leader with its ΔELPD ± SE, then NUTS's ΔELPD ± SE for it "
         "against the previous round's NUTS fit and whether it clears the bar there (✓ added, ✗ not); "
-        "a round whose screen names no leader ends the loop. *fits passed*: the NUTS fits that passed their "
+        "a round whose screen names no leader ends the loop, and says why where its leader had the evidence on its side. *fits passed*: the NUTS fits that passed their "
         "checks (R-hat, ESS, divergences, E-BFMI), of all made.",
         "",
         "| hidden | rounds: screen leader (ΔELPD ± SE) → NUTS (ΔELPD ± SE) | candidates screened | final model | NUTS fits passed | wall [s] | measured |",
@@ -80,7 +87,7 @@ def render(record: dict) -> str:
         said = []
         for x in r["rounds"]:
             if x["screen_verdict"] == "none":
-                said.append(f"none (leader {x['leader']} {x['delta_elpd']:.0f} ± {x['delta_elpd_se']:.0f})")
+                said.append(f"none (leader {x['leader']} {x['delta_elpd']:.0f} ± {x['delta_elpd_se']:.0f}{why_not(x)})")
                 continue
             n = x.get("nuts") or {}
             mark = "✓" if x["verdict"] != "none" else "✗"
@@ -89,7 +96,9 @@ def render(record: dict) -> str:
         fits = [r["start_fit_passed"]] + [x["nuts"]["fit_passed"] for x in r["rounds"] if x.get("nuts")]
         fits = [f for f in fits if f is not None]
         screened = max((x["screened"] for x in r["rounds"]), default=0)
-        lines.append(f"| {r['hidden']} | {'; '.join(said)} | {screened} | {r['final_model']} | "
+        minutes = r.get("minutes", record["minutes"])
+        label = r["hidden"] if minutes == MINUTES else f"{r['hidden']}, {minutes:g} min"
+        lines.append(f"| {label} | {'; '.join(said)} | {screened} | {r['final_model']} | "
                      f"{sum(fits)} of {len(fits)} | {r['seconds']:.0f} | {r.get('date', record['date'])} |")
     failed = [f"{r['hidden']}, {where}: {banner}" for r in record["rows"]
               for where, banner in [("the start model", r.get("start_fit_banner"))]
@@ -97,14 +106,24 @@ def render(record: dict) -> str:
               if banner]
     if failed:
         lines += ["", "NUTS fits that failed their checks: " + "; ".join(failed) + "."]
-    lines += ["", f"Measured on {record['machine']}; a row is rerun alone with `--hidden NAME --keep`."]
+    lines += ["", f"Measured on {record['machine']}; a row is rerun alone with `--hidden NAME --keep` (and `--minutes M` where it gives a length)."]
     return "\n".join(lines)
+
+
+def why_not(x: dict) -> str:
+    """Why a leader with the evidence on its side did not clear the screen's bar, where the record says."""
+    if x.get("supported") is False and x["delta_elpd"] > ELPD_SE_BAR * x["delta_elpd_se"]:
+        return "; not supported where segments of high Pareto k are left out"
+    if not x.get("supported") or x.get("judged_at_ms") is None:
+        return ""
+    missed = [h for h in x["judged_at_ms"] if h not in x["J_lowered_at_ms"]]
+    return f"; J not lowered beyond the bands at {', '.join(str(h) for h in missed)} ms" if missed else ""
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--leg", default="JM-left")
-    ap.add_argument("--minutes", type=float, default=2.0)
+    ap.add_argument("--minutes", type=float, default=MINUTES)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--hidden", default=",".join(HIDDEN))
     ap.add_argument("--keep", action="store_true", help="keep the record's rows of the effects not rerun")
@@ -128,27 +147,31 @@ def main() -> None:
             summary = json.loads((out / "summary.json").read_text())
             passed, banner = start_fit(out)
             record["rows"].append({"hidden": hidden, "seconds": seconds, "rounds": rounds(out), "final_model": summary["final_model"],
-                                   "start_fit_passed": passed, "start_fit_banner": banner, "date": today})
+                                   "start_fit_passed": passed, "start_fit_banner": banner, "date": today,
+                                   "minutes": args.minutes})
             print(hidden, f"{seconds:.0f} s", summary["final_model"], flush=True)
             publish(in_order(record, kept), args.record, args.out, SECTION, render)  # what is measured so far is kept
 
 
 def kept_rows(path: str | Path, record: dict, rerun: list[str]) -> list[dict]:
-    """The rows of the record at ``path`` for the effects not in ``rerun``, each with its date; none
-    where there is no record or it was made on other data (leg, minutes, seed)."""
+    """The rows of the record at ``path`` other than those of the effects in ``rerun`` at ``record``'s
+    length, each with its date and length; none where there is no record or it was made on another
+    leg or seed."""
     path = Path(path)
     if not path.exists():
         return []
     old = json.loads(path.read_text())
-    if any(old.get(k) != record[k] for k in ("leg", "minutes", "seed")):
+    if any(old.get(k) != record[k] for k in ("leg", "seed")):
         return []
-    return [{**r, "date": r.get("date", old.get("date"))} for r in old.get("rows", []) if r["hidden"] not in rerun]
+    rows = [{**r, "date": r.get("date", old.get("date")), "minutes": r.get("minutes", old.get("minutes"))}
+            for r in old.get("rows", [])]
+    return [r for r in rows if not (r["hidden"] in rerun and r["minutes"] == record["minutes"])]
 
 
 def in_order(record: dict, kept: list[dict]) -> dict:
     """``record`` with the ``kept`` rows beside its own, in the order of :data:`HIDDEN` (others last)."""
     rank = {h: i for i, h in enumerate(HIDDEN)}
-    rows = sorted(kept + record["rows"], key=lambda r: rank.get(r["hidden"], len(rank)))
+    rows = sorted(kept + record["rows"], key=lambda r: (rank.get(r["hidden"], len(rank)), r["minutes"]))
     return {**record, "rows": rows}
 
 
