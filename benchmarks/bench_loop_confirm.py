@@ -96,7 +96,7 @@ def render(record: dict) -> str:
         fits = [r["start_fit_passed"]] + [x["nuts"]["fit_passed"] for x in r["rounds"] if x.get("nuts")]
         fits = [f for f in fits if f is not None]
         screened = max((x["screened"] for x in r["rounds"]), default=0)
-        minutes = r.get("minutes", record["minutes"])
+        minutes = r["minutes"]
         label = r["hidden"] if minutes == MINUTES else f"{r['hidden']}, {minutes:g} min"
         lines.append(f"| {label} | {'; '.join(said)} | {screened} | {r['final_model']} | "
                      f"{sum(fits)} of {len(fits)} | {r['seconds']:.0f} | {r.get('date', record['date'])} |")
@@ -131,9 +131,9 @@ def main() -> None:
     ap.add_argument("--record", default="results/bench_loop_confirm.json")
     args = ap.parse_args()
     record = {"command": "python benchmarks/bench_loop_confirm.py " + shlex.join(sys.argv[1:]), "leg": args.leg,
-              "minutes": args.minutes, "seed": args.seed, "rows": []}
+              "seed": args.seed, "rows": []}
     hidden_now = args.hidden.split(",")
-    kept = kept_rows(args.record, record, hidden_now) if args.keep else []
+    kept = kept_rows(args.record, record, hidden_now, args.minutes) if args.keep else []
     if args.keep:
         record["command"] = "python benchmarks/bench_loop_confirm.py"  # the rows together: what every row's run amounts to
     today = date.today().isoformat()
@@ -153,9 +153,9 @@ def main() -> None:
             publish(in_order(record, kept), args.record, args.out, SECTION, render)  # what is measured so far is kept
 
 
-def kept_rows(path: str | Path, record: dict, rerun: list[str]) -> list[dict]:
-    """The rows of the record at ``path`` other than those of the effects in ``rerun`` at ``record``'s
-    length, each with its date and length; none where there is no record or it was made on another
+def kept_rows(path: str | Path, record: dict, rerun: list[str], minutes: float) -> list[dict]:
+    """The rows of the record at ``path`` other than those of the effects in ``rerun`` on ``minutes``
+    of data, each with its date and length; none where there is no record or it was made on another
     leg or seed."""
     path = Path(path)
     if not path.exists():
@@ -165,7 +165,7 @@ def kept_rows(path: str | Path, record: dict, rerun: list[str]) -> list[dict]:
         return []
     rows = [{**r, "date": r.get("date", old.get("date")), "minutes": r.get("minutes", old.get("minutes"))}
             for r in old.get("rows", [])]
-    return [r for r in rows if not (r["hidden"] in rerun and r["minutes"] == record["minutes"])]
+    return [r for r in rows if not (r["hidden"] in rerun and r["minutes"] == minutes)]
 
 
 def in_order(record: dict, kept: list[dict]) -> dict:
