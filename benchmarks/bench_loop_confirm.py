@@ -96,11 +96,9 @@ def render(record: dict) -> str:
         fits = [r["start_fit_passed"]] + [x["nuts"]["fit_passed"] for x in r["rounds"] if x.get("nuts")]
         fits = [f for f in fits if f is not None]
         screened = max((x["screened"] for x in r["rounds"]), default=0)
-        minutes = r["minutes"]
-        label = r["hidden"] if minutes == MINUTES else f"{r['hidden']}, {minutes:g} min"
-        lines.append(f"| {label} | {'; '.join(said)} | {screened} | {r['final_model']} | "
-                     f"{sum(fits)} of {len(fits)} | {r['seconds']:.0f} | {r.get('date', record['date'])} |")
-    failed = [f"{r['hidden']}, {where}: {banner}" for r in record["rows"]
+        lines.append(f"| {label(r)} | {'; '.join(said)} | {screened} | {r['final_model']} | "
+                     f"{sum(fits)} of {len(fits)} | {r['seconds']:.0f} | {r['date']} |")
+    failed = [f"{label(r)}, {where}: {banner}" for r in record["rows"]
               for where, banner in [("the start model", r.get("start_fit_banner"))]
               + [(x["model"] + " + " + x["screen_verdict"], (x.get("nuts") or {}).get("banner")) for x in r["rounds"]]
               if banner]
@@ -108,6 +106,11 @@ def render(record: dict) -> str:
         lines += ["", "NUTS fits that failed their checks: " + "; ".join(failed) + "."]
     lines += ["", f"Measured on {record['machine']}; a row is rerun alone with `--hidden NAME --keep` (and `--minutes M` where it gives a length)."]
     return "\n".join(lines)
+
+
+def label(row: dict) -> str:
+    """A row's hidden effect, with its data's length where that is not the default."""
+    return row["hidden"] if row["minutes"] == MINUTES else f"{row['hidden']}, {row['minutes']:g} min"
 
 
 def why_not(x: dict) -> str:
