@@ -19,7 +19,7 @@ from quadshank.data._cohort import quiet_mask
 from quadshank.model._model import paper_model, passive_effects, simulate_angles
 from quadshank.data._paper import LEGS
 from quadshank.evaluation._classical_recovery import DELAY_TOLERANCE, TOLERANCES, recovery
-from quadshank.data import DataWarning, simulate_pendulum_test
+from quadshank.data import DataWarning, derive_acceleration, simulate_pendulum_test
 from quadshank.data._simulate import simulate_cohort
 
 
@@ -253,3 +253,71 @@ def test_a_marker_on_excluded_samples_leaves_the_identification_as_it_was():
     assert marked.delay == clean.delay
     for name in ("damping", "gravity"):
         assert marked.passive[name] == pytest.approx(clean.passive[name], rel=0.02), name
+
+
+def _identified_with_warnings(cohort, **kw):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ident = identify_cohort(cohort, **kw)
+    return ident, [str(w.message) for w in caught if issubclass(w.category, DataWarning)]
+
+
+UNSEPARATED = "do not tell the pendulum's gravity from the knee's elasticity"
+
+
+@pytest.mark.parametrize("objective", ["acceleration", "angle"])
+def test_gravity_and_elasticity_that_small_swings_cannot_separate_are_named(objective):
+    """Within ±8° sin φ and exp(-k2·φ) - 1 are both linear in φ: a pendulum test that swings no
+    further cannot tell G' from k1'·k2.  Its standard errors say so and a warning names the leg;
+    the same knee released from 55° is separated, G' within a few standard errors of the truth."""
+    from quadshank.inference._identify import PASSIVE_GRAVITY_REL_SE, passive_separated
+
+    truth = dict(damping=1.1, gravity=1800.0, k1=25.0, k2=0.05)
+    found = {}
+    for angle0 in (8.0, 55.0):
+        trial = simulate_pendulum_test(truth, angle0=angle0, hand=False, seconds=10.0, seed=3)
+        ident, said = _identified_with_warnings(Cohort((trial,)), passive_objective=objective)
+        r = ident["PT-left"]
+        assert set(r.passive_se) == {"damping", "gravity", "k1", "k2"}
+        assert r.summary()["passive_se"] == pytest.approx(r.passive_se)
+        found[angle0] = (r, said)
+    small, said_small = found[8.0]
+    assert not passive_separated(small.passive, small.passive_se)
+    (message,) = [m for m in said_small if UNSEPARATED in m]
+    assert message.startswith("PT-left: ") and "trial 1 (no pulses) do not tell" in message
+    g = small.passive["gravity"]
+    assert f"G' = {float(f'{g:.3g}'):g} ± " in message
+    large, said_large = found[55.0]
+    assert passive_separated(large.passive, large.passive_se)
+    assert not [m for m in said_large if UNSEPARATED in m]
+    assert large.passive_se["gravity"] < PASSIVE_GRAVITY_REL_SE / 2 * large.passive["gravity"]
+    assert abs(large.passive["gravity"] - truth["gravity"]) < 3 * large.passive_se["gravity"]
+
+
+def test_quiet_samples_of_an_angle_only_minute_that_trade_gravity_for_elasticity_are_named(tmp_path):
+    """One minute of TN-left without its accelerometer: the derived acceleration's noise leaves
+    G' and the elasticity trading (G' about two thirds of the truth, k1' tens of times it), and
+    the leg is named, in the warning and in the command's report; with the accelerometer the
+    same samples separate them."""
+    from quadshank.commands.identify import run_identify
+    from quadshank.inference._identify import passive_separated
+
+    cohort, truth = simulate_cohort(legs=["TN-left"], minutes=1.0, seed=0, trials=[1])
+    t = cohort.trials[0]
+    derived = t.replace(acceleration_deg_s2=derive_acceleration(t.angle_deg, t.sampling_period_s),
+                        acceleration_measured=False)
+    sensor, said_sensor = _identified_with_warnings(Cohort((t,)))
+    angle_only, said_angle = _identified_with_warnings(Cohort((derived,)))
+    a, b = sensor["TN-left"], angle_only["TN-left"]
+    assert passive_separated(a.passive, a.passive_se) and not [m for m in said_sensor if UNSEPARATED in m]
+    assert a.passive["gravity"] == pytest.approx(truth["legs"]["TN-left"]["passive"]["gravity"], rel=0.02)
+    assert not passive_separated(b.passive, b.passive_se)
+    (message,) = [m for m in said_angle if UNSEPARATED in m]
+    assert message.startswith("TN-left: the quiet samples of trial 1 do not tell")
+    assert b.passive_se["gravity"] > 10 * a.passive_se["gravity"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DataWarning)
+        run_identify(Cohort((derived,)), tmp_path / "angle-only")
+        run_identify(Cohort((t,)), tmp_path / "sensor")
+    assert "Not separated: TN-left: their data do not tell gravity" in (tmp_path / "angle-only" / "report.md").read_text()
+    assert "Not separated" not in (tmp_path / "sensor" / "report.md").read_text()

@@ -372,8 +372,8 @@ def test_a_gravity_angle_far_from_the_zero_is_named(monkeypatch):
 
     t = _realistic(PASSIVE, 3, gravity_angle=15.0)
     for angle, named in ((121.0, True), (15.0, False)):
-        monkeypatch.setattr(_identify, "identify_passive_free_run",
-                            lambda trials, gravity_offset=False, angle=angle: ({**PASSIVE, "gravity_angle": angle}, 0.1, 900))
+        monkeypatch.setattr(_identify, "_passive_free_run",
+                            lambda trials, gravity_offset=False, angle=angle: ({**PASSIVE, "gravity_angle": angle}, 0.1, 900, {}))
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             identify_cohort(Cohort((t,)), gravity_offset=True)

@@ -12,7 +12,7 @@ import numpy as np
 from ..common._io import atomic_write_text, save_figure
 from ..data._cohort import Cohort
 from ..evaluation._classical_recovery import recovery, recovery_rows
-from ..inference._identify import Identification, identify_cohort
+from ..inference._identify import PASSIVE_GRAVITY_REL_SE, Identification, identify_cohort, passive_separated
 from ..model._model import equivalent_acceleration
 from ..outputs._figures import plot_delay_scan, plot_signals, plot_twitch_dependence
 from ..outputs._tables import (
@@ -43,6 +43,12 @@ def run_identify(
                             gravity_offset=gravity_offset)
     md = [f"# Classical identification (trial {trial})", ""]
     md.append(write_table(table_passive(ident, truth), out / "tables", "passive", "Passive system (eq. 8)"))
+    unseparated = [leg for leg, r in ident.items() if not passive_separated(r.passive, r.passive_se)]
+    md.append("±: standard errors of the least squares, widened by the residuals' correlation time." + (
+                  f" Not separated: {', '.join(unseparated)}: their data do not tell gravity from the elasticity "
+                  f"(G' known to worse than {PASSIVE_GRAVITY_REL_SE:.0%}), so G', k1' and k2 trade against each "
+                  "other and are not the legs' values; a pendulum test, the accelerometer or a longer recording "
+                  "separates them.\n" if unseparated else "\n"))
     md.append(write_table(table_i(ident, truth), out / "tables", "table1", "Table I: model 1 and delay"))
     md.append(write_table(table_ii(ident, truth), out / "tables", "table2", "Table II: model 2 (DARMA)"))
     md.append(write_table(table_iii(ident, truth), out / "tables", "table3", "Table III: model 3"))

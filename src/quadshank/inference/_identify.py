@@ -57,6 +57,8 @@ __all__ = [
     "identify_passive_free_run",
     "free_run_segments",
     "PASSIVE_OBJECTIVES",
+    "PASSIVE_GRAVITY_REL_SE",
+    "passive_separated",
     "isolated_twitches",
     "identify_leg",
     "identify_cohort",
@@ -98,6 +100,15 @@ PLAUSIBLE_GRAVITY_ANGLE_DEG = 45.0
 #: A pendulum whose free runs miss the swings by more than this share of the swing's spread (the
 #: standard deviation of the angle compared) is named: those trials may not be pendulum tests.
 POOR_SWING_SHARE = 0.3
+#: Largest relative standard error of G' at which the passive system counts as identified.
+#: Over the quiet samples the gravity term -G'·sin φ and the elasticity k1'·(exp(-k2·φ) - 1)
+#: are nearly proportional (both about linear in φ within the operating range), and only the
+#: swing's larger angles tell them apart: where the data cannot, G', k1' and k2 trade along
+#: that valley (G' a tenth of a shank's and k1' a hundred times its elasticity, with the same
+#: residual).  A shank's G' is known within a few per cent from its mass and length, so a
+#: spread of 10 % already says that the data did not separate the two.  The standard errors
+#: come from the least squares' Jacobian and the residuals' correlation time.
+PASSIVE_GRAVITY_REL_SE = 0.1
 
 
 #: Shortest longest-delay [s] the delays considered (0 … MAX_DELAY samples) should reach: the
@@ -145,6 +156,7 @@ class LegIdentification:
     rms_error_pct: dict  # Table IV: model1 / model3 RMS error of T as % of G'_1
     passive_trials: tuple = ()  # trials without pulses the passive system came from (empty: the quiet samples of `trial`)
     passive_objective: str = "acceleration"  # what the passive system was fitted to (PASSIVE_OBJECTIVES)
+    passive_se: dict = dataclasses.field(default_factory=dict)  # standard errors of `passive` (none: not estimated)
 
     def summary(self) -> dict:
         return {
@@ -154,6 +166,7 @@ class LegIdentification:
             "passive_objective": self.passive_objective,
             "n_isolated_twitches": int(len(self.pulses)),
             "passive": {k: float(v) for k, v in self.passive.items()},
+            "passive_se": {k: float(v) for k, v in self.passive_se.items()},
             **{name: m.flat_params() for name, m in self.models.items() if name != "passive"},
             "model2_whitening": {k: float(v) for k, v in self.whitening.items()},
             "G1_std": float(self.g1_std),
@@ -175,6 +188,7 @@ class PassiveIdentification:
     passive_trials: tuple
     sampling_period_s: float
     passive_objective: str = "acceleration"  # what the passive system was fitted to (PASSIVE_OBJECTIVES)
+    passive_se: dict = dataclasses.field(default_factory=dict)  # standard errors of `passive` (none: not estimated)
 
     @property
     def models(self) -> dict:
@@ -187,6 +201,7 @@ class PassiveIdentification:
             "passive_trials": [int(t) for t in self.passive_trials],
             "passive_objective": self.passive_objective,
             "passive": {k: float(v) for k, v in self.passive.items()},
+            "passive_se": {k: float(v) for k, v in self.passive_se.items()},
             "n_quiet_samples": int(self.n_quiet),
         }
 
@@ -215,7 +230,53 @@ def _with_gravity_angle(d: float, gc: float, k1: float, k2: float, gs: float) ->
             "gravity_angle": float(np.degrees(np.arctan2(gs, gc)))}
 
 
+def _correlation_time(resid: np.ndarray, max_lag: int = 200) -> float:
+    """Integrated autocorrelation time 1 + 2·Σρ_k of a residual series, summed over Geyer's initial
+    positive sequence (pairs of lags while their sum stays positive); 1 for white noise."""
+    r = resid - resid.mean()
+    var = float(np.dot(r, r))
+    if r.size < 4 or var == 0:
+        return 1.0
+    lags = min(max_lag, r.size // 4)
+    rho = np.array([np.dot(r[:-k], r[k:]) / var for k in range(1, 2 * (lags // 2) + 1)])
+    tau = 1.0
+    for a, b in zip(rho[0::2], rho[1::2]):
+        if a + b <= 0:
+            break
+        tau += 2 * (a + b)
+    return tau
+
+
+def _standard_errors(jac: np.ndarray, resid: np.ndarray, n: int | None = None) -> np.ndarray:
+    """Standard errors of least-squares parameters: the square roots of the diagonal of
+    τ·s²·(JᵀJ)⁺, s² the residual variance over ``n`` residuals (default: every row of ``jac``;
+    fewer where some rows are weighted out) and τ the residuals' correlation time
+    (:func:`_correlation_time`, in the order given): successive residuals of a filtered
+    acceleration or of a free run are far from independent, and the regressors (angle,
+    velocity) vary slowly beside them, so correlated residuals carry about 1/τ of the
+    information independent ones would."""
+    p = jac.shape[1]
+    n = jac.shape[0] if n is None else n
+    s2 = float(np.sum(resid**2)) / max(n - p, 1)
+    # (JᵀJ)⁻¹ by the SVD of J with its columns equilibrated; singular values are floored, not cut
+    # (as a pseudo-inverse would): the direction the data leave undetermined is the one whose
+    # spread matters, and cutting it would report it as known.
+    norms = np.linalg.norm(jac, axis=0)
+    norms = np.where(norms > 0, norms, 1.0)
+    _, sv, vt = np.linalg.svd(jac / norms, full_matrices=False)
+    sv = np.maximum(sv, np.finfo(float).eps * max(float(sv[0]), np.finfo(float).tiny))
+    var = np.sum((vt / sv[:, None]) ** 2, axis=0) / norms**2
+    return np.sqrt(_correlation_time(resid) * s2 * var)
+
+
 def identify_passive(trials: list[Trial] | tuple[Trial, ...], gravity_offset: bool = False) -> tuple[dict, float, int]:
+    """Passive parameters (D', G', k1', k2) from the quiet samples of ``trials`` by equation
+    error; returns the parameters, the RMS residual acceleration [deg/s²] and the number of
+    quiet samples used (:func:`_passive_equation_error` documents the method)."""
+    return _passive_equation_error(trials, gravity_offset)[:3]
+
+
+def _passive_equation_error(trials, gravity_offset: bool = False) -> tuple[dict, float, int, dict]:
     """Passive parameters (D', G', k1', k2) from the quiet samples of ``trials`` (excluded ones left out);
     with ``gravity_offset``, also the angle gravity acts about (``gravity_angle``, see the
     ``gravity_offset`` effect).
@@ -225,8 +286,9 @@ def identify_passive(trials: list[Trial] | tuple[Trial, ...], gravity_offset: bo
     that range, and further into extension a real knee meets the end of its
     range (capsule, and hamstrings stretched in the seated position), which
     the exponential flexion term cannot represent and would be distorted by.
-    Returns the parameters, the RMS residual acceleration [deg/s²] and the
-    number of quiet samples used.
+    Returns the parameters, the RMS residual acceleration [deg/s²], the
+    number of quiet samples used and the parameters' standard errors
+    (:func:`_standard_errors`; G' by the delta method where a gravity angle is fitted).
     """
     ang, vel, acc = [], [], []
     for t in trials:
@@ -271,10 +333,16 @@ def identify_passive(trials: list[Trial] | tuple[Trial, ...], gravity_offset: bo
     fit = least_squares(resid, x0, bounds=([0, 0, 0, 1e-4] + [-np.inf] * extra, [np.inf, np.inf, np.inf, 1.0]
                                            + [np.inf] * extra), x_scale="jac")
     rms = float(np.sqrt(np.mean(fit.fun**2)))
+    se = _standard_errors(fit.jac, fit.fun)
     if gravity_offset:
-        return _with_gravity_angle(*map(float, fit.x)), rms, int(angle.size)
+        d, gc, k1, k2, gs = map(float, fit.x)
+        g = float(np.hypot(gc, gs))
+        # G' = |(gc, gs)|: its standard error by the delta method, gc and gs taken as independent
+        se_g = float(np.hypot(gc * se[1], gs * se[4]) / g) if g > 0 else float("inf")
+        ses = {"damping": float(se[0]), "gravity": se_g, "k1": float(se[2]), "k2": float(se[3])}
+        return _with_gravity_angle(d, gc, k1, k2, gs), rms, int(angle.size), ses
     D, G, k1, k2 = fit.x
-    return {"damping": D, "gravity": G, "k1": k1, "k2": k2}, rms, int(angle.size)
+    return {"damping": D, "gravity": G, "k1": k1, "k2": k2}, rms, int(angle.size), dict(zip(_PASSIVE_NAMES, map(float, se)))
 
 
 def free_run_segments(trial: Trial) -> list[tuple[int, int]]:
@@ -308,6 +376,13 @@ def _free_run_residuals(params, segments, dt: float):
 
 def identify_passive_free_run(trials: list[Trial] | tuple[Trial, ...], start: dict | None = None,
                               gravity_offset: bool = False) -> tuple[dict, float, int]:
+    """Passive parameters (D', G', k1', k2) of trials without pulses (pendulum tests) by output
+    error on the free swing; returns the parameters, the RMS angle error [deg] of the free runs
+    and the number of samples compared (:func:`_passive_free_run` documents the method)."""
+    return _passive_free_run(trials, start, gravity_offset)[:3]
+
+
+def _passive_free_run(trials, start: dict | None = None, gravity_offset: bool = False) -> tuple[dict, float, int, dict]:
     """Passive parameters (D', G', k1', k2) of trials without pulses (pendulum tests) that make
     the free run of eq. (8) follow the measured angle: output-error least squares.
 
@@ -318,7 +393,8 @@ def identify_passive_free_run(trials: list[Trial] | tuple[Trial, ...], start: di
     :func:`identify_passive`, which is close) and are refined by trust-region least squares
     with the exact Jacobian (JAX, double precision).  With ``gravity_offset`` the angle gravity
     acts about is fitted too (``gravity_angle``).  Returns the parameters, the RMS angle error
-    [deg] of the free runs and the number of samples compared.
+    [deg] of the free runs, the number of samples compared and the parameters' standard errors
+    (:func:`_standard_errors`, of the logarithms: relative ones).
     """
     if start is None:
         start, _, _ = identify_passive(trials, gravity_offset=gravity_offset)
@@ -345,7 +421,9 @@ def identify_passive_free_run(trials: list[Trial] | tuple[Trial, ...], start: di
     params = dict(zip(_PASSIVE_NAMES, map(float, np.exp(fit.x[:4]))))
     if gravity_offset:
         params["gravity_angle"] = float(fit.x[4])
-    return params, float(np.sqrt(np.sum(fit.fun**2) / max(n, 1))), n
+    rel = _standard_errors(fit.jac, fit.fun, n)[:4]  # of the logarithms: relative errors
+    ses = {k: float(params[k] * r) for k, r in zip(_PASSIVE_NAMES, rel)}
+    return params, float(np.sqrt(np.sum(fit.fun**2) / max(n, 1))), n, ses
 
 
 # ============================================================================ twitches
@@ -409,9 +487,9 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
     """Identify the passive system and models 1–3 from one trial of one leg."""
     where = f"{trial.key} trial {trial.trial}"
     if passive is None:
-        passive, p_rms, n_quiet = identify_passive([trial])
+        passive, p_rms, n_quiet, p_se = _passive_equation_error([trial])
     else:
-        p_rms, n_quiet = float("nan"), 0
+        p_rms, n_quiet, p_se = float("nan"), 0, {}
     peff = passive_effects(**passive)
     dt = trial.sampling_period_s
     base = paper_model(1, peff, sampling_period_s=dt)
@@ -470,6 +548,7 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
         passive={k: float(v) for k, v in passive.items()},
         passive_rms_residual=p_rms,
         n_quiet=n_quiet,
+        passive_se=p_se,
         delay=d,
         delay_residuals=residuals,
         models=models,
@@ -543,15 +622,15 @@ def identify_cohort(
                     f"{leg}: the passive objective 'angle' fits free swings, and the leg has no trial without "
                     "pulses (a pendulum test); use the objective 'auto' or 'acceleration'")
             out[leg] = identify_leg(chosen)
-            _warn_gravity_near_zero(leg, out[leg].passive)
+            _warn_passive_unseparated(leg, out[leg].passive, out[leg].passive_se, f"the quiet samples of trial {trial}")
             continue
         objective = "acceleration" if passive_objective == "acceleration" else "angle"
         numbers = tuple(t.trial for t in passive_trials)
         try:
             if objective == "angle":
-                passive, p_rms, n_quiet = identify_passive_free_run(passive_trials, gravity_offset=gravity_offset)
+                passive, p_rms, n_quiet, p_se = _passive_free_run(passive_trials, gravity_offset=gravity_offset)
             else:
-                passive, p_rms, n_quiet = identify_passive(passive_trials, gravity_offset=gravity_offset)
+                passive, p_rms, n_quiet, p_se = _passive_equation_error(passive_trials, gravity_offset=gravity_offset)
         except IdentificationError as err:  # say why these trials were asked
             which = (f"trials {', '.join(map(str, numbers))} hold no pulse and so are taken as pendulum tests"
                      if len(numbers) > 1 else f"trial {numbers[0]} holds no pulse and so is taken as a pendulum test")
@@ -569,11 +648,13 @@ def identify_cohort(
                 DataWarning, stacklevel=2)
         if not np.any(chosen.stimulation > 0):
             out[leg] = PassiveIdentification(leg, trial, {k: float(v) for k, v in passive.items()}, p_rms, n_quiet,
-                                             numbers, chosen.sampling_period_s, objective)
+                                             numbers, chosen.sampling_period_s, objective, p_se)
         else:
             out[leg] = dataclasses.replace(identify_leg(chosen, passive=passive), passive_rms_residual=p_rms,
-                                           n_quiet=n_quiet, passive_trials=numbers, passive_objective=objective)
-        _warn_gravity_near_zero(leg, passive)
+                                           n_quiet=n_quiet, passive_trials=numbers, passive_objective=objective,
+                                           passive_se=p_se)
+        _warn_passive_unseparated(leg, passive, p_se, f"trial{'s' if len(numbers) > 1 else ''} "
+                                  f"{', '.join(map(str, numbers))} (no pulses)")
     return out
 
 
@@ -582,15 +663,44 @@ def identify_cohort(
 GRAVITY_NEAR_ZERO = 150.0
 
 
-def _warn_gravity_near_zero(leg: str, passive: dict) -> None:
-    """Warn where the identified G' is next to 0: eq. (8) could not hold the swings with gravity
-    about the angle's zero, which happens when the zero is off (a constant added to every angle)."""
-    if passive["gravity"] < GRAVITY_NEAR_ZERO:
-        warnings.warn(
-            f"{leg}: the identified pendulum has next to no gravity (G' = {passive['gravity']:.3g} deg/s², where a "
-            "shank's is about 1500-2500): eq. (8) could not hold the swings with gravity about angle 0. Is angle_deg "
-            "zero with the shank at rest? A constant added to every angle does this; the other passive and active "
-            "values then come out wrong too", DataWarning, stacklevel=3)
+def passive_separated(passive: dict, se: dict) -> bool:
+    """Whether the data told the passive system's gravity from its elasticity: G' is positive and
+    carries a relative standard error of at most :data:`PASSIVE_GRAVITY_REL_SE` (True where no
+    standard error was estimated)."""
+    if "gravity" not in se:
+        return True
+    return bool(passive["gravity"] > 0 and se["gravity"] <= PASSIVE_GRAVITY_REL_SE * passive["gravity"])
+
+
+def _warn_passive_unseparated(leg: str, passive: dict, se: dict, source: str) -> None:
+    """Warn where the identified G' is next to 0 (an angle zeroed away from the rest) or where
+    the data did not tell gravity from elasticity (:func:`passive_separated`), in one warning
+    where both hold: a G' near 0 from small swings can be either."""
+    near_zero = passive["gravity"] < GRAVITY_NEAR_ZERO
+    separated = passive_separated(passive, se)
+    if separated and not near_zero:
+        return
+
+    def pm(v, e):
+        return f"{float(f'{v:.3g}'):g} ± {float(f'{e:.2g}'):g}"
+
+    trade = "" if separated else (
+        f"{source} do not tell the pendulum's gravity from the knee's elasticity (G' = "
+        f"{pm(passive['gravity'], se['gravity'])} deg/s², k1' = {pm(passive['k1'], se['k1'])} deg/s², "
+        f"k2 = {pm(passive['k2'], se['k2'])} /deg): the two terms of eq. (8) are nearly proportional over these "
+        "angles, so G', k1' and k2 trade against each other with the same residual, and their values are not the "
+        "leg's. A pendulum test (a trial without pulses) with larger swings, the accelerometer's acceleration (one "
+        "derived from the angle is noisier) or a longer recording separates them; `quadshank fit` weighs them with "
+        "its priors")
+    if near_zero:
+        text = (f"the identified pendulum has next to no gravity (G' = {passive['gravity']:.3g} deg/s², where a "
+                "shank's is about 1500-2500): eq. (8) could not hold the swings with gravity about angle 0. Is angle_deg "
+                "zero with the shank at rest? A constant added to every angle does this; the other passive and active "
+                "values then come out wrong too")
+        text += f". Or: {trade}" if trade else ""
+    else:
+        text = trade
+    warnings.warn(f"{leg}: {text}", DataWarning, stacklevel=3)
 
 
 def models_from_summary(summary: dict, sampling_period_s: float = SAMPLING_PERIOD_S) -> dict[str, dict[str, Model]]:

@@ -107,6 +107,9 @@ def table_passive(ident: dict, truth: dict | None = None) -> list[dict]:
             if k not in r.passive:  # gravity_angle: only where it was identified
                 continue
             row[f"{k} [{unit}]"] = r.passive[k]
+            se = getattr(r, "passive_se", {})
+            if k in ("gravity", "k1", "k2") and k in se:  # the three that trade against each other
+                row[f"{k} ±"] = se[k]
             if t and k in t["passive"]:
                 row[f"{k} true"] = t["passive"][k]
         row["quiet samples"] = r.n_quiet
