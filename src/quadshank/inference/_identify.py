@@ -249,7 +249,7 @@ def _correlation_time(resid: np.ndarray, max_lag: int = 200) -> float:
 
 def _standard_errors(jac: np.ndarray, resid: np.ndarray, n: int | None = None) -> np.ndarray:
     """Standard errors of least-squares parameters: the square roots of the diagonal of
-    τ·s²·(JᵀJ)⁺, s² the residual variance over ``n`` residuals (default: every row of ``jac``;
+    τ·s²·(JᵀJ)⁻¹, s² the residual variance over ``n`` residuals (default: every row of ``jac``;
     fewer where some rows are weighted out) and τ the residuals' correlation time
     (:func:`_correlation_time`, in the order given): successive residuals of a filtered
     acceleration or of a free run are far from independent, and the regressors (angle,
@@ -338,7 +338,7 @@ def _passive_equation_error(trials, gravity_offset: bool = False) -> tuple[dict,
         d, gc, k1, k2, gs = map(float, fit.x)
         g = float(np.hypot(gc, gs))
         # G' = |(gc, gs)|: its standard error by the delta method, gc and gs taken as independent
-        se_g = float(np.hypot(gc * se[1], gs * se[4]) / g) if g > 0 else float("inf")
+        se_g = float(np.hypot(gc * se[1], gs * se[4]) / g) if g > 0 else float(np.hypot(se[1], se[4]))
         ses = {"damping": float(se[0]), "gravity": se_g, "k1": float(se[2]), "k2": float(se[3])}
         return _with_gravity_angle(d, gc, k1, k2, gs), rms, int(angle.size), ses
     D, G, k1, k2 = fit.x
