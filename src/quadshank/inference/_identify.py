@@ -345,6 +345,33 @@ def _passive_equation_error(trials, gravity_offset: bool = False) -> tuple[dict,
     return {"damping": D, "gravity": G, "k1": k1, "k2": k2}, rms, int(angle.size), dict(zip(_PASSIVE_NAMES, map(float, se)))
 
 
+#: k2 [1/deg] of the further starts of the free-run fit (:func:`_valley_starts`): from stiff to
+#: nearly linear elasticity, across the valley along which G', k1' and k2 trade.
+FREE_RUN_START_K2 = (0.01, 0.02, 0.05, 0.1, 0.2)
+
+
+def _valley_starts(trials, gravity_offset: bool = False) -> list[dict]:
+    """Starts for the free-run fit along the valley of G', k1' and k2: for each k2 of
+    :data:`FREE_RUN_START_K2`, D', G' and k1' of the equation-error least squares at that k2
+    (linear in them) on the quiet samples of ``trials``."""
+    ang, vel, acc = [], [], []
+    for t in trials:
+        m = quiet_mask(t.stimulation, quiet_samples(t.sampling_period_s)) & (t.angle_deg <= PASSIVE_MAX_ANGLE_DEG) & ~t.exclude
+        ang.append(t.angle_deg[m])
+        vel.append(t.velocity_deg_s[m])
+        acc.append(t.acceleration_deg_s2[m])
+    angle, velocity, accel = (np.concatenate(x) for x in (ang, vel, acc))
+    starts = []
+    for k2 in FREE_RUN_START_K2:
+        coef, *_ = np.linalg.lstsq(_passive_columns(angle, velocity, k2, gravity_offset), accel, rcond=None)
+        if gravity_offset:
+            start = _with_gravity_angle(float(coef[0]), float(coef[1]), float(coef[2]), k2, float(coef[3]))
+        else:
+            start = {"damping": float(coef[0]), "gravity": float(coef[1]), "k1": float(coef[2]), "k2": k2}
+        starts.append(start)
+    return starts
+
+
 def free_run_segments(trial: Trial) -> list[tuple[int, int]]:
     """The stretches ``[start, stop)`` of ``trial`` a free run is compared on: runs of quiet samples
     (:func:`quiet_mask`: the release and the samples after a pulse left out) that are not
@@ -389,15 +416,20 @@ def _passive_free_run(trials, start: dict | None = None, gravity_offset: bool = 
     Each usable stretch (:func:`free_run_segments`) is simulated from its first sample's
     measured angle and velocity, as J and the free-run error judge a model, and compared
     with the measured angle wherever the knee is at most :data:`PASSIVE_MAX_ANGLE_DEG`
-    extended.  The parameters start from ``start`` (default: the equation-error estimate of
-    :func:`identify_passive`, which is close) and are refined by trust-region least squares
-    with the exact Jacobian (JAX, double precision).  With ``gravity_offset`` the angle gravity
+    extended.  The parameters start from ``start``, or by default from the equation-error
+    estimate of :func:`identify_passive` and from points along the valley where G', k1' and
+    k2 trade (:func:`_valley_starts`): the free run's error has local minima along it, and an
+    equation-error start that sits in the valley's wrong part stays there.  From each start
+    trust-region least squares with the exact Jacobian (JAX, double precision) refine them,
+    and the lowest error is kept.  With ``gravity_offset`` the angle gravity
     acts about is fitted too (``gravity_angle``).  Returns the parameters, the RMS angle error
     [deg] of the free runs, the number of samples compared and the parameters' standard errors
     (:func:`_standard_errors`, of the logarithms: relative ones).
     """
     if start is None:
-        start, _, _ = identify_passive(trials, gravity_offset=gravity_offset)
+        starts = [identify_passive(trials, gravity_offset=gravity_offset)[0], *_valley_starts(trials, gravity_offset)]
+    else:
+        starts = [start]
     dt = trials[0].sampling_period_s
     with jax.enable_x64(True):
         segments = []
@@ -412,11 +444,15 @@ def _passive_free_run(trials, start: dict | None = None, gravity_offset: bool = 
                                       "samples to compare a free run with")
         resid = jax.jit(lambda p: _free_run_residuals(p, segments, dt))
         jac = jax.jit(jax.jacfwd(lambda p: _free_run_residuals(p, segments, dt)))
-        x0 = np.log([max(float(start[k]), 1e-6) for k in _PASSIVE_NAMES])
-        if gravity_offset:
-            x0 = np.append(x0, float(start.get("gravity_angle", 0.0)))
-        fit = least_squares(lambda p: np.asarray(resid(jnp.asarray(p))), x0,
-                            jac=lambda p: np.asarray(jac(jnp.asarray(p))), method="trf", x_scale="jac")
+        fit = None
+        for s0 in starts:  # the lowest of the local minima along the valley
+            x0 = np.log([max(float(s0[k]), 1e-6) for k in _PASSIVE_NAMES])
+            if gravity_offset:
+                x0 = np.append(x0, float(s0.get("gravity_angle", 0.0)))
+            this = least_squares(lambda p: np.asarray(resid(jnp.asarray(p))), x0,
+                                 jac=lambda p: np.asarray(jac(jnp.asarray(p))), method="trf", x_scale="jac")
+            if fit is None or this.cost < fit.cost:
+                fit = this
         n = int(sum(float(jnp.sum(w)) for *_, w in segments))
     params = dict(zip(_PASSIVE_NAMES, map(float, np.exp(fit.x[:4]))))
     if gravity_offset:
