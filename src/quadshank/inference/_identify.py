@@ -608,9 +608,10 @@ def _refuse_non_finite(where: str, **signals) -> None:
                                       "(a value beyond what a float holds?); correct the recording, or exclude those samples")
 
 
-def _warn_poor_swing(leg: str, trials, rms: float) -> None:
+def _warn_poor_swing(leg: str, trials, rms: float) -> bool:
     """Warn where the free runs of the identified pendulum miss the swings of ``trials`` by more
-    than :data:`POOR_SWING_SHARE` of the swing's spread (``rms``: their RMS angle error [deg])."""
+    than :data:`POOR_SWING_SHARE` of the swing's spread (``rms``: their RMS angle error [deg]);
+    returns whether it warned."""
     kept = [t.angle_deg[a:b][t.angle_deg[a:b] <= PASSIVE_MAX_ANGLE_DEG] for t in trials for a, b in free_run_segments(t)]
     spread = float(np.std(np.concatenate(kept))) if kept else 0.0
     if spread > 0 and rms > POOR_SWING_SHARE * spread:
@@ -620,6 +621,8 @@ def _warn_poor_swing(leg: str, trials, rms: float) -> None:
             f"their free swings by {rms:.3g}° RMS, {rms / spread:.0%} of the swing's spread ({spread:.3g}°): are they "
             "pendulum tests (not a stimulated trial whose pulses are missing)? A rest off the vertical is fitted "
             "with --gravity-offset; a release left in, with start_s or exclude", DataWarning, stacklevel=3)
+        return True
+    return False
 
 
 def identify_cohort(
@@ -672,8 +675,8 @@ def identify_cohort(
                      if len(numbers) > 1 else f"trial {numbers[0]} holds no pulse and so is taken as a pendulum test")
             raise IdentificationError(f"{err}. {leg}: its {which}, the source of its passive system; leave out a "
                                       "trial that is not one") from err
-        if objective == "angle":
-            _warn_poor_swing(leg, passive_trials, p_rms)
+        # a pendulum that misses the swings says so; its standard errors then measure the misfit
+        poor = objective == "angle" and _warn_poor_swing(leg, passive_trials, p_rms)
         if gravity_offset and abs(passive["gravity_angle"]) > PLAUSIBLE_GRAVITY_ANGLE_DEG:
             warnings.warn(
                 f"{leg}: the identified pendulum has gravity acting about {passive['gravity_angle']:.0f}°, where a "
@@ -689,8 +692,9 @@ def identify_cohort(
             out[leg] = dataclasses.replace(identify_leg(chosen, passive=passive), passive_rms_residual=p_rms,
                                            n_quiet=n_quiet, passive_trials=numbers, passive_objective=objective,
                                            passive_se=p_se)
-        _warn_passive_unseparated(leg, passive, p_se, f"trial{'s' if len(numbers) > 1 else ''} "
-                                  f"{', '.join(map(str, numbers))} (no pulses)")
+        if not poor:
+            _warn_passive_unseparated(leg, passive, p_se, f"trial{'s' if len(numbers) > 1 else ''} "
+                                      f"{', '.join(map(str, numbers))} (no pulses)")
     return out
 
 
