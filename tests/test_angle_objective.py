@@ -6,13 +6,15 @@ screen on the angle recovers a model with a twitch shape from simulated data."""
 
 from __future__ import annotations
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from quadshank.common._arrays import stretches
-from quadshank.data import Cohort, default_truth, simulate_cohort
+from quadshank.data import Cohort, default_truth, derive_acceleration, simulate_cohort
 from quadshank.inference import laplace_fit
 from quadshank.loop._diagnose import not_applicable
 from quadshank.model import paper_model
@@ -153,3 +155,45 @@ def test_the_screen_on_the_angle_recovers_a_model_with_a_twitch_shape():
     area = float(np.sum(v["b"]) / (1.0 + np.sum(v["a"])))
     assert area == pytest.approx(t["active"]["G2"], rel=0.05)
     assert v["gamma_angle"] == pytest.approx(t["active"]["gamma_angle"], rel=0.2)
+
+
+def test_the_loop_lists_an_accelerometers_response_as_not_applicable_without_one(two_trials):
+    """Where no trial screened has an accelerometer, an effect on what one reads would fit the
+    smoothing of the filter that derived the acceleration: listed with the reason, not screened.
+    One trial with an accelerometer among those screened makes it applicable again."""
+    legs = ("JM-left",)
+    derived = Cohort(tuple(t.replace(acceleration_deg_s2=derive_acceleration(t.angle_deg, t.sampling_period_s),
+                                     acceleration_measured=False) for t in two_trials.trials))
+    out = not_applicable(paper_model(3), derived, ["accel_resonance", "goniometer_offset", "fatigue"], legs, (1, 2))
+    assert set(out) == {"accel_resonance"}
+    assert out["accel_resonance"].startswith("changes only what an accelerometer reads, and trial(s) 1, 2 have none")
+    mixed = Cohort((derived.get("JM-left", 1), two_trials.get("JM-left", 2)))
+    assert not not_applicable(paper_model(3), mixed, ["accel_resonance"], legs, (1, 2))
+    assert not not_applicable(paper_model(3), two_trials, ["accel_resonance"], legs, (1, 2))
+
+
+def test_a_fit_with_an_accelerometers_response_on_recordings_without_one_warns(two_trials, tmp_path, monkeypatch):
+    """`fit --add-effect accel_resonance` on angle-only recordings says that the effect would
+    describe the derivation's smoothing; with an accelerometer it says nothing (the fit itself
+    is not run: it stops where the sampler would start)."""
+    from quadshank.commands import fit as fit_command
+    from quadshank.data import DataWarning
+
+    class Stop(Exception):
+        pass
+
+    def stop(*args, **kwargs):
+        raise Stop
+
+    monkeypatch.setattr(fit_command, "run_nuts", stop)
+    derived = Cohort(tuple(t.replace(acceleration_deg_s2=derive_acceleration(t.angle_deg, t.sampling_period_s),
+                                     acceleration_measured=False) for t in two_trials.trials))
+    for cohort, warned in ((derived, True), (two_trials, False)):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            with pytest.raises(Stop):
+                fit_command.run_fit(cohort, tmp_path / "fit", model="model3", add_effects=("accel_resonance",))
+        said = [str(w.message) for w in caught if issubclass(w.category, DataWarning) and "accelerometer" in str(w.message)]
+        assert len(said) == int(warned), said
+        if warned:
+            assert said[0].startswith("accel_resonance changes only what an accelerometer reads, and these recordings")

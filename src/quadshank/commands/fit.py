@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..data._cohort import Cohort, derivation_settings
-from ..data._interchange import charge_scales
+from ..data._interchange import DataWarning, charge_scales
 from ..inference._fitio import (
     FitResult,
     begin_fit,
@@ -50,6 +51,18 @@ def uninformed_legs(model, cohort: Cohort) -> dict:
     return out
 
 
+def _warn_sensor_effects_without_sensor(model, cohort: Cohort, legs, trials) -> None:
+    """Warn where ``model`` has an effect on what the accelerometer reads alone and no fitted trial
+    (of ``legs``, numbered ``trials``) has one: its acceleration is derived from the angle, and the
+    effect would fit the derivation's smoothing, not a sensor's response."""
+    sensor = [e.name for e in model.effects if e.kind == "measurement" and not e.predicts_angle]
+    trials = [t for t in cohort.trials if (legs is None or t.key in legs) and t.trial in trials]
+    if sensor and trials and not any(t.acceleration_measured for t in trials):
+        warnings.warn(f"{', '.join(sensor)} changes only what an accelerometer reads, and these recordings have none "
+                      "(their acceleration is derived from the angle): its parameters will describe the smoothing of "
+                      "that derivation, not a sensor", DataWarning, stacklevel=3)
+
+
 def run_fit(
     cohort: Cohort,
     out: str | Path,
@@ -76,6 +89,7 @@ def run_fit(
     check_delay_range(cohort.sampling_period_s)
     m = build_model(model, add_effects, sampling_period_s=cohort.sampling_period_s)
     resolve_objective(m, settings.likelihood)  # refuse the angle for a muscle before anything is written
+    _warn_sensor_effects_without_sensor(m, cohort, legs, settings.trials)
     log_prior = None
     if delay_from is not None:
         chosen = tuple(legs) if legs is not None else cohort.legs  # the legs fit() will use

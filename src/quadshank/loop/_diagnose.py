@@ -110,13 +110,17 @@ def not_applicable(model: Model, cohort: Cohort, effects, legs, trials, objectiv
     An effect acting through the muscle (:data:`MUSCLE_KINDS`) on a model without one
     (``--model passive``) or on trials that hold no pulse, and an effect on what the
     accelerometer reads alone (``predicts_angle = False``) where the fit compares angles
-    (``objective``, :func:`~quadshank.model._likelihood.resolve_objective`), and a delay or noise
-    effect there (the angle likelihood of a muscle cannot hold one).
-    They are listed, not screened: their ΔELPD could only be noise.
+    (``objective``, :func:`~quadshank.model._likelihood.resolve_objective`) or where no trial has
+    an accelerometer (its acceleration derived from the angle: a filter's smoothing, not a
+    sensor's response, which such an effect would take up), and a delay or noise effect where
+    the fit compares angles (the angle likelihood of a muscle cannot hold one).
+    They are listed, not screened: their ΔELPD could only be noise, or a filter's.
     """
     known = registered_effects()
     muscle = model.activation.name != "no_muscle"
-    pulses = any(t.pulse_indices.size for leg in legs for t in cohort.trials_of(leg) if t.trial in trials)
+    used = [t for leg in legs for t in cohort.trials_of(leg) if t.trial in trials]
+    pulses = any(t.pulse_indices.size for t in used)
+    accelerometer = any(t.acceleration_measured for t in used)
     by_angle = resolve_objective(model, objective) == "angle"
     out = {}
     for name in effects:
@@ -127,6 +131,9 @@ def not_applicable(model: Model, cohort: Cohort, effects, legs, trials, objectiv
             out[name] = f"acts through the stimulation, and trial(s) {', '.join(map(str, trials))} hold no pulse"
         elif not cls.predicts_angle and cls.kind == "measurement" and by_angle:
             out[name] = "changes only what the accelerometer reads, and the fit compares angles"
+        elif not cls.predicts_angle and cls.kind == "measurement" and not accelerometer:
+            out[name] = (f"changes only what an accelerometer reads, and trial(s) {', '.join(map(str, trials))} have "
+                         "none (their acceleration is derived from the angle)")
         elif cls.kind in ("delay", "noise") and by_angle:
             out[name] = (f"a {cls.kind} effect is summed out window by window on the acceleration alone, and the "
                          "fit compares angles")
