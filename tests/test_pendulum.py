@@ -341,7 +341,8 @@ def test_discover_starts_from_the_pendulum_alone_on_the_command_line(tmp_path):
 def test_the_loop_on_pendulum_tests_lists_the_muscle_candidates_as_not_applicable(tmp_path):
     """Candidates that cannot change a pendulum's likelihood are named in the report, not ranked."""
     from quadshank.loop import rank_effects
-    from quadshank.loop._diagnose import Diagnosis, verdict_sentence
+    from quadshank.loop._diagnose import Diagnosis, not_applicable, verdict_sentence
+    from quadshank.model import paper_model
     from quadshank.outputs._loop import ranking_markdown
 
     import warnings
@@ -356,10 +357,15 @@ def test_the_loop_on_pendulum_tests_lists_the_muscle_candidates_as_not_applicabl
     d = Diagnosis(**ranking.to_json(), sentence=verdict_sentence(ranking), trials=[1])
     md = ranking_markdown(d)
     assert "do not apply to these data" in md and "**torque_angle_peak**: acts through the muscle" in md
-    # a diagnosis of a pendulum fit made on the acceleration screens by the acceleration
-    ranking = rank_effects(Cohort((t,)), "passive", effects=["torque_angle_peak", "accel_resonance"],
+    # a diagnosis of a pendulum fit made on the acceleration screens by the acceleration: the
+    # accelerometer's response too, where the test was recorded with an accelerometer
+    ranking = rank_effects(Cohort((t.replace(acceleration_measured=True),)), "passive",
+                           effects=["torque_angle_peak", "accel_resonance"],
                            n_draws=20, n_j_draws=10, start_stride=20, n_starts=0, objective="acceleration")
     assert ranking.base.data.objective == "acceleration" and list(ranking.not_applicable) == ["torque_angle_peak"]
+    # and without one (this test is angle only), not: it would fit the derivation's smoothing
+    assert "derived from the angle" in not_applicable(paper_model("passive"), Cohort((t,)), ["accel_resonance"],
+                                                      [t.key], (1,), "acceleration")["accel_resonance"]
 
 
 def test_a_gravity_angle_far_from_the_zero_is_named(monkeypatch):
