@@ -269,6 +269,18 @@ def _standard_errors(jac: np.ndarray, resid: np.ndarray, n: int | None = None) -
     return np.sqrt(_correlation_time(resid) * s2 * var)
 
 
+def _passive_samples(trials) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Angle, velocity and acceleration of the samples of ``trials`` the passive system is fitted
+    to: quiet (no twitch can act), at most :data:`PASSIVE_MAX_ANGLE_DEG` extended, not excluded."""
+    ang, vel, acc = [], [], []
+    for t in trials:
+        m = quiet_mask(t.stimulation, quiet_samples(t.sampling_period_s)) & (t.angle_deg <= PASSIVE_MAX_ANGLE_DEG) & ~t.exclude
+        ang.append(t.angle_deg[m])
+        vel.append(t.velocity_deg_s[m])
+        acc.append(t.acceleration_deg_s2[m])
+    return tuple(np.concatenate(x) for x in (ang, vel, acc))
+
+
 def identify_passive(trials: list[Trial] | tuple[Trial, ...], gravity_offset: bool = False) -> tuple[dict, float, int]:
     """Passive parameters (D', G', k1', k2) from the quiet samples of ``trials`` by equation
     error; returns the parameters, the RMS residual acceleration [deg/s²] and the number of
@@ -290,13 +302,7 @@ def _passive_equation_error(trials, gravity_offset: bool = False) -> tuple[dict,
     number of quiet samples used and the parameters' standard errors
     (:func:`_standard_errors`; G' by the delta method where a gravity angle is fitted).
     """
-    ang, vel, acc = [], [], []
-    for t in trials:
-        m = quiet_mask(t.stimulation, quiet_samples(t.sampling_period_s)) & (t.angle_deg <= PASSIVE_MAX_ANGLE_DEG) & ~t.exclude
-        ang.append(t.angle_deg[m])
-        vel.append(t.velocity_deg_s[m])
-        acc.append(t.acceleration_deg_s2[m])
-    angle, velocity, accel = (np.concatenate(x) for x in (ang, vel, acc))
+    angle, velocity, accel = _passive_samples(trials)
     where = ", ".join(f"{t.key} trial {t.trial}" + (f" ({t.source})" if t.source else "") for t in trials)
     _refuse_non_finite(where, angle=angle, velocity=velocity, acceleration=accel)
     if angle.size < 200:
@@ -354,13 +360,7 @@ def _valley_starts(trials, gravity_offset: bool = False) -> list[dict]:
     """Starts for the free-run fit along the valley of G', k1' and k2: for each k2 of
     :data:`FREE_RUN_START_K2`, D', G' and k1' of the equation-error least squares at that k2
     (linear in them) on the quiet samples of ``trials``."""
-    ang, vel, acc = [], [], []
-    for t in trials:
-        m = quiet_mask(t.stimulation, quiet_samples(t.sampling_period_s)) & (t.angle_deg <= PASSIVE_MAX_ANGLE_DEG) & ~t.exclude
-        ang.append(t.angle_deg[m])
-        vel.append(t.velocity_deg_s[m])
-        acc.append(t.acceleration_deg_s2[m])
-    angle, velocity, accel = (np.concatenate(x) for x in (ang, vel, acc))
+    angle, velocity, accel = _passive_samples(trials)
     starts = []
     for k2 in FREE_RUN_START_K2:
         coef, *_ = np.linalg.lstsq(_passive_columns(angle, velocity, k2, gravity_offset), accel, rcond=None)
