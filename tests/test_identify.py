@@ -288,7 +288,7 @@ def test_gravity_and_elasticity_that_small_swings_cannot_separate_are_named():
     small, said_small = found[8.0, "acceleration"]
     assert not passive_separated(small.passive, small.passive_se)
     (message,) = [m for m in said_small if UNSEPARATED in m]
-    assert message.startswith("PT-left: ") and "trial 1 (no pulses) do not tell" in message
+    assert message.startswith("PT-left: ") and "the swings of trial 1 (no pulses) do not tell" in message
     g = small.passive["gravity"]
     assert f"G' = {float(f'{g:.3g}'):g} ± " in message
     large, said_large = found[55.0, "acceleration"]

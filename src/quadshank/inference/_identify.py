@@ -693,7 +693,7 @@ def identify_cohort(
                                            n_quiet=n_quiet, passive_trials=numbers, passive_objective=objective,
                                            passive_se=p_se)
         if not poor:
-            _warn_passive_unseparated(leg, passive, p_se, f"trial{'s' if len(numbers) > 1 else ''} "
+            _warn_passive_unseparated(leg, passive, p_se, f"the swings of trial{'s' if len(numbers) > 1 else ''} "
                                       f"{', '.join(map(str, numbers))} (no pulses)")
     return out
 
