@@ -20,6 +20,7 @@ from ..inference._fitio import (
 from ..inference._identify import check_delay_range
 from ..inference._nuts import FitSettings, run_nuts
 from ..inference._priors import build_model, delay_prior_from
+from ..model._effects import reads_sensor_only
 from ..model._likelihood import resolve_objective, twitch_window
 
 #: A leg with fewer pulses than this in its fitted trials has active parameters its own data hardly
@@ -55,7 +56,7 @@ def _warn_sensor_effects_without_sensor(model, cohort: Cohort, legs, trials) -> 
     """Warn where ``model`` has an effect on what the accelerometer reads alone and no fitted trial
     (of ``legs``, numbered ``trials``) has one: its acceleration is derived from the angle, and the
     effect would fit the derivation's smoothing, not a sensor's response."""
-    sensor = [e.name for e in model.effects if e.kind == "measurement" and not e.predicts_angle]
+    sensor = [e.name for e in model.effects if reads_sensor_only(e)]
     trials = [t for t in cohort.trials if (legs is None or t.key in legs) and t.trial in trials]
     if sensor and trials and not any(t.acceleration_measured for t in trials):
         warnings.warn(f"{', '.join(sensor)} changes only what an accelerometer reads, and these recordings have none "

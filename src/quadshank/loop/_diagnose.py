@@ -57,7 +57,7 @@ from ..inference._fitio import posterior_models
 from ..inference._priors import build_model
 from ..inference._screen import LaplaceFit, delta_elpd, laplace_fit, leg_draw_models, paired_difference
 from ..inference._summaries import interval
-from ..model._effects import registered_effects
+from ..model._effects import reads_sensor_only, registered_effects
 from ..model._likelihood import resolve_objective
 from ..model._model import Model
 
@@ -129,9 +129,9 @@ def not_applicable(model: Model, cohort: Cohort, effects, legs, trials, objectiv
             out[name] = f"acts through the muscle, and {model.name} is the pendulum alone"
         elif cls.kind in MUSCLE_KINDS and not pulses:
             out[name] = f"acts through the stimulation, and trial(s) {', '.join(map(str, trials))} hold no pulse"
-        elif not cls.predicts_angle and cls.kind == "measurement" and by_angle:
+        elif reads_sensor_only(cls) and by_angle:
             out[name] = "changes only what the accelerometer reads, and the fit compares angles"
-        elif not cls.predicts_angle and cls.kind == "measurement" and not accelerometer:
+        elif reads_sensor_only(cls) and not accelerometer:
             out[name] = (f"changes only what an accelerometer reads, and trial(s) {', '.join(map(str, trials))} have "
                          "none (their acceleration is derived from the angle)")
         elif cls.kind in ("delay", "noise") and by_angle:

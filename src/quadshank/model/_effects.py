@@ -349,6 +349,12 @@ def registered_effects() -> dict[str, type[Effect]]:
     return dict(_REGISTRY)
 
 
+def reads_sensor_only(effect: Effect | type[Effect]) -> bool:
+    """Whether ``effect`` (an effect or its class) changes only what the accelerometer reads: a
+    measurement effect that cannot change an angle prediction (``predicts_angle = False``)."""
+    return effect.kind == "measurement" and not effect.predicts_angle
+
+
 def get_effect(name: str) -> type[Effect]:
     """The registered effect class called ``name``; a ``KeyError`` naming the known effects otherwise."""
     try:
