@@ -187,6 +187,25 @@ def link_outside(folder: Path):
     return [MAN, "'file'", "outside the folder"]
 
 
+def link_to_a_listed_file(folder: Path):
+    (folder / T2).unlink()
+    os.symlink(folder / T1, folder / T2)
+    return [MAN, "'file'", "row 3", "is a link to 'TN-left-trial1.csv' (row 2)"]
+
+
+def no_header(folder: Path):
+    lines = (folder / T1).read_text().splitlines()
+    (folder / T1).write_text("\n".join(lines[1:]) + "\n")  # a MATLAB writematrix export: numbers only
+    return [T1, "row 1", "the line of column names is missing"]
+
+
+def acceleration_not_recorded(folder: Path):
+    rows = _rows(folder / T1)
+    k = rows[0].index("acceleration_deg_s2")
+    _write_rows(folder / T1, [rows[0]] + [r[:k] + [""] + r[k + 1:] for r in rows[1:]])
+    return [T1, "'acceleration_deg_s2'", "Leave the column out"]
+
+
 def unlisted(folder: Path):
     shutil.copy(folder / T1, folder / "extra.csv")
     return ["extra.csv", "not listed"]
@@ -261,6 +280,12 @@ CSV_CASES = {
     "leg capitalised": manifest_cell(2, "leg", "Left", "'left' or 'right'"),
     "leg with a Cyrillic e": manifest_cell(2, "leg", "l\u0435ft", "'l\\u0435ft' is not 'left' or 'right', which holds characters outside ASCII"),
     "trial gap": manifest_cell(3, "trial", "3", "missing"),
+    "trial number a time stamp": manifest_cell(2, "trial", "20230515143000", "a date or a time stamp"),
+    "a file linked to another listed": link_to_a_listed_file,
+    "a workbook named .csv": lambda folder: replace_file(T1, b"PK\x03\x04" + bytes(range(256)) * 4)(folder)
+    + ["a zip archive (an Excel .xlsx", "export the data as CSV"],
+    "no header line": no_header,
+    "acceleration column empty": acceleration_not_recorded,
     "trial number with separator": manifest_cell(2, "trial", "1_0"),
     "trial number not ASCII": manifest_cell(2, "trial", "١"),
     "trial number overflowing": manifest_cell(2, "trial", "1e400"),
@@ -976,6 +1001,17 @@ def test_utf16_with_its_byte_order_mark_is_read(base, tmp_path):
     (data / T1).write_bytes((data / T1).read_bytes()[:-1])
     _, error, _ = _read(data)
     assert f"{T1}: not UTF-16 text, as its byte-order mark says" in error, error
+
+
+@pytest.mark.parametrize("encoding", ["utf-16-le", "utf-16-be"])
+def test_utf16_without_its_byte_order_mark_is_read(base, tmp_path, encoding):
+    """Some loggers write UTF-16 without a byte-order mark: the zero bytes of its ASCII header say so."""
+    data = _copy(base, tmp_path, "utf16")
+    for name in (T1, MAN):
+        (data / name).write_bytes((data / name).read_text().encode(encoding))
+    cohort, error, _ = _read(data)
+    assert error == "", error
+    _same_trials(cohort, read_interchange(base / "data"))
 
 
 def test_a_comma_or_a_character_outside_ascii_in_a_number_gets_a_hint(base, tmp_path):

@@ -197,3 +197,27 @@ def test_pulses_that_leave_the_angle_unchanged_are_named():
     for k in two:
         few[k:k + 26] = few[k]
     assert not any(words in f for f in plausibility(t.replace(angle_deg=few)))
+
+
+@pytest.mark.parametrize("column", ["acceleration_deg_s2", "velocity_deg_s"])
+def test_a_measured_signal_held_constant_is_named_as_a_placeholder(column):
+    """A logger that writes 0 for a signal it did not record: named, and not compared with the angle."""
+    t = _trial()
+    found = plausibility(t.replace(**{column: np.zeros(t.n_samples)}))
+    assert any(column in f and "constant" in f and "Leave the column out" in f for f in found), found
+    assert not any("hardly follows" in f for f in found), found
+
+
+def test_an_angle_clipped_at_a_rail_is_named_and_a_knee_resting_between_twitches_is_not():
+    t = _trial()
+    found = plausibility(t.replace(angle_deg=np.minimum(t.angle_deg, 10.0)))  # swings cut flat at 10°
+    assert any("angle_deg sits at its largest value, 10.0°" in f and "saturated" in f for f in found), found
+    assert not any("sits at its" in f for f in plausibility(t)), plausibility(t)
+    # twitches from rest, the knee back at exactly 0 between them: the rest is the smallest angle, not a rail
+    n = 1000
+    angle = np.zeros(n)
+    for k in range(50, n - 60, 100):
+        angle[k:k + 40] = 15 * np.sin(np.pi * np.arange(40) / 40)
+    resting = Trial.from_signals("TN", "left", 1, DT, angle, np.gradient(np.gradient(angle, DT), DT), np.zeros(n),
+                                 time_s=np.arange(n) * DT)
+    assert not any("sits at its" in f for f in plausibility(resting)), plausibility(resting)

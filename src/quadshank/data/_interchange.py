@@ -296,6 +296,14 @@ def plausibility(trial: Trial) -> list[str]:
     kept = ~trial.exclude  # an excluded artefact is not evidence of a wrong unit or sign
     if np.count_nonzero(kept) < 3 * window:
         return found
+    found += _rails(trial, kept)
+    for column, _, _ in list(checks):
+        values = getattr(trial, column)[kept]
+        if np.ptp(values) == 0:  # a logger's placeholder for a signal it did not record
+            found.append(f"{column} is constant ({float(values[0])!r} throughout) while the angle moves: a placeholder "
+                         "for a signal that was not recorded? Leave the column out and the reader derives it from the "
+                         "angle")
+            checks.remove(next(c for c in checks if c[0] == column))
     for column, order, unit in checks:
         agreement = _agreement(trial.angle_deg, getattr(trial, column), order, dt, kept)
         if agreement is None:
@@ -318,6 +326,30 @@ def plausibility(trial: Trial) -> list[str]:
 
 #: Consecutive samples of one marker that make a run (a single one may be a measurement).
 MARKER_RUN = 3
+
+#: Share of a trial's samples at exactly its largest (or smallest) angle, in runs of at least
+#: :data:`MARKER_RUN` samples and further than :data:`REST_TOLERANCE_DEG` from the median angle,
+#: from which that angle is taken for a sensor's or amplifier's rail:
+#: a swing passes its extreme in a sample or two, and a noisy or finely quantised angle seldom
+#: repeats it.
+RAIL_SHARE = 0.02
+
+
+def _rails(trial: Trial, kept: np.ndarray) -> list[str]:
+    """Angles held at the trial's extreme value, as a saturated sensor clips them, in words."""
+    angle = trial.angle_deg
+    rest = float(np.median(angle[kept]))
+    found = []
+    for side, extreme in (("largest", float(np.max(angle[kept]))), ("smallest", float(np.min(angle[kept])))):
+        if abs(extreme - rest) <= REST_TOLERANCE_DEG:  # a knee at rest between twitches, not a rail
+            continue
+        runs = [(a, b) for a, b in stretches((angle == extreme) & kept) if b - a >= MARKER_RUN]
+        n = sum(b - a for a, b in runs)
+        if len(runs) >= 2 and n >= RAIL_SHARE * np.count_nonzero(kept):
+            found.append(f"angle_deg sits at its {side} value, {extreme!r}°, on {n} samples in {len(runs)} runs (the first "
+                         f"from time_s = {float(trial.time_s[runs[0][0]])!r}): a saturated sensor or amplifier? The "
+                         "model takes a clipped angle for the knee's; set exclude = 1 there")
+    return found
 
 
 def _markers(trial: Trial) -> list[str]:
@@ -544,6 +576,11 @@ def _read_table(
     rows: list[list[str]] = []
     lines: list[int] = []
     reader = None
+    archive = _archive_kind(path)
+    if archive is not None:
+        problems.append(Problem(file, None, None, f"{archive}, not CSV text: export the data as CSV (comma-separated, "
+                                "UTF-8) and list that file"))
+        return None
     encoding = _encoding(path)
     try:
         with open(path, newline="", encoding=encoding) as fh:
@@ -570,7 +607,8 @@ def _read_table(
                     lines.append(reader.line_num)
     except UnicodeDecodeError as exc:
         problems.append(_not_utf8(path, file) if encoding == "utf-8-sig" else
-                        Problem(file, None, None, f"not UTF-16 text, as its byte-order mark says ({exc.reason})"))
+                        Problem(file, None, None, f"not UTF-16 text, as its {'byte-order mark says' if encoding == 'utf-16' else 'first bytes say'} "
+                                f"({exc.reason})"))
         return None
     except csv.Error as exc:
         line = reader.line_num if reader is not None else None
@@ -595,6 +633,10 @@ def _read_table(
             for row in rows]
 
     known = tuple(required) + tuple(optional)
+    if all(parse_number(c) is not None for c in header):  # numbers where the names should be
+        problems.append(Problem(file, None, header_line, f"the first line, {','.join(header)[:60]!r}, holds numbers: the "
+                                f"line of column names is missing. Add it above the data ({', '.join(required)} ...)"))
+        return None
     if header[0].startswith("#"):
         problems.append(Problem(file, None, header_line, f"the first line, {','.join(header)[:60]!r}, is a comment? The "
                                 f"first line holds the column names ({', '.join(required)} ...); remove the lines "
@@ -669,6 +711,26 @@ def _read_table(
     return _Table(columns, header_line, rows, lines, well_formed, dropped if bad_rows else [])
 
 
+#: The first bytes of files that are often saved under a ``.csv`` name but are not text.
+_ARCHIVES = (
+    (b"PK\x03\x04", "a zip archive (an Excel .xlsx or OpenDocument .ods workbook?)"),
+    (b"\xd0\xcf\x11\xe0\xa1\xb1\x1a\xe1", "an Excel 97-2003 workbook (.xls)"),
+    (b"\x1f\x8b", "a gzip-compressed file (decompress it first)"),
+    (b"\x89HDF", "an HDF5 file (a MATLAB v7.3 .mat or NetCDF-4 file?)"),
+    (b"MATLAB", "a MATLAB .mat file"),
+)
+
+
+def _archive_kind(path: Path) -> str | None:
+    """What a file that is not text is, from its first bytes, or None."""
+    try:
+        with open(path, "rb") as fh:
+            start = fh.read(8)
+    except OSError:
+        return None  # reading it again says why it cannot be read
+    return next((what for magic, what in _ARCHIVES if start.startswith(magic)), None)
+
+
 def _encoding(path: Path) -> str:
     """The text encoding of a CSV file: UTF-16 where it starts with that byte-order mark (a
     spreadsheet's Unicode export), else UTF-8 (a byte-order mark read past)."""
@@ -677,7 +739,15 @@ def _encoding(path: Path) -> str:
             start = fh.read(2)
     except OSError:
         return "utf-8-sig"  # reading it again says why it cannot be read
-    return "utf-16" if start in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE) else "utf-8-sig"
+    if start in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE):
+        return "utf-16"
+    # UTF-16 without its byte-order mark (some loggers' and MATLAB's exports): the header's first
+    # character is ASCII, so one of its two bytes is zero; no UTF-8 text starts with a zero byte
+    if len(start) == 2 and start[1] == 0 and 32 < start[0] < 127:
+        return "utf-16-le"
+    if len(start) == 2 and start[0] == 0 and 32 < start[1] < 127:
+        return "utf-16-be"
+    return "utf-8-sig"
 
 
 def _not_utf8(path: Path, file: str) -> Problem:
@@ -759,6 +829,10 @@ def _parse_float_column(table: _Table, name: str, file: str, problems: list[Prob
     as NaN (the caller fills them in)."""
     idx = table.columns[name]
     cells = [row[idx] for row in table.rows]
+    if name in ("acceleration_deg_s2", "velocity_deg_s") and all(_MISSING.fullmatch(c.strip()) for c in cells):
+        problems.append(Problem(file, name, None, "no value on any row (empty or NaN): a signal that was not "
+                                "recorded? Leave the column out and the reader derives it from the angle"))
+        return None
     values = [parse_number(c) for c in cells]
     if excluded is not None:
         values = [math.nan if v is None and out and _MISSING.fullmatch(c.strip()) else v
@@ -864,8 +938,9 @@ def _check_signals(
         # most pulses above 1, three or more: not a typo on a pulse or two
         if out.size and (pulses > 0).all() and np.mean(pulses > 1) >= 0.5 and np.count_nonzero(pulses > 1) >= 3:
             if np.all(pulses == pulses[0]):  # one value on every pulse, above 1: a trigger's level
-                hint = (f"every pulse is {float(pulses[0]):g}, outside [0, 1]: a trigger channel (in volts, say)? "
-                        "Write 1 for a pulse, or the level it recruits")
+                hint = (f"every pulse is {float(pulses[0]):g}, outside [0, 1]: a trigger channel (in volts, say)"
+                        + (", or a level in percent" if float(pulses[0]) == 100 else "") + "? Write 1 for a pulse, "
+                        "or the level it recruits")
             else:
                 hint = ("pulses of several sizes above 1, outside [0, 1]: " + ("levels in percent (divide by 100), or "
                         if pulses.max() <= 100 else "") + "a stimulator's setting (a current in mA, a pulse width in "
@@ -1174,6 +1249,7 @@ def _check_listing(
             first_row[ident] = e.line
 
     first_file: dict[str, int] = {}
+    first_target: dict[tuple[int, int], _Entry] = {}
     for e in entries:
         if e.key is None:
             continue
@@ -1181,8 +1257,20 @@ def _check_listing(
             problems.append(
                 Problem(file, "file", e.line, f"{e.file!r} listed twice (rows {first_file[e.key]} and {e.line})")
             )
+            continue
+        first_file[e.key] = e.line
+        if e.path is None:
+            continue
+        st = e.path.stat()  # a link (or a hard link) to a file listed already: one recording read twice
+        target = (st.st_dev, st.st_ino)
+        if target in first_target:
+            other = first_target[target]
+            problems.append(
+                Problem(file, "file", e.line, f"{e.file!r} is a link to {other.file!r} (row {other.line}): "
+                        "the same recording listed as two trials")
+            )
         else:
-            first_file[e.key] = e.line
+            first_target[target] = e
 
     if not complete:
         return
@@ -1191,6 +1279,14 @@ def _check_listing(
         legs.setdefault(leg_key(e.subject, e.leg), []).append(e)
     for key, rows in legs.items():
         numbers = {e.trial for e in rows}
+        if max(numbers) > len(numbers) + 1000:  # a date or a time stamp as the trial's number
+            high = max(rows, key=lambda e: e.trial)
+            problems.append(
+                Problem(file, "trial", high.line,
+                        f"{key}: trial {high.trial} of {len(numbers)} listed (trials of a leg must be numbered 1..n "
+                        "without gaps; a date or a time stamp belongs in the file's name, not in 'trial')")
+            )
+            continue
         missing = sorted(set(range(1, max(numbers) + 1)) - numbers)
         if not missing:
             continue
