@@ -182,3 +182,67 @@ def test_a_period_too_short_for_the_delays_considered_is_said():
     assert result.data == "a cohort in memory" and result.sampling_period_s == pytest.approx(0.005)
     assert any("resample" in w for w in result.warnings)
     assert result.trials[0]["sampling_period_ms"] == pytest.approx(5.0)
+
+
+def _copy(folder, tmp_path):
+    data = tmp_path / "data"
+    data.mkdir()
+    for p in folder.iterdir():
+        (data / p.name).write_bytes(p.read_bytes())
+    return data
+
+
+def _set_manifest(data, subject, trial, column, value):
+    """Set one trial's cell of the manifest, adding the column (empty elsewhere) where it is new."""
+    head, body = _rows(data / "manifest.csv")
+    if column not in head:
+        head.append(column)
+        body = [r + [""] for r in body]
+    for r in body:
+        if r[0] == subject and r[2] == str(trial):
+            r[head.index(column)] = value
+    _write(data / "manifest.csv", head, body)
+
+
+def test_a_leg_without_enough_samples_for_the_passive_system_is_told_what_identify_would_say(folder, tmp_path):
+    """check gives identify's verdict: a pendulum test cut to 1 s (or a stimulated trial whose
+    quiet samples are too few) cannot give the passive system."""
+    from quadshank.inference import IdentificationError, identify_cohort
+    from quadshank.data import load_cohort
+
+    data = _copy(folder, tmp_path)
+    _set_manifest(data, "TN", 2, "end_s", "1.5")
+    result = run_check(data, identification_trial=2)
+    row = next(r for r in result.trials if r["leg"] == "TN-left" and r["trial"] == 2)
+    assert row["passive_samples"] < 200
+    assert result.legs["TN-left"]["identify"].startswith(f"no: {row['passive_samples']} samples for the passive system")
+    assert result.legs["TN-left"]["identify"].endswith("in trial 2, of the 200 needed")
+    with pytest.raises(IdentificationError, match=f"only {row['passive_samples']} quiet samples"):
+        identify_cohort(load_cohort(data).select(["TN-left"]), trial=2)
+    # a leg with enough: its count is what identify uses
+    full = next(r for r in run_check(folder).trials if r["leg"] == "TN-left" and r["trial"] == 2)
+    assert full["passive_samples"] == identify_cohort(load_cohort(folder).select(["TN-left"]), trial=2)["TN-left"].n_quiet
+
+
+def test_trials_at_different_periods_are_shown_and_each_leg_told_why_the_other_commands_refuse(folder, tmp_path):
+    data = _copy(folder, tmp_path)
+    head, body = _rows(data / "OT-left-trial2.csv")
+    _write(data / "OT-left-trial2.csv", head, body[::2])  # every other sample: 20 ms
+    _set_manifest(data, "OT", 2, "sampling_period_s", "0.02")
+    with pytest.warns(DataWarning, match="sampled at different periods"):
+        result = run_check(data, tmp_path / "out")
+    assert result.sampling_period_s is None
+    assert {r["sampling_period_ms"] for r in result.trials} == {10.0, 20.0}
+    assert all(u["identify"].startswith("no: the trials are sampled at different periods") for u in result.legs.values())
+    assert Check.read(tmp_path / "out").sampling_period_s is None
+
+
+def test_a_subject_named_like_a_path_keeps_its_figures_in_the_output_folder(folder, tmp_path):
+    data = _copy(folder, tmp_path)
+    manifest = (data / "manifest.csv").read_text().replace("\nJM,", "\nx/../../escaped,")
+    (data / "manifest.csv").write_text(manifest)
+    out = tmp_path / "deep" / "out"
+    result = run_check(data, out)
+    assert "recording_x_.._.._escaped-left_trial1.png" in result.files
+    assert all((out / f).is_file() for f in result.files)
+    assert not list(tmp_path.glob("*.png")) and not list((tmp_path / "deep").glob("*.png"))

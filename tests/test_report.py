@@ -420,12 +420,16 @@ def test_predict_rolls_the_posterior_through_a_plan_as_evaluate_does(made, capsy
 def test_names_that_meet_as_file_names_keep_files_of_their_own():
     """Subjects whose names differ only in letters a file name cannot hold (Müller, Möller) or in
     case must not overwrite each other's page and leg files."""
-    from quadshank.outputs._report import _stems
+    from quadshank.common._io import FILE_STEM_MAX, file_stems
 
-    stems = _stems(["Müller-left", "Möller-left", "MULLER-left", "患者-left", "患者-right", "A B-left"])
+    long = "S" * 300
+    stems = file_stems(["Müller-left", "Möller-left", "MULLER-left", "患者-left", "患者-right", "A B-left",
+                        "x/../../escaped-left", f"{long}-left", f"{long}-right"])
     assert stems["Müller-left"] == "Muller-left" and stems["Möller-left"] == "Moller-left"
     assert stems["MULLER-left"] == "MULLER-left-2"  # meets Muller-left on a case-insensitive file system
     assert stems["患者-left"] == "__-left" and stems["患者-right"] == "__-right" and stems["A B-left"] == "A_B-left"
+    assert stems["x/../../escaped-left"] == "x_.._.._escaped-left"  # no path leaves the output folder
+    assert len(stems[f"{long}-left"]) == FILE_STEM_MAX and stems[f"{long}-right"] == stems[f"{long}-left"] + "-2"
     assert len({v.lower() for v in stems.values()}) == len(stems)
 
 

@@ -17,11 +17,19 @@ from typing import ClassVar
 
 import numpy as np
 
-from ..common._io import save_figure
+from ..common._io import file_stems, save_figure
 from ..common._results import Result
 from ..data._cohort import Cohort, Trial
 from ..data._interchange import DataWarning, charge_scales, load_cohort
-from ..inference._identify import MIN_TWITCHES, check_delay_range, isolated_twitches, twitch_epoch
+from ..inference._identify import (
+    MIN_PASSIVE_SAMPLES,
+    MIN_TWITCHES,
+    PASSIVE_MAX_ANGLE_DEG,
+    check_delay_range,
+    isolated_twitches,
+    passive_mask,
+    twitch_epoch,
+)
 from ..outputs._figures import plot_recording
 from ..outputs._tables import write_table
 
@@ -31,7 +39,7 @@ __all__ = ["Check", "run_check", "check_table", "trial_row", "leg_uses", "TRIAL_
 TRIAL_COLUMNS = (
     "leg", "trial", "source", "seconds", "sampling_period_ms", "samples", "excluded_share", "pulses",
     "isolated_twitches", "shortest_interval_ms", "stimulation", "angle_min_deg", "angle_max_deg",
-    "acceleration", "velocity",
+    "acceleration", "velocity", "passive_samples",
 )  # fmt: skip
 
 #: What a trial's pulses are, as :func:`trial_row` names them.
@@ -46,7 +54,7 @@ class Check(Result):
     KIND: ClassVar[str] = "check"
 
     data: str  # the folder or file read
-    sampling_period_s: float
+    sampling_period_s: float | None  # None: the trials are sampled at different periods
     identification_trial: int  # the trial ``identify`` would use (its --trial)
     trials: list  # rows of TRIAL_COLUMNS
     legs: dict  # leg -> {"identify": ..., "fit": ...}
@@ -97,6 +105,7 @@ def trial_row(trial: Trial, scale: dict | None = None, isolated: np.ndarray | No
         "angle_max_deg": round(float(np.max(kept)), 3),
         "acceleration": "measured" if trial.acceleration_measured else "derived from the angle",
         "velocity": "measured" if trial.velocity_measured else "derived from the angle",
+        "passive_samples": int(np.count_nonzero(passive_mask(trial))),
         "pulse_kind": _kind(int(at.size), isolated),
     }
 
@@ -112,11 +121,20 @@ def leg_uses(rows: list[dict], identification_trial: int = 1) -> dict:
         return {"identify": text, "fit": text}
     also = (f"; the passive system from trial(s) {', '.join(map(str, passive))} (no pulses)"
             if passive and row["pulses"] else "")
+    # identify takes the passive system from the trials without pulses, else from the quiet samples of its trial
+    source = [by_trial[k] for k in passive] if passive else [row]
+    usable = sum(r["passive_samples"] for r in source)
+    short = (f"no: {usable} samples for the passive system (quiet, at most "
+             f"{PASSIVE_MAX_ANGLE_DEG:g}° extended, not excluded) in "
+             f"trial{'s' if len(source) > 1 else ''} {', '.join(str(r['trial']) for r in source)}, of the "
+             f"{MIN_PASSIVE_SAMPLES} needed") if usable < MIN_PASSIVE_SAMPLES else None
     if row["pulses"] == 0:
-        identify = "the passive system only (no pulses: a pendulum test)"
+        identify = short or "the passive system only (no pulses: a pendulum test)"
         fit = "--model passive (no pulses: a model with a muscle would learn its muscle from its prior alone)"
     else:
-        if row["isolated_twitches"] >= MIN_TWITCHES:
+        if short:
+            identify = short
+        elif row["isolated_twitches"] >= MIN_TWITCHES:
             identify = f"models 1-3 ({row['isolated_twitches']} isolated twitches){also}"
         else:
             identify = (f"no: {row['isolated_twitches']} isolated twitches of the {MIN_TWITCHES} needed "
@@ -139,7 +157,14 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
             cohort, data = data, "a cohort in memory"
         else:
             cohort = load_cohort(data)
-        check_delay_range(cohort.sampling_period_s)  # what fit and identify would warn of at this period
+        try:
+            period = cohort.sampling_period_s
+        except ValueError as err:  # trials at different periods: shown, then refused by every other command
+            period, mixed = None, str(err)
+            warnings.warn(f"{mixed}; every other command refuses these data as they are", DataWarning, stacklevel=2)
+        else:
+            mixed = None
+            check_delay_range(period)  # what fit and identify would warn of at this period
     said = []
     for w in caught:
         if issubclass(w.category, DataWarning):
@@ -149,15 +174,19 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
     isolated = [_isolated(t) for t in cohort]
     rows = [trial_row(t, scales.get(t.key), i) for t, i in zip(cohort, isolated)]
     legs = {leg: leg_uses([r for r in rows if r["leg"] == leg], identification_trial) for leg in cohort.legs}
-    result = Check(data=str(data), sampling_period_s=float(cohort.sampling_period_s),
+    if mixed:
+        refused = "no: the trials are sampled at different periods (resample them: `quadshank convert --resample`)"
+        legs = {leg: {"identify": refused, "fit": refused} for leg in legs}
+    result = Check(data=str(data), sampling_period_s=period,
                    identification_trial=int(identification_trial), trials=rows, legs=legs, warnings=said)
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
         write_table(rows, out, "recordings", "The recordings as read")
         files = ["recordings.csv", "recordings.md"]
+        stems = file_stems(cohort.legs)  # a subject's name may hold '/' or be longer than a file name
         for t, r, i in zip(cohort, rows, isolated):
-            name = f"recording_{t.key}_trial{t.trial}.png"
+            name = f"recording_{stems[t.key]}_trial{t.trial}.png"
             title = f"{r['pulses']} pulses, {r['isolated_twitches']} isolated twitches" if r["pulses"] else NO_PULSES
             save_figure(plot_recording(t, i, title), out / name)
             files.append(name)

@@ -63,11 +63,32 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
+#: Longest stem :func:`file_stem` gives: file systems take 255 bytes a name, and a stem is one
+#: part of a name (``recording_STEM_trial12.png``, a temporary file's prefix and suffix).
+FILE_STEM_MAX = 80
+
+
 def file_stem(name: str, empty: str = "_") -> str:
     """``name`` as a portable file-name stem: ASCII letters (accents dropped: Müller → Muller),
-    digits and ``._-``, any other character ``_``, no leading dot; ``empty`` where nothing is left."""
+    digits and ``._-``, any other character ``_`` (a path's ``/`` too), no leading dot, at most
+    :data:`FILE_STEM_MAX` characters; ``empty`` where nothing is left."""
     letters = "".join(unicodedata.normalize("NFKD", ch).encode("ascii", "ignore").decode() or "_" for ch in name)
-    return re.sub(r"[^A-Za-z0-9._-]", "_", letters).lstrip(".") or empty
+    return re.sub(r"[^A-Za-z0-9._-]", "_", letters).lstrip(".")[:FILE_STEM_MAX] or empty
+
+
+def file_stems(names) -> dict[str, str]:
+    """A :func:`file_stem` for each of ``names``, distinct even on a case-insensitive file system
+    (``-2``, ``-3`` … where two would meet), so that no leg's or subject's files overwrite
+    another's."""
+    out, taken = {}, set()
+    for name in names:
+        base = file_stem(name)
+        stem, k = base, 2
+        while stem.lower() in taken:
+            stem, k = f"{base}-{k}", k + 1
+        taken.add(stem.lower())
+        out[name] = stem
+    return out
 
 
 def _json_default(o):

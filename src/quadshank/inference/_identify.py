@@ -89,6 +89,9 @@ def twitch_epoch(sampling_period_s: float) -> int:
 PASSIVE_MAX_ANGLE_DEG = 60.0
 #: Fewest isolated twitches needed for a meaningful identification.
 MIN_TWITCHES = 8
+#: Fewest samples (quiet, at most :data:`PASSIVE_MAX_ANGLE_DEG` extended, not excluded) the
+#: passive system is identified from: 2 s at 10 ms, a swing or two.
+MIN_PASSIVE_SAMPLES = 200
 #: What the passive identification fits: the measured acceleration (equation error, eq. 8 on
 #: each quiet sample) or the angle of a free run (output error), on pendulum tests only.
 PASSIVE_OBJECTIVES = ("acceleration", "angle")
@@ -269,12 +272,19 @@ def _standard_errors(jac: np.ndarray, resid: np.ndarray, n: int | None = None) -
     return np.sqrt(_correlation_time(resid) * s2 * var)
 
 
+def passive_mask(trial: Trial) -> np.ndarray:
+    """The samples of ``trial`` the passive system is fitted to: quiet (no twitch can act), at
+    most :data:`PASSIVE_MAX_ANGLE_DEG` extended, not excluded."""
+    quiet = quiet_mask(trial.stimulation, quiet_samples(trial.sampling_period_s))
+    return quiet & (trial.angle_deg <= PASSIVE_MAX_ANGLE_DEG) & ~trial.exclude
+
+
 def _passive_samples(trials) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Angle, velocity and acceleration of the samples of ``trials`` the passive system is fitted
-    to: quiet (no twitch can act), at most :data:`PASSIVE_MAX_ANGLE_DEG` extended, not excluded."""
+    to (:func:`passive_mask`)."""
     ang, vel, acc = [], [], []
     for t in trials:
-        m = quiet_mask(t.stimulation, quiet_samples(t.sampling_period_s)) & (t.angle_deg <= PASSIVE_MAX_ANGLE_DEG) & ~t.exclude
+        m = passive_mask(t)
         ang.append(t.angle_deg[m])
         vel.append(t.velocity_deg_s[m])
         acc.append(t.acceleration_deg_s2[m])
@@ -305,14 +315,15 @@ def _passive_equation_error(trials, gravity_offset: bool = False) -> tuple[dict,
     angle, velocity, accel = _passive_samples(trials)
     where = ", ".join(f"{t.key} trial {t.trial}" + (f" ({t.source})" if t.source else "") for t in trials)
     _refuse_non_finite(where, angle=angle, velocity=velocity, acceleration=accel)
-    if angle.size < 200:
+    if angle.size < MIN_PASSIVE_SAMPLES:
         quiet = np.concatenate([t.angle_deg[quiet_mask(t.stimulation, quiet_samples(t.sampling_period_s)) & ~t.exclude]
                                 for t in trials])
-        high = quiet.size >= 200 and np.count_nonzero(quiet > PASSIVE_MAX_ANGLE_DEG) > quiet.size / 2
+        high = quiet.size >= MIN_PASSIVE_SAMPLES and np.count_nonzero(quiet > PASSIVE_MAX_ANGLE_DEG) > quiet.size / 2
         raise IdentificationError(
             f"{where}: only {angle.size} quiet samples (no pulse in the preceding "
             f"{quiet_samples(trials[0].sampling_period_s)}, knee at "
-            f"most {PASSIVE_MAX_ANGLE_DEG:g}° extended); the passive system needs at least 200, stretches without "
+            f"most {PASSIVE_MAX_ANGLE_DEG:g}° extended); the passive system needs at least {MIN_PASSIVE_SAMPLES}, "
+            "stretches without "
             "stimulation"
             + (f". Most quiet samples lie above {PASSIVE_MAX_ANGLE_DEG:g}° (median {float(np.median(quiet)):.1f}°): "
                "is angle_deg zero with the shank hanging at rest, positive in extension?" if high else "")

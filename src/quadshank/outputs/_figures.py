@@ -76,7 +76,9 @@ def plot_twitch_dependence(ident):
     ]
     for ax, x, y, xl, yl, title in panels:
         ax.plot(x, y, ".", ms=3, alpha=0.6)
-        if len(x) > 1:
+        ok = np.isfinite(x) & np.isfinite(y)
+        if np.count_nonzero(ok) > 1 and np.ptp(x[ok]) > 0:  # no line through points at one abscissa
+            x, y = x[ok], y[ok]
             c = np.polyfit(x, y, 1)
             xs = np.linspace(np.min(x), np.max(x), 10)
             ax.plot(xs, np.polyval(c, xs), "r-", lw=1.5, label=f"slope {c[0]:.3g}")

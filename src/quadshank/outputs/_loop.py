@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..common._io import atomic_write_bytes, save_figure
+from ..common._io import atomic_write_bytes, file_stems, save_figure
 from ..data._cohort import Cohort
 from ..evaluation import _residuals as R
 from ..evaluation._checks import elpd_in_time, loo_pit, worst_seconds_sentence
@@ -29,6 +29,7 @@ def residual_figures(residuals: dict[str, dict], out, label: str, dt: float) -> 
     ``residuals`` (leg -> :func:`point_residuals`).  Returns (figure paths, findings per leg in words)."""
 
     paths, notes = [], {}
+    stems = file_stems(residuals)  # a subject's name may hold '/' or be longer than a file name
     for leg, r in residuals.items():
         feats = R.features(r["angle"], r["velocity"], r["stimulation"], r["sample_mask"], r["trial_start"], dt)
         # a feature the recording does not have (no pulses: no interval or pulse count) is left out
@@ -39,7 +40,7 @@ def residual_figures(residuals: dict[str, dict], out, label: str, dt: float) -> 
         cc = R.ccf(r["residual"], r["stimulation"], r["sample_mask"]) if pulses else None
         found = R.findings(trends, ac, cc)
         notes[leg] = found
-        stem = f"{label}_{leg}"
+        stem = f"{label}_{stems[leg]}"
         paths.append(F.plot_trends(trends, out / f"residual_trends_{stem}.png", notes=found))
         paths.append(F.plot_correlations(ac, cc, out / f"residual_correlation_{stem}.png", notes=found))
         if pulses:

@@ -42,7 +42,7 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ..common._io import atomic_write_text, figure_bytes, file_stem, write_json
+from ..common._io import atomic_write_text, figure_bytes, file_stems, write_json
 from ..common._progress import progress_bar
 from ..data._paper import SAMPLING_PERIOD_S, TABLE_V
 from ..inference._summaries import INTERVAL, interval
@@ -408,22 +408,6 @@ def _delay_angle_html(da: dict) -> str:
 # ============================================================================ the command
 
 
-def _stems(names) -> dict[str, str]:
-    """A file-name stem for each of ``names``: ASCII letters (accents dropped: Müller → Muller),
-    digits and ``._-``, any other character ``_``; distinct even on a case-insensitive file system
-    (``-2``, ``-3`` … where two would meet), so that no subject's page or leg's files overwrite
-    another's."""
-    out, taken = {}, set()
-    for name in names:
-        base = file_stem(name)
-        stem, k = base, 2
-        while stem.lower() in taken:
-            stem, k = f"{base}-{k}", k + 1
-        taken.add(stem.lower())
-        out[name] = stem
-    return out
-
-
 def _leg_csv(rows: dict) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
@@ -464,8 +448,8 @@ def write_report(
     dt = desc.get("sampling_period_s", SAMPLING_PERIOD_S)
     subjects = list(dict.fromkeys(params[leg]["subject"] for leg in legs))
     subject_legs = {s: [leg for leg in legs if params[leg]["subject"] == s] for s in subjects}
-    pages = {s: f"subject-{stem}.html" for s, stem in _stems(subjects).items()}
-    leg_stem = _stems(legs)
+    pages = {s: f"subject-{stem}.html" for s, stem in file_stems(subjects).items()}
+    leg_stem = file_stems(legs)
     diag_ok = bool(fs.diagnostics.get("ok"))
     fitted_trials = ", ".join(map(str, desc["trials"]))
     base, paper = _paper_table_v(label)
