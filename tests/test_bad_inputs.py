@@ -1030,3 +1030,12 @@ def test_a_comma_or_a_character_outside_ascii_in_a_number_gets_a_hint(base, tmp_
     assert f"{T1}, column 'angle_deg', row 30: non-numeric value '\u22121.5' (written '\\u22121.5': a number is " \
            "ASCII digits" in error, error
     assert f"{MAN}, column 'sampling_period_s', row 2: non-numeric value '0,01' (a decimal comma" in error, error
+
+
+def test_a_recording_copied_as_a_second_trial_is_named(base, tmp_path):
+    """Two files that hold the same angles, sample for sample: read, with a warning naming both."""
+    data = _copy(base, tmp_path, "copied")
+    (data / T2).write_bytes((data / T1).read_bytes())
+    with pytest.warns(DataWarning, match=r"TN-left trial 2\): angle_deg is the same on every sample as in .*"
+                                         r"TN-left-trial1\.csv \(TN-left trial 1\)"):
+        read_interchange(data)

@@ -103,6 +103,7 @@ import codecs
 import csv
 import dataclasses
 import difflib
+import hashlib
 import json
 import math
 import os
@@ -542,6 +543,18 @@ def _warn_implausible(cohort: Cohort, labels: Sequence[str]) -> None:
     for t, label in zip(cohort.trials, labels):
         for text in plausibility(t):
             warnings.warn(f"{label} ({t.key} trial {t.trial}): {text}", DataWarning, stacklevel=3)
+    first: dict[bytes, tuple[Trial, str]] = {}
+    for t, label in zip(cohort.trials, labels):  # a recording copied under a second trial's name
+        if t.n_samples < 2 or np.ptp(t.angle_deg) == 0:
+            continue  # a constant angle is named above; two of them are not one recording
+        digest = hashlib.sha256(np.ascontiguousarray(t.angle_deg, dtype=np.float64).tobytes()).digest()
+        if digest in first:
+            other, where = first[digest]
+            warnings.warn(f"{label} ({t.key} trial {t.trial}): angle_deg is the same on every sample as in {where} "
+                          f"({other.key} trial {other.trial}): one recording copied as two trials?", DataWarning,
+                          stacklevel=3)
+        else:
+            first[digest] = (t, label)
 
 
 # --------------------------------------------------------------------------- CSV tables
