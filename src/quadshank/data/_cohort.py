@@ -28,8 +28,13 @@ __all__ = [
     "ACCELERATION_WINDOW_S", "leg_key",
 ]  # fmt: skip
 
-#: Savitzky–Golay window (samples) used to derive velocity from the angle.
+#: Savitzky–Golay window (samples) used to derive velocity from the angle at T_s = 10 ms and
+#: longer periods; at shorter periods the window spans :data:`VELOCITY_WINDOW_S` instead.
 VELOCITY_WINDOW = 7
+#: The velocity window's length [s] at periods shorter than 10 ms: counted in samples, 7 samples
+#: at 1 ms would raise the velocity's noise tenfold (0.38·s/T_s), and a free run started from
+#: it misses a pendulum test's swing by five times the angle's noise.
+VELOCITY_WINDOW_S = 0.07
 #: Polynomial order of the Savitzky–Golay velocity filter.
 VELOCITY_POLYORDER = 2
 
@@ -50,7 +55,8 @@ def derive_velocity(angle_deg: np.ndarray, dt: float) -> np.ndarray:
     """Knee angular velocity [deg/s] from the sampled angle [deg], off-line.
 
     A zero-phase Savitzky–Golay differentiator (quadratic fit over
-    :data:`VELOCITY_WINDOW` = 7 samples, 70 ms at T_s = 10 ms).  Being
+    :data:`VELOCITY_WINDOW` = 7 samples, 70 ms at T_s = 10 ms; at shorter periods
+    :data:`VELOCITY_WINDOW_S`, 70 ms, in samples: 71 at 1 ms).  Being
     non-causal it adds no lag, which is what the paper's off-line derivation
     allows.  The trade-off is bandwidth against noise: for white angle noise of
     standard deviation s the velocity noise is about ``0.38 * s / dt`` (a plain
@@ -60,9 +66,16 @@ def derive_velocity(angle_deg: np.ndarray, dt: float) -> np.ndarray:
     """
 
     angle = np.asarray(angle_deg, dtype=float)
-    if angle.size < VELOCITY_WINDOW:
+    window = _velocity_window(dt)
+    if angle.size < window:
         return np.gradient(angle, dt) if angle.size > 1 else np.zeros_like(angle)
-    return savgol_filter(angle, VELOCITY_WINDOW, VELOCITY_POLYORDER, deriv=1, delta=dt, mode="interp")
+    return savgol_filter(angle, window, VELOCITY_POLYORDER, deriv=1, delta=dt, mode="interp")
+
+
+def _velocity_window(dt: float) -> int:
+    """The velocity window in samples at ``dt``: :data:`VELOCITY_WINDOW`, or
+    :data:`VELOCITY_WINDOW_S` rounded to an odd number of samples where that is longer."""
+    return max(VELOCITY_WINDOW, int(round(VELOCITY_WINDOW_S / dt)) | 1)
 
 
 #: Length [s] of the Savitzky–Golay window that derives the acceleration from the angle
@@ -133,7 +146,7 @@ def _derived_by_stretch(derive, angle: np.ndarray, dt: float, exclude) -> np.nda
 def derivation_settings(sampling_period_s: float) -> dict:
     """How :func:`derive_velocity` and :func:`derive_acceleration` work at this period (recorded by a fit)."""
     return {
-        "velocity": {"method": "Savitzky-Golay, zero-phase", "window_samples": VELOCITY_WINDOW,
+        "velocity": {"method": "Savitzky-Golay, zero-phase", "window_samples": _velocity_window(sampling_period_s),
                      "polyorder": VELOCITY_POLYORDER},
         "acceleration": {"method": "Savitzky-Golay, zero-phase", "window_samples": _acceleration_window(sampling_period_s),
                          "polyorder": ACCELERATION_POLYORDER},
