@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -80,10 +81,15 @@ def test_a_recording_at_1_ms_is_resampled_and_identified(tmp_path, capsys):
     for folder, ms in ((fine, "1"), (coarse, "10")):
         assert main(["-q", "simulate", "--out", str(folder), "--legs", "JM-left", "--minutes", "1",
                      "--trials", "1", "--sampling-period-ms", ms]) == 0
-    # at 1 ms the delays considered (10 samples) are too short: the command says so and what to do
+    # at 1 ms the delays considered (10 samples) are too short for a muscle: refused, with what to do
     capsys.readouterr()
-    main(["-q", "identify", str(fine), "--out", str(tmp_path / "id1")])
-    assert "delays considered reach 10 samples = 10 ms" in capsys.readouterr().err
+    for argv in (["identify", str(fine), "--out", str(tmp_path / "id1")],
+                 ["fit", str(fine), "--out", str(tmp_path / "f1"), "--chains", "1", "--warmup", "5", "--draws", "5"],
+                 ["discover", str(fine), "--out", str(tmp_path / "d1"), "--effects", "fatigue", "--max-rounds", "1"]):
+        assert main(["-q", *argv]) == 2, argv
+        err = capsys.readouterr().err
+        assert "delays considered reach 10 samples = 10 ms" in err and "--resample 0.01" in err, err
+        assert not Path(argv[argv.index("--out") + 1]).exists()
     assert main(["-q", "convert", str(fine), str(tmp_path / "c.nc"), "--resample", "0.01"]) == 0
     assert load_cohort(tmp_path / "c.nc").sampling_period_s == 0.01
     found = {}
@@ -113,3 +119,24 @@ def test_a_missing_trial_is_named_with_the_trials_the_leg_has():
         cohort.get(leg, 3)
     with pytest.raises(KeyError, match="legs present"):
         cohort.get("XX-left", 1)
+
+
+def test_a_pendulum_test_at_1_ms_is_identified_at_its_own_period():
+    """Without pulses there is no delay to reach: a pendulum test at 1 ms is identified as it is
+    (with the warning on the delays), while the same test with a pulse in it is refused."""
+    import warnings
+
+    from quadshank.data._simulate import simulate_pendulum_test
+    from quadshank.inference import identify_cohort
+    from quadshank.inference._identify import DelayRangeError
+
+    truth = {"damping": 1.3, "gravity": 1950.0, "k1": 30.0, "k2": 0.05}
+    pendulum = simulate_pendulum_test(truth, sampling_period_s=0.001)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the delays considered at 1 ms, which do not matter here
+        found = identify_cohort(Cohort((pendulum,)))["PT-left"].passive
+    assert found["gravity"] == pytest.approx(truth["gravity"], rel=0.05)
+    u = pendulum.stimulation.copy()
+    u[4000] = 1.0
+    with pytest.raises(DelayRangeError, match="reach 10 samples = 10 ms, short of a stimulated muscle's delay"):
+        identify_cohort(Cohort((pendulum.replace(stimulation=u),)))

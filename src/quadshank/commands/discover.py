@@ -6,6 +6,7 @@ from pathlib import Path
 
 from ..common._io import atomic_write_text
 from ..data._cohort import Cohort
+from ..inference._identify import check_delay_range
 from ..inference._priors import build_model
 from ..loop._diagnose import SCREEN_STARTS, Discovery
 from ..model._model import Model
@@ -69,9 +70,10 @@ def run_discover(
     PSIS-LOO, residuals before and after).  ``n_starts``: see :func:`rank_effects`.
     """
 
+    current = build_model(model, sampling_period_s=cohort.sampling_period_s) if isinstance(model, str) else model
+    check_delay_range(cohort.sampling_period_s, muscle=current.activation.name != "no_muscle")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    current = build_model(model, sampling_period_s=cohort.sampling_period_s) if isinstance(model, str) else model
     fits, nuts_folder = {}, None
     if confirm is not None:
         base_name, *adds = current.name.split("+")

@@ -87,8 +87,8 @@ def run_fit(
     """
     settings = settings or FitSettings()
     out = Path(out)
-    check_delay_range(cohort.sampling_period_s)
     m = build_model(model, add_effects, sampling_period_s=cohort.sampling_period_s)
+    check_delay_range(cohort.sampling_period_s, muscle=m.activation.name != "no_muscle")
     resolve_objective(m, settings.likelihood)  # refuse the angle for a muscle before anything is written
     _warn_sensor_effects_without_sensor(m, cohort, legs, settings.trials)
     log_prior = None

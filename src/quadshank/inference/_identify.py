@@ -65,6 +65,7 @@ __all__ = [
     "fit_darma",
     "IdentificationError",
     "DelayRangeWarning",
+    "DelayRangeError",
     "check_delay_range",
     "Identification",
     "models_from_summary",
@@ -119,15 +120,33 @@ PASSIVE_GRAVITY_REL_SE = 0.1
 SHORTEST_DELAY_RANGE_S = 0.06
 
 
+#: Longest-delay reach [s] below which a model with a muscle is refused: a stimulated
+#: quadriceps' delay is 25–50 ms, and a model whose delays end before it puts the twitch's onset
+#: at a wrong sample with no sign of it (at 1 ms a simulated 30–40 ms delay came out at 4–6 ms).
+SHORTEST_MUSCLE_DELAY_RANGE_S = 0.03
+
+
 class DelayRangeWarning(DataWarning):
     """The data's sampling period makes the delays considered (0 … 10 samples) too short."""
 
 
-def check_delay_range(sampling_period_s: float) -> None:
-    """Warn when MAX_DELAY samples at ``sampling_period_s`` reach less than
-    :data:`SHORTEST_DELAY_RANGE_S`: the models count their delay (and the twitch) in samples."""
+class DelayRangeError(ValueError):
+    """The data's sampling period makes the delays considered too short for a model with a muscle."""
+
+
+def check_delay_range(sampling_period_s: float, muscle: bool = False, warn: bool = True) -> None:
+    """Warn (``warn``) when MAX_DELAY samples at ``sampling_period_s`` reach less than
+    :data:`SHORTEST_DELAY_RANGE_S`: the models count their delay (and the twitch) in samples.
+    With ``muscle`` (a model with a muscle, or data with pulses to identify one from), refuse
+    (:class:`DelayRangeError`) where they reach less than :data:`SHORTEST_MUSCLE_DELAY_RANGE_S`."""
     reach = MAX_DELAY * sampling_period_s
-    if reach < SHORTEST_DELAY_RANGE_S:
+    if muscle and reach < SHORTEST_MUSCLE_DELAY_RANGE_S - 1e-12:
+        raise DelayRangeError(
+            f"at a sampling period of {sampling_period_s * 1000:g} ms the delays considered reach {MAX_DELAY} samples "
+            f"= {reach * 1000:g} ms, short of a stimulated muscle's delay (25-50 ms): the model would put the twitch's "
+            "onset at a wrong sample. Resample the recordings first, e.g. `quadshank convert DATA data.nc --resample "
+            "0.01`; pendulum tests (no pulses, `--model passive`) are modelled at any period")
+    if warn and reach < SHORTEST_DELAY_RANGE_S:
         warnings.warn(
             f"at a sampling period of {sampling_period_s * 1000:g} ms the delays considered reach {MAX_DELAY} samples "
             f"= {reach * 1000:g} ms, shorter than a muscle's delay may be (the paper's: 40-50 ms); resample the "
@@ -656,7 +675,7 @@ def identify_cohort(
     """
     if passive_objective not in PASSIVE_OBJECTIVES + ("auto",):
         raise ValueError(f"unknown passive objective {passive_objective!r}; use auto, acceleration or angle")
-    check_delay_range(cohort.sampling_period_s)
+    check_delay_range(cohort.sampling_period_s, muscle=any(np.any(t.stimulation > 0) for t in cohort))
     out: dict = {}
     for leg in progress_bar(cohort.legs, desc="identify", enabled=progress):
         chosen = cohort.get(leg, trial)

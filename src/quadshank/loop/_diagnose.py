@@ -54,6 +54,7 @@ from ..data._cohort import Cohort
 from ..data._paper import HORIZONS_MS
 from ..evaluation._posterior import posterior_prediction_errors
 from ..inference._fitio import posterior_models
+from ..inference._identify import check_delay_range
 from ..inference._priors import build_model
 from ..inference._screen import LaplaceFit, delta_elpd, laplace_fit, leg_draw_models, paired_difference
 from ..inference._summaries import interval
@@ -288,6 +289,8 @@ def rank_effects(
     of discover: the previous round's, :attr:`Ranking.J_draws`).
     """
     model = build_model(model, sampling_period_s=cohort.sampling_period_s) if isinstance(model, str) else model
+    # refused here too (diagnose and discover come here); the warning is the commands' to give once
+    check_delay_range(cohort.sampling_period_s, muscle=model.activation.name != "no_muscle", warn=False)
     legs = tuple(legs) if legs is not None else cohort.legs
     if eval_trials is None:
         eval_trials = trials_of(cohort, legs)
