@@ -1039,3 +1039,19 @@ def test_a_recording_copied_as_a_second_trial_is_named(base, tmp_path):
     with pytest.warns(DataWarning, match=r"TN-left trial 2\): angle_deg is the same on every sample as in .*"
                                          r"TN-left-trial1\.csv \(TN-left trial 1\)"):
         read_interchange(data)
+
+
+@pytest.mark.parametrize(("argv", "said"), [
+    (["simulate", "--minutes", "inf"], "minutes must be positive and at most 1440"),
+    (["fit", "DATA", "--chains", "1000000"], "chains must be at least 1 and at most 64"),
+    (["fit", "DATA", "--draws", "1000000000"], "draws must be at least 1 and at most 100000"),
+    (["fit", "DATA", "--seed", "99999999999999999999999"], "seed must be a whole number from 0 to 4294967295"),
+    (["convert", "DATA", "NC", "--resample", "1e-9"], "more than 10 times shorter than the recording's"),
+])
+def test_option_values_that_would_fill_the_memory_are_refused_before_any_work(base, tmp_path, capsys, argv, said):
+    argv = [str(base / "data") if a == "DATA" else str(tmp_path / "c.nc") if a == "NC" else a for a in argv]
+    if argv[0] != "convert":
+        argv += ["--out", str(tmp_path / "out")]
+    rc, lines = _run(argv, capsys)
+    _assert_refused(rc, lines, [said], tmp_path / "out")
+    assert not (tmp_path / "out").exists() and not (tmp_path / "c.nc").exists()

@@ -32,6 +32,9 @@ ANTI_ALIAS_FRACTION = 0.8
 #: Irregular time stamps are resampled when no step exceeds this multiple of the median step
 #: (a longer gap is samples missing, which interpolation would invent).
 MAX_STEP_RATIO = 1.5
+#: Most a recording's sampling rate may be raised by resampling: a finer grid interpolates
+#: samples that hold nothing new, and a period given in the wrong unit would fill the memory.
+MAX_UPSAMPLING = 10.0
 
 
 def _on_grid(time: np.ndarray, values: np.ndarray, fine: np.ndarray, grid: np.ndarray, period_s: float,
@@ -56,6 +59,10 @@ def resample_trial(trial: Trial, period_s: float) -> Trial:
     if time.size < 2 or not np.all(steps > 0):
         raise ValueError(f"{where}: time must increase from sample to sample to be resampled")
     step = float(np.median(steps))
+    if period_s < step / MAX_UPSAMPLING:
+        raise ValueError(f"{where}: the new sampling period {period_s:g} s is more than {MAX_UPSAMPLING:g} times shorter "
+                         f"than the recording's ({step:.6g} s): a finer grid adds samples and no information "
+                         "(is the period in seconds?)")
     long = np.flatnonzero(steps > MAX_STEP_RATIO * step)
     if long.size:
         i = int(long[0])

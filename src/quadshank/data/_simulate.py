@@ -785,6 +785,10 @@ def _record(raw: np.ndarray, rng_angle, rng_acc, noise: bool = True, effects=())
 
 
 # ----------------------------------------------------------------------------- public simulation
+#: Longest trial the simulator makes [min]: a day, far beyond any recording session.
+MAX_MINUTES = 1440.0
+
+
 def simulate_cohort(
     legs: Sequence[str] = LEGS,
     minutes: float = 5.0,
@@ -816,8 +820,8 @@ def simulate_cohort(
     legs = check_legs(legs)
     effects = _check_effects(effects)
     trials = check_trials(trials)
-    if not minutes > 0:
-        raise ValueError(f"minutes must be positive, got {minutes}")
+    if not 0 < minutes <= MAX_MINUTES:
+        raise ValueError(f"minutes must be positive and at most {MAX_MINUTES:g} (a day), got {minutes}")
     dt = float(sampling_period_s)
     _substeps(dt)  # checked before any work
     n = int(round(minutes * 60.0 / dt))

@@ -62,6 +62,11 @@ __all__ = [
 
 #: Where chains can start (:attr:`FitSettings.start`).
 STARTS = ("screen", "classical", "prior")
+#: Most chains a fit runs: every chain's draws are held in memory, and more chains than a
+#: machine has cores or devices run one after another.
+MAX_CHAINS = 64
+#: Most warm-up or draws per chain (or per block): every draw of every parameter is held in memory.
+MAX_DRAWS = 100_000
 #: What :attr:`FitSettings.chain_method` takes.
 CHAIN_METHODS = ("auto", "vectorized", "sequential", "parallel")
 #: The precisions the fit's density can be evaluated at (:attr:`FitSettings.precision`).
@@ -139,9 +144,12 @@ class FitSettings:
             raise ValueError(f"start must be one of {', '.join(STARTS)}, not {self.start!r}")
         if self.chain_method not in CHAIN_METHODS:
             raise ValueError(f"chain_method must be one of {', '.join(CHAIN_METHODS)}, not {self.chain_method!r}")
-        for name, least in (("chains", 1), ("warmup", 0), ("draws", 1), ("max_tree_depth", 1)):
-            if int(getattr(self, name)) < least:
-                raise ValueError(f"{name} must be at least {least}, not {getattr(self, name)}")
+        for name, least, most in (("chains", 1, MAX_CHAINS), ("warmup", 0, MAX_DRAWS), ("draws", 1, MAX_DRAWS),
+                                  ("max_tree_depth", 1, 15)):
+            if not least <= int(getattr(self, name)) <= most:
+                raise ValueError(f"{name} must be at least {least} and at most {most}, not {getattr(self, name)}")
+        if not 0 <= int(self.seed) < 2**32:
+            raise ValueError(f"seed must be a whole number from 0 to {2**32 - 1}, not {self.seed}")
         if not 0 < self.target_accept < 1:
             raise ValueError(f"target_accept must lie between 0 and 1, not {self.target_accept}")
         if not self.trials:
