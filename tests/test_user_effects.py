@@ -79,13 +79,21 @@ def test_an_effects_file_that_defines_nothing_or_fails_is_named(tmp_path, capsys
     empty, broken = tmp_path / "empty.py", tmp_path / "broken.py"
     empty.write_text("x = 1\n")
     broken.write_text("import no_such_module_here\n")
+    script, clash, prior = tmp_path / "script.py", tmp_path / "clash.py", tmp_path / "prior.py"
+    script.write_text("import sys\nsys.exit(0)\n")
+    clash.write_text(EFFECT.replace('"squared_torque_angle"', '"fatigue"'))
+    prior.write_text(EFFECT.replace('prior=("normal", 0.0, 1e-4)', 'prior=("normal", 0.0)'))
     for path, text in ((empty, "defines no effect"), (broken, "failed to import: ModuleNotFoundError"),
-                       (tmp_path / "missing.py", "no such effects file")):
+                       (tmp_path / "missing.py", "no such effects file"), (script, "failed to import: SystemExit"),
+                       (clash, "the name 'fatigue' is a built-in effect's"),
+                       (prior, "must be ('normal', location, scale)")):
         capsys.readouterr()
         assert main(["-q", "fit", str(data), "--effects-file", str(path), "--out", str(tmp_path / "fit")]) == 2
         err = capsys.readouterr().err
         assert err.startswith("quadshank: error:") and str(path) in err and text in err
         assert not (tmp_path / "fit").exists() or not any((tmp_path / "fit").iterdir())
+    from quadshank.model import registered_effects
+    assert registered_effects()["fatigue"].__module__ == "quadshank.model._effects"  # the built-in kept
 
 
 def test_effects_offered_by_an_installed_package_are_loaded(tmp_path, monkeypatch, scratch_registry):

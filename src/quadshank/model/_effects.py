@@ -189,8 +189,17 @@ class Param:
             raise ValueError(f"parameter {self.name!r}: level {self.level!r} not in {LEVELS}")
         if self.support not in SUPPORTS:
             raise ValueError(f"parameter {self.name!r}: support {self.support!r} not in {SUPPORTS}")
-        if self.prior[0] not in ("normal", "lognormal"):
-            raise ValueError(f"parameter {self.name!r}: prior family {self.prior[0]!r} not known")
+        if not isinstance(self.prior, tuple) or not self.prior or self.prior[0] not in ("normal", "lognormal"):
+            raise ValueError(f"parameter {self.name!r}: prior {self.prior!r} is not ('normal' or 'lognormal', "
+                             "location, scale)")
+        args = self.prior[1:]
+        try:  # a number each, or one per component of a vector parameter
+            loc, scale = (np.asarray(a, dtype=float) for a in args) if len(args) == 2 else (None, None)
+        except (TypeError, ValueError):
+            loc = scale = None
+        if loc is None or not (np.all(np.isfinite(loc)) and np.all(np.isfinite(scale)) and np.all(scale > 0)):
+            raise ValueError(f"parameter {self.name!r}: prior {self.prior!r} must be ({self.prior[0]!r}, location, scale) "
+                             "with finite numbers and a positive scale")
 
     def from_standard(self, z, *, xp=np, dtype=np.float64, flat: bool = False):
         """:func:`from_standard` with this parameter's prior and shape."""
@@ -311,6 +320,9 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
     if not cls.acts_at_ms or not set(cls.acts_at_ms) <= set(HORIZONS_MS):
         raise TypeError(f"{cls.__name__}.acts_at_ms must name some of the horizons {HORIZONS_MS} [ms], "
                         f"not {cls.acts_at_ms!r}")
+    builtin = _REGISTRY.get(cls.name)
+    if builtin is not None and builtin.__module__ == __name__ and cls.__module__ != __name__:
+        raise TypeError(f"{cls.__name__}: the name {cls.name!r} is a built-in effect's; give the effect a name of its own")
     discrete = list(getattr(cls, "discrete", ()))
     meta = [n for n in fields if n not in param_names and n not in discrete]
     register_pytree(cls, param_names + discrete, meta)

@@ -76,8 +76,10 @@ def load_effects_file(path) -> list[str]:
     sys.modules[module_name] = module  # dataclasses and inspect look the module up by name
     try:
         spec.loader.exec_module(module)
-    except Exception as exc:
+    except (Exception, SystemExit) as exc:  # a script's sys.exit() too: the file is not an effects module
         sys.modules.pop(module_name, None)
+        _effects._REGISTRY.clear()  # what it registered before it failed is not kept
+        _effects._REGISTRY.update(before)
         raise ValueError(f"{path}: the effects file failed to import: {type(exc).__name__}: {exc}") from exc
     found = [n for n, cls in _effects._REGISTRY.items() if before.get(n) is not cls]
     if not found:
