@@ -1055,3 +1055,32 @@ def test_option_values_that_would_fill_the_memory_are_refused_before_any_work(ba
     rc, lines = _run(argv, capsys)
     _assert_refused(rc, lines, [said], tmp_path / "out")
     assert not (tmp_path / "out").exists() and not (tmp_path / "c.nc").exists()
+
+
+def _fit_summary_at(folder: Path, period_s: float) -> Path:
+    from quadshank.inference import FitResult
+
+    folder.mkdir()
+    FitResult(model="model1", effects=[], trials=[1], legs={}, diagnostics={"ok": True}, banner=None, settings={},
+              chain_method="vectorized", sampling_period_s=period_s, interval=[0.05, 0.95], code={}).write(folder)
+    (folder / "fit.nc").write_bytes(b"")  # the delay prior is read from the summary alone
+    return folder
+
+
+@pytest.mark.parametrize(("argv", "said"), [
+    (["fit", "DATA", "--legs", "TN-left,JM-right,TN-left"], "--legs: 'TN-left' given twice"),
+    (["fit", "DATA", "--legs", ","], "--legs: ',' names nothing"),
+    (["fit", "DATA", "--trials", "1,1"], "--trials: '1' given twice"),
+    (["discover", "DATA", "--effects", " , "], "--effects: ' , ' names nothing"),
+    (["discover", "DATA", "--max-rounds", "0"], "--max-rounds must be at least 1, not 0"),
+    (["predict", "FIT", "--stimulation", "DATA", "--angle0", "nan"], "--angle0 must be a knee angle in degrees"),
+    (["predict", "FIT", "--stimulation", "DATA", "--velocity0", "1e9"], "--velocity0 must be an angular velocity"),
+    (["fit", "DATA", "--delay-from", "FIT20"], "that fit ran at 20 ms and these data are at 10 ms"),
+])
+def test_lists_and_values_that_make_no_sense_are_refused_before_any_work(base, tmp_path, capsys, argv, said):
+    named = {"DATA": str(base / "data"), "FIT": str(tmp_path / "nofit"),
+             "FIT20": str(_fit_summary_at(tmp_path / "fit20", 0.02)) if "FIT20" in argv else ""}
+    argv = [named.get(a, a) for a in argv] + ["--out", str(tmp_path / "out")]
+    rc, lines = _run(argv, capsys)
+    _assert_refused(rc, lines, [said], tmp_path / "out")
+    assert not (tmp_path / "out").exists()

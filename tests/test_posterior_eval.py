@@ -220,6 +220,9 @@ def test_stride_error_is_the_spread_of_j_over_the_stride_offsets(run):
     np.testing.assert_allclose(got, np.std(per_offset, axis=0, ddof=1), rtol=1e-4)
     assert np.all(got > 0)
     np.testing.assert_array_equal(pe.stride_error(models, trial, HORIZONS, 1), 0.0)  # every start: no error
+    # a stride beyond the trial's starts: each start an offset of its own, at once (not 10⁸ empty offsets)
+    np.testing.assert_allclose(pe.stride_error(models, trial, HORIZONS, 10**8),
+                               pe.stride_error(models, trial, HORIZONS, trial.n_samples), rtol=1e-12)
 
 
 def test_band_mcse_adds_the_quantile_and_the_stride_errors():

@@ -68,14 +68,23 @@ def _command_line(args) -> str:
     return "quadshank " + " ".join(shlex.quote(a) for a in args.argv)
 
 
-def _csv_list(text: str) -> list[str]:
-    return [x.strip() for x in text.split(",") if x.strip()]
+def _csv_list(text: str, option: str = "") -> list[str]:
+    """A comma-separated list; with ``option`` (its name, for the error), one that names something
+    and names nothing twice (a leg listed twice would count its data twice)."""
+    items = [x.strip() for x in text.split(",") if x.strip()]
+    if option:
+        if not items:
+            raise ValueError(f"{option}: {text!r} names nothing (give names separated by commas)")
+        twice = sorted({x for x in items if items.count(x) > 1})
+        if twice:
+            raise ValueError(f"{option}: {', '.join(map(repr, twice))} given twice")
+    return items
 
 
 def _int_list(text: str, option: str) -> list[int]:
     """A comma-separated list of whole numbers, or an error naming the option."""
     out = []
-    for x in _csv_list(text):
+    for x in _csv_list(text, option):
         if not re.fullmatch(r"[+-]?[0-9]+", x):
             raise ValueError(f"{option}: {x!r} is not a whole number (give numbers separated by commas)")
         out.append(int(x))
@@ -186,8 +195,8 @@ def prepare_output(out: Path, command: str, inputs, overwrite: bool = False):
 
 
 def cmd_simulate(args) -> int:
-    legs = _csv_list(args.legs) if args.legs else list(LEGS)
-    effects = _csv_list(args.effects) if args.effects else []
+    legs = _csv_list(args.legs, "--legs") if args.legs else list(LEGS)
+    effects = _csv_list(args.effects, "--effects") if args.effects else []
     trials = _int_list(args.trials, "--trials")
     cohort, truth = simulate_cohort(
         legs=legs, minutes=args.minutes, seed=args.seed, effects=effects, trials=trials, progress=not args.quiet,
@@ -324,7 +333,7 @@ def cmd_fit(args) -> int:
         likelihood=args.likelihood,
         precision=args.precision,
     )
-    legs = _csv_list(args.legs) if args.legs else None
+    legs = _csv_list(args.legs, "--legs") if args.legs else None
     summary = run_fit(
         cohort,
         args.out,
@@ -373,9 +382,9 @@ def cmd_recovery(args) -> int:
     )
     result = run_recovery(
         args.out,
-        models=_csv_list(args.models),
+        models=_csv_list(args.models, "--models"),
         seeds=_int_list(args.seeds, "--seeds"),
-        legs=_csv_list(args.legs) if args.legs else None,
+        legs=_csv_list(args.legs, "--legs") if args.legs else None,
         minutes=args.minutes,
         settings=settings,
         progress=not args.quiet,
@@ -398,9 +407,9 @@ def cmd_likelihood_check(args) -> int:
     command = _command_line(args)
     result = run_likelihood_calibration(
         args.out,
-        models=_csv_list(args.models),
+        models=_csv_list(args.models, "--models"),
         seeds=_int_list(args.seeds, "--seeds"),
-        legs=_csv_list(args.legs) if args.legs else None,
+        legs=_csv_list(args.legs, "--legs") if args.legs else None,
         minutes=args.minutes,
         replicates=args.replicates,
         progress=not args.quiet,
@@ -447,7 +456,7 @@ def cmd_diagnose(args) -> int:
         raise ValueError(f"--confirm must be a number of leaders, at least 0, not {args.confirm}")
     summary = run_diagnose(
         cohort, model, args.out, trials=tuple(desc["trials"]), legs=desc["legs"],
-        effects=_csv_list(args.effects) if args.effects else None, command=command, progress=not args.quiet,
+        effects=_csv_list(args.effects, "--effects") if args.effects else None, command=command, progress=not args.quiet,
         confirm_from=args.fitdir if args.confirm else None, n_confirm=args.confirm,
         objective=desc.get("likelihood", "acceleration"),  # the screens compare what the fit compared
         n_starts=n_starts,
@@ -499,7 +508,7 @@ def cmd_discover(args) -> int:
     confirm = confirm_settings(args, trials)
     summary = run_discover(
         cohort, args.out, model=args.model, trials=trials,
-        legs=_csv_list(args.legs) if args.legs else None, effects=_csv_list(args.effects) if args.effects else None,
+        legs=_csv_list(args.legs, "--legs") if args.legs else None, effects=_csv_list(args.effects, "--effects") if args.effects else None,
         max_rounds=args.max_rounds, command=command, progress=not args.quiet, confirm=confirm,
         data_source=str(Path(data).resolve()), n_starts=n_starts,
     )
@@ -538,7 +547,7 @@ def cmd_report(args) -> int:
 
 
 def cmd_predict(args) -> int:
-    summary = run_predict(args.fitdir, args.plan, args.out, legs=_csv_list(args.legs) if args.legs else None,
+    summary = run_predict(args.fitdir, args.plan, args.out, legs=_csv_list(args.legs, "--legs") if args.legs else None,
                           angle0=args.angle0, velocity0=args.velocity0, n_draws=args.draws, seed=args.seed)
     for leg, e in summary.extremes.items():
         _say(args, f"{leg}: from {args.angle0:g}° the angle ranges over [{e['min_deg']:.1f}, {e['max_deg']:.1f}]° "
@@ -555,8 +564,8 @@ def cmd_reproduce(args, default_out: str | None = None) -> int:
         out,
         minutes=args.minutes,
         seed=args.seed,
-        effects=_csv_list(args.effects) if args.effects else (),
-        legs=_csv_list(args.legs) if args.legs else None,
+        effects=_csv_list(args.effects, "--effects") if args.effects else (),
+        legs=_csv_list(args.legs, "--legs") if args.legs else None,
         progress=not args.quiet,
         command=command,
     )
@@ -576,9 +585,9 @@ def cmd_demo(args) -> int:
     command = _command_line(args)
     t0 = time.perf_counter()
     summary = run_demo(
-        args.out, minutes=args.minutes, seed=args.seed, effects=_csv_list(args.effects) if args.effects else (),
-        hidden=() if args.hide == "none" else _csv_list(args.hide),
-        legs=_csv_list(args.legs) if args.legs else None, chains=args.chains, warmup=args.warmup, draws=args.draws,
+        args.out, minutes=args.minutes, seed=args.seed, effects=_csv_list(args.effects, "--effects") if args.effects else (),
+        hidden=() if args.hide == "none" else _csv_list(args.hide, "--hide"),
+        legs=_csv_list(args.legs, "--legs") if args.legs else None, chains=args.chains, warmup=args.warmup, draws=args.draws,
         max_tree_depth=args.max_tree_depth, target_ess=args.target_ess or None, time_limit_s=args.time_limit,
         progress=not args.quiet, command=command,
     )

@@ -94,7 +94,12 @@ def run_fit(
     log_prior = None
     if delay_from is not None:
         chosen = tuple(legs) if legs is not None else cohort.legs  # the legs fit() will use
-        log_prior = delay_prior_from(read_summary(delay_from).legs, chosen)
+        source = read_summary(delay_from)
+        if abs(float(source.sampling_period_s) - cohort.sampling_period_s) > 1e-9 * cohort.sampling_period_s:
+            raise ValueError(f"--delay-from {delay_from}: that fit ran at {source.sampling_period_s * 1000:g} ms and "
+                             f"these data are at {cohort.sampling_period_s * 1000:g} ms; its delays are counted in "
+                             "its samples, not these")
+        log_prior = delay_prior_from(source.legs, chosen)
     out.mkdir(parents=True, exist_ok=True)
     begin_fit(out)
     run = run_nuts(cohort, m, settings, legs=legs, progress=progress, log_delay_prior=log_prior)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import io
+import math
 from pathlib import Path
 from typing import ClassVar
 
@@ -54,6 +55,11 @@ def run_predict(
     ``predictions.png`` and, last, ``summary.json``."""
     if n_draws < 1:
         raise ValueError(f"--draws must be at least 1, not {n_draws}")
+    # a knee's angle lies within a turn of its rest, its speed within a few thousand deg/s
+    if not (math.isfinite(angle0) and abs(angle0) <= 360.0):
+        raise ValueError(f"--angle0 must be a knee angle in degrees, within ±360, not {angle0}")
+    if not (math.isfinite(velocity0) and abs(velocity0) <= 5000.0):
+        raise ValueError(f"--velocity0 must be an angular velocity in deg/s, within ±5000, not {velocity0}")
     fit_dir, out = Path(fit_dir), Path(out)
     (fit,) = load_fits([fit_dir])
     planned = read_plan(plan, fit.model.sampling_period_s)

@@ -353,7 +353,8 @@ def stride_error(model: Model, trial: Trial, horizons, stride: int) -> np.ndarra
     target = trial.angle_deg[starts[:, None] + np.asarray(horizons)[None, :]]  # (S, H)
     sq = (target - posterior_predictions(model, trial, starts, horizons)[0]) ** 2
     offsets = starts % stride
-    per_offset = [np.sqrt(sq[offsets == o].mean(axis=0)) for o in range(stride) if np.any(offsets == o)]
+    # over the offsets the starts hold (a stride beyond the trial's length holds one per start)
+    per_offset = [np.sqrt(sq[offsets == o].mean(axis=0)) for o in np.unique(offsets)]
     return np.std(per_offset, axis=0, ddof=1) if len(per_offset) > 1 else np.zeros(len(horizons))
 
 
