@@ -547,7 +547,7 @@ def test_a_command_that_fails_removes_the_folder_it_made_empty(base, tmp_path, c
     import quadshank.cli as cli
 
     def fails(cohort, out, *a, **k):
-        Path(out).mkdir(parents=True, exist_ok=True)
+        (Path(out) / "round-1" / "confirm").mkdir(parents=True, exist_ok=True)  # begun, and nothing in it
         raise FloatingPointError("TN-left: the screen of model3 found no finite posterior density")
 
     monkeypatch.setattr(cli, "run_fit", fails)
@@ -558,6 +558,17 @@ def test_a_command_that_fails_removes_the_folder_it_made_empty(base, tmp_path, c
     (tmp_path / "kept" / "notes.txt").write_text("mine")
     rc, lines = _run(COMMANDS["fit"](base / "data", tmp_path / "kept") + ["--overwrite"], capsys)
     assert rc == 2 and (tmp_path / "kept" / "notes.txt").read_text() == "mine"
+
+    def half(cohort, out, *a, **k):
+        (Path(out) / "figures").mkdir(parents=True, exist_ok=True)
+        (Path(out) / "figures" / "a.png").write_bytes(b"png")
+        (Path(out) / "empty").mkdir()
+        raise FloatingPointError("late")
+
+    monkeypatch.setattr(cli, "run_fit", half)
+    rc, lines = _run(COMMANDS["fit"](base / "data", tmp_path / "half"), capsys)
+    assert rc == 2 and (tmp_path / "half" / "figures" / "a.png").exists()  # what was written is kept
+    assert not (tmp_path / "half" / "empty").exists() and not (tmp_path / "half" / "summary.json").exists()
 
 
 def test_values_no_knee_produces_are_refused_where_not_excluded(base, tmp_path, capsys):

@@ -178,9 +178,16 @@ def prepare_output(out: Path, command: str, inputs, overwrite: bool = False):
     new = not out.exists()
 
     def mark(failed: bool = False) -> None:
-        if failed and new and out.is_dir() and not any(out.iterdir()):
-            out.rmdir()  # made for this output, and nothing came of it
-            return
+        if failed and new and out.is_dir():
+            # made for this output: the folders that nothing came of go (a round begun, say), then
+            # the output folder itself where nothing else was written
+            for folder in sorted((p for p in out.rglob("*") if p.is_dir() and not p.is_symlink()),
+                                 key=lambda p: len(p.parts), reverse=True):
+                if not any(folder.iterdir()):
+                    folder.rmdir()
+            if not any(out.iterdir()):
+                out.rmdir()
+                return
         # a folder written into by --overwrite stays unmarked: it holds more than this output
         if not foreign and out.is_dir():
             try:
