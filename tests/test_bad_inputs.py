@@ -1095,3 +1095,11 @@ def test_lists_and_values_that_make_no_sense_are_refused_before_any_work(base, t
     rc, lines = _run(argv, capsys)
     _assert_refused(rc, lines, [said], tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(("option", "said"), [(["--hide", "telepathy"], "unknown effect(s) 'telepathy'"),
+                                              (["--chains", "0"], "chains must be at least 1")])
+def test_the_demos_options_are_checked_before_its_first_step(tmp_path, capsys, option, said):
+    rc, lines = _run(["demo", "--out", str(tmp_path / "demo"), *option], capsys)
+    _assert_refused(rc, lines, [said], tmp_path / "demo")
+    assert not (tmp_path / "demo").exists()

@@ -33,7 +33,7 @@ from ..common._io import atomic_write_text
 from ..common._results import Result
 from ..data._interchange import load_cohort, write_interchange
 from ..data._paper import LEGS
-from ..data._simulate import simulate_cohort, write_truth
+from ..data._simulate import check_effects, simulate_cohort, write_truth
 from ..inference._nuts import FitSettings
 from ..inference._priors import build_model
 from ..outputs._tables import markdown_table
@@ -113,6 +113,10 @@ def run_demo(
     ``target_ess``, ``time_limit_s``: the fit draws blocks of ``draws`` per chain to this ESS or
     until this many seconds from its start (None: exactly ``warmup`` + ``draws``)."""
 
+    # every option checked before the first step writes anything
+    check_effects((*effects, *hidden))
+    settings = FitSettings(chains=chains, warmup=warmup, draws=draws, seed=seed, max_tree_depth=max_tree_depth,
+                           target_ess=target_ess, time_limit_s=time_limit_s)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "summary.json").unlink(missing_ok=True)
@@ -145,8 +149,6 @@ def run_demo(
         write_truth(truth, data / "truth.json")
     cohort = load_cohort(data)
 
-    settings = FitSettings(chains=chains, warmup=warmup, draws=draws, seed=seed, max_tree_depth=max_tree_depth,
-                           target_ess=target_ess, time_limit_s=time_limit_s)
     say(f"2/5 hierarchical NUTS fit of model3s to trial 1 of {', '.join(fit_legs)} -> {out / 'fit'}")
     fit = run_fit(cohort, out / "fit", "model3s", (), settings, legs=fit_legs, progress=progress,
                   data_source=str(data.resolve()))

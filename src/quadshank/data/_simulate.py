@@ -330,7 +330,8 @@ _DEG = math.pi / 180.0
 
 
 # ----------------------------------------------------------------------------- checks
-def _check_effects(effects) -> tuple[str, ...]:
+def check_effects(effects) -> tuple[str, ...]:
+    """The simulator's effects named in ``effects``, in the simulator's order; unknown names refused."""
     if isinstance(effects, str):
         effects = (effects,)
     effects = tuple(effects or ())
@@ -408,7 +409,7 @@ def default_truth(legs: Sequence[str] = LEGS, effects: Iterable[str] = ()) -> di
     and the protocol.
     """
     legs = check_legs(legs)
-    effects = _check_effects(effects)
+    effects = check_effects(effects)
     out_legs = {}
     for leg in legs:
         subject, side = leg.split("-")
@@ -818,7 +819,7 @@ def simulate_cohort(
     full run.
     """
     legs = check_legs(legs)
-    effects = _check_effects(effects)
+    effects = check_effects(effects)
     trials = check_trials(trials)
     if not 0 < minutes <= MAX_MINUTES:
         raise ValueError(f"minutes must be positive and at most {MAX_MINUTES:g} (a day), got {minutes}")
@@ -903,7 +904,7 @@ def simulate_response(
     in the cohort's protocol only; here it is not applied.
     """
     (leg,) = check_legs((leg,))
-    effects = _check_effects(effects)
+    effects = check_effects(effects)
     stim = np.asarray(stimulation, dtype=float)
     pulses = np.flatnonzero(stim > 0)
     gains = _pulse_gains(pulses, effects, fatigue_pulses_at_start, sampling_period_s)
