@@ -463,7 +463,8 @@ def cmd_diagnose(args) -> int:
         raise ValueError(f"--confirm must be a number of leaders, at least 0, not {args.confirm}")
     summary = run_diagnose(
         cohort, model, args.out, trials=tuple(desc["trials"]), legs=desc["legs"],
-        effects=_csv_list(args.effects, "--effects") if args.effects else None, command=command, progress=not args.quiet,
+        effects=_csv_list(args.effects, "--effects") if args.effects else None, command=command,
+        progress=not args.quiet,
         confirm_from=args.fitdir if args.confirm else None, n_confirm=args.confirm,
         objective=desc.get("likelihood", "acceleration"),  # the screens compare what the fit compared
         n_starts=n_starts,
@@ -515,7 +516,8 @@ def cmd_discover(args) -> int:
     confirm = confirm_settings(args, trials)
     summary = run_discover(
         cohort, args.out, model=args.model, trials=trials,
-        legs=_csv_list(args.legs, "--legs") if args.legs else None, effects=_csv_list(args.effects, "--effects") if args.effects else None,
+        legs=_csv_list(args.legs, "--legs") if args.legs else None,
+        effects=_csv_list(args.effects, "--effects") if args.effects else None,
         max_rounds=args.max_rounds, command=command, progress=not args.quiet, confirm=confirm,
         data_source=str(Path(data).resolve()), n_starts=n_starts,
     )
@@ -554,7 +556,8 @@ def cmd_report(args) -> int:
 
 
 def cmd_predict(args) -> int:
-    summary = run_predict(args.fitdir, args.plan, args.out, legs=_csv_list(args.legs, "--legs") if args.legs else None,
+    legs = _csv_list(args.legs, "--legs") if args.legs else None
+    summary = run_predict(args.fitdir, args.plan, args.out, legs=legs,
                           angle0=args.angle0, velocity0=args.velocity0, n_draws=args.draws, seed=args.seed)
     for leg, e in summary.extremes.items():
         _say(args, f"{leg}: from {args.angle0:g}° the angle ranges over [{e['min_deg']:.1f}, {e['max_deg']:.1f}]° "
@@ -592,9 +595,11 @@ def cmd_demo(args) -> int:
     command = _command_line(args)
     t0 = time.perf_counter()
     summary = run_demo(
-        args.out, minutes=args.minutes, seed=args.seed, effects=_csv_list(args.effects, "--effects") if args.effects else (),
+        args.out, minutes=args.minutes, seed=args.seed,
+        effects=_csv_list(args.effects, "--effects") if args.effects else (),
         hidden=() if args.hide == "none" else _csv_list(args.hide, "--hide"),
-        legs=_csv_list(args.legs, "--legs") if args.legs else None, chains=args.chains, warmup=args.warmup, draws=args.draws,
+        legs=_csv_list(args.legs, "--legs") if args.legs else None,
+        chains=args.chains, warmup=args.warmup, draws=args.draws,
         max_tree_depth=args.max_tree_depth, target_ess=args.target_ess or None, time_limit_s=args.time_limit,
         progress=not args.quiet, command=command,
     )

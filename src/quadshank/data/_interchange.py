@@ -298,13 +298,13 @@ def plausibility(trial: Trial) -> list[str]:
     if np.count_nonzero(kept) < 3 * window:
         return found
     found += _rails(trial, kept)
-    for column, _, _ in list(checks):
-        values = getattr(trial, column)[kept]
-        if np.ptp(values) == 0:  # a logger's placeholder for a signal it did not record
-            found.append(f"{column} is constant ({float(values[0])!r} throughout) while the angle moves: a placeholder "
-                         "for a signal that was not recorded? Leave the column out and the reader derives it from the "
-                         "angle")
-            checks.remove(next(c for c in checks if c[0] == column))
+    # a logger's placeholder for a signal it did not record: named, and not compared with the angle
+    constant = [c for c in checks if np.ptp(getattr(trial, c[0])[kept]) == 0]
+    for column, _, _ in constant:
+        found.append(f"{column} is constant ({float(getattr(trial, column)[kept][0])!r} throughout) while the angle "
+                     "moves: a placeholder for a signal that was not recorded? Leave the column out and the reader "
+                     "derives it from the angle")
+    checks = [c for c in checks if c not in constant]
     for column, order, unit in checks:
         agreement = _agreement(trial.angle_deg, getattr(trial, column), order, dt, kept)
         if agreement is None:
@@ -347,9 +347,9 @@ def _rails(trial: Trial, kept: np.ndarray) -> list[str]:
         runs = [(a, b) for a, b in stretches((angle == extreme) & kept) if b - a >= MARKER_RUN]
         n = sum(b - a for a, b in runs)
         if len(runs) >= 2 and n >= RAIL_SHARE * np.count_nonzero(kept):
-            found.append(f"angle_deg sits at its {side} value, {extreme!r}°, on {n} samples in {len(runs)} runs (the first "
-                         f"from time_s = {float(trial.time_s[runs[0][0]])!r}): a saturated sensor or amplifier? The "
-                         "model takes a clipped angle for the knee's; set exclude = 1 there")
+            found.append(f"angle_deg sits at its {side} value, {extreme!r}°, on {n} samples in {len(runs)} runs "
+                         f"(the first from time_s = {float(trial.time_s[runs[0][0]])!r}): a saturated sensor or "
+                         "amplifier? The model takes a clipped angle for the knee's; set exclude = 1 there")
     return found
 
 
@@ -619,9 +619,9 @@ def _read_table(
                     rows.append(row)
                     lines.append(reader.line_num)
     except UnicodeDecodeError as exc:
+        told = "byte-order mark says" if encoding == "utf-16" else "first bytes say"
         problems.append(_not_utf8(path, file) if encoding == "utf-8-sig" else
-                        Problem(file, None, None, f"not UTF-16 text, as its {'byte-order mark says' if encoding == 'utf-16' else 'first bytes say'} "
-                                f"({exc.reason})"))
+                        Problem(file, None, None, f"not UTF-16 text, as its {told} ({exc.reason})"))
         return None
     except csv.Error as exc:
         line = reader.line_num if reader is not None else None
