@@ -116,10 +116,7 @@ def test_the_output_folder_holds_the_table_a_figure_per_trial_and_the_summary(fo
 
 def test_the_readers_warnings_are_kept_and_said_again(folder, tmp_path):
     """Two subjects that differ only in case draw the reader's warning; check keeps it."""
-    data = tmp_path / "data"
-    data.mkdir()
-    for p in folder.iterdir():
-        (data / p.name).write_bytes(p.read_bytes())
+    data = _copy(folder, tmp_path)
     manifest = (data / "manifest.csv").read_text().replace("\nJM,", "\ntn,")
     (data / "manifest.csv").write_text(manifest)
     with pytest.warns(DataWarning, match="differ only in case"):
@@ -205,8 +202,8 @@ def _set_manifest(data, subject, trial, column, value):
 
 
 def test_a_leg_without_enough_samples_for_the_passive_system_is_told_what_identify_would_say(folder, tmp_path):
-    """check gives identify's verdict: a pendulum test cut to 1 s (or a stimulated trial whose
-    quiet samples are too few) cannot give the passive system."""
+    """check gives identify's verdict: a pendulum test cut to 1.5 s, its first 0.5 s excluded,
+    cannot give the passive system."""
     from quadshank.inference import IdentificationError, identify_cohort
     from quadshank.data import load_cohort
 
