@@ -1054,9 +1054,9 @@ def test_a_recording_copied_as_a_second_trial_is_named(base, tmp_path):
 
 @pytest.mark.parametrize(("argv", "said"), [
     (["simulate", "--minutes", "inf"], "minutes must be positive and at most 1440"),
-    (["fit", "DATA", "--chains", "1000000"], "chains must be at least 1 and at most 64"),
-    (["fit", "DATA", "--draws", "1000000000"], "draws must be at least 1 and at most 100000"),
-    (["fit", "DATA", "--seed", "99999999999999999999999"], "seed must be a whole number from 0 to 4294967295"),
+    (["fit", "DATA", "--chains", "1000000"], "chains (--chains) must be at least 1 and at most 64"),
+    (["fit", "DATA", "--draws", "1000000000"], "draws (--draws) must be at least 1 and at most 100000"),
+    (["fit", "DATA", "--seed", "99999999999999999999999"], "seed (--seed) must be a whole number from 0 to 4294967295"),
     (["convert", "DATA", "NC", "--resample", "1e-9"], "more than 10 times shorter than the recording's"),
 ])
 def test_option_values_that_would_fill_the_memory_are_refused_before_any_work(base, tmp_path, capsys, argv, said):
@@ -1098,7 +1098,7 @@ def test_lists_and_values_that_make_no_sense_are_refused_before_any_work(base, t
 
 
 @pytest.mark.parametrize(("option", "said"), [(["--hide", "telepathy"], "unknown effect(s) 'telepathy'"),
-                                              (["--chains", "0"], "chains must be at least 1")])
+                                              (["--chains", "0"], "chains (--chains) must be at least 1")])
 def test_the_demos_options_are_checked_before_its_first_step(tmp_path, capsys, option, said):
     rc, lines = _run(["demo", "--out", str(tmp_path / "demo"), *option], capsys)
     _assert_refused(rc, lines, [said], tmp_path / "demo")

@@ -457,7 +457,7 @@ def accurate_j(
     leg's J, larger than the cohort mean's.
     """
     if not mcse > 0:
-        raise ValueError(f"the band accuracy must be positive, not {mcse}")
+        raise ValueError(f"the band accuracy (--band-mcse) must be positive, not {mcse}")
     available = min(f.idata.posterior.sizes["chain"] * f.idata.posterior.sizes["draw"] for f in fits)
     n, k = min(pilot[0], available), max(1, pilot[1])
     rounds = []

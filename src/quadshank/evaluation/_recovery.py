@@ -295,7 +295,7 @@ def likelihood_calibration(
     """
 
     if replicates < 2:
-        raise ValueError(f"replicates must be at least 2, got {replicates}")
+        raise ValueError(f"replicates (--replicates) must be at least 2, got {replicates}")
     noise = dict(MATCHING_NOISE if noise is None else noise)
     ml = LegMaximumLikelihood(build_model(model), noise)
     clean, truth = simulate_matching(model, legs, minutes, seed, noise={**noise, "sigma": 0.0})

@@ -147,21 +147,27 @@ class FitSettings:
         for name, least, most in (("chains", 1, MAX_CHAINS), ("warmup", 0, MAX_DRAWS), ("draws", 1, MAX_DRAWS),
                                   ("max_tree_depth", 1, 15)):
             if not least <= int(getattr(self, name)) <= most:
-                raise ValueError(f"{name} must be at least {least} and at most {most}, not {getattr(self, name)}")
+                raise ValueError(f"{_named(name)} must be at least {least} and at most {most}, not "
+                                 f"{getattr(self, name)}")
         if not 0 <= int(self.seed) < 2**32:
-            raise ValueError(f"seed must be a whole number from 0 to {2**32 - 1}, not {self.seed}")
+            raise ValueError(f"{_named('seed')} must be a whole number from 0 to {2**32 - 1}, not {self.seed}")
         if not 0 < self.target_accept < 1:
-            raise ValueError(f"target_accept must lie between 0 and 1, not {self.target_accept}")
+            raise ValueError(f"{_named('target_accept')} must lie between 0 and 1, not {self.target_accept}")
         if not self.trials:
             raise ValueError("trials: give at least one trial to fit")
         if self.target_ess is not None and int(self.target_ess) < 1:
-            raise ValueError(f"target_ess must be at least 1, not {self.target_ess}")
+            raise ValueError(f"{_named('target_ess')} must be at least 1, not {self.target_ess}")
         if self.likelihood not in OBJECTIVES + ("auto",):
             raise ValueError(f"likelihood must be one of auto, {', '.join(OBJECTIVES)}, not {self.likelihood!r}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, not {self.precision!r}")
         if not self.time_limit_s > 0:
-            raise ValueError(f"time_limit_s must be positive, not {self.time_limit_s}")
+            raise ValueError(f"{_named('time_limit_s')} must be positive, not {self.time_limit_s}")
+
+
+def _named(field: str) -> str:
+    """A setting as Python and the command line name it: ``time_limit_s (--time-limit)``."""
+    return f"{field} (--{field.removesuffix('_s').replace('_', '-')})"
 
 
 def chain_method(settings: FitSettings, data: LikelihoodData) -> str:
