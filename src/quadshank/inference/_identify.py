@@ -122,7 +122,7 @@ SHORTEST_DELAY_RANGE_S = 0.06
 
 #: Longest-delay reach [s] below which a model with a muscle is refused: a stimulated
 #: quadriceps' delay is 25–50 ms, and a model whose delays end before it puts the twitch's onset
-#: at a wrong sample with no sign of it (at 1 ms a simulated 30–40 ms delay came out at 4–6 ms).
+#: at a wrong sample with no sign of it (at 1 ms delays of 31 and 27 ms, simulated, came out at 6 and 4 ms).
 SHORTEST_MUSCLE_DELAY_RANGE_S = 0.03
 
 
