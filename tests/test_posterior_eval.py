@@ -171,6 +171,20 @@ def test_one_fit_has_nothing_to_compare(run, tmp_path):
     assert s["loo"]["compare"] == [] and s["loo"]["not_compared"] == []
 
 
+def test_more_draws_than_the_fit_holds_are_said_to_be_fewer(run, tmp_path, capsys):
+    """--draws beyond a fit's draws: the bands use every draw it holds, and the warning, the
+    summary and the report say how many."""
+    out = tmp_path / "more"
+    capsys.readouterr()
+    assert main(["evaluate", str(run["data"]), "--fit", str(run["fits"][0]),
+                 "--draws", "1000", "--start-stride", "20", "--out", str(out)]) == 0
+    held = 2 * 20  # TINY: 2 chains of 20 draws
+    assert f"--draws 1000: model1 holds {held}" in capsys.readouterr().err
+    s = json.loads((out / "summary.json").read_text())
+    assert s["n_draws"] == held and s["fits"]["model1"]["draws_used"] == held
+    assert f"The bands come from {held} posterior draws" in (out / "report.md").read_text()
+
+
 def test_missing_fit_or_leg_exits_2_naming_it(run, tmp_path, capsys):
     data, fit1 = str(run["data"]), str(run["fits"][0])
     nowhere = tmp_path / "nowhere"

@@ -6,10 +6,12 @@ Every file is written atomically and ``summary.json`` last, so a folder with a s
 from __future__ import annotations
 
 import time
+import warnings
 from pathlib import Path
 
 from ..common._io import atomic_write_text, save_figure
 from ..data._cohort import Cohort, Trial
+from ..data._interchange import DataWarning
 from ..data._paper import HORIZONS_MS, TABLE_V
 from ..evaluation._blackbox import better_than, blackbox_j
 from ..evaluation._posterior import (
@@ -191,10 +193,14 @@ def _blackbox_section(cohort: Cohort, train: dict, physical: dict, start_stride:
     return bb, md
 
 
-def _mcse_sentence(mcse: dict, n_draws: int, start_stride: int) -> str:
-    """The bands' accuracy in words: the draws and stride, and the largest error of a band end."""
+def _mcse_sentence(mcse: dict, draws_used: dict[str, int], start_stride: int) -> str:
+    """The bands' accuracy in words: the draws (``draws_used``: per fit) and stride, and the largest
+    error of a band end."""
     starts = "every start" if start_stride == 1 else f"one start in {start_stride}"
-    text = (f"The bands come from {n_draws} posterior draws and {starts}; the largest Monte Carlo "
+    counts = set(draws_used.values())
+    draws = (f"{counts.pop()} posterior draws" if len(counts) == 1 else
+             "posterior draws (" + ", ".join(f"{label}: {n}" for label, n in draws_used.items()) + ")")
+    text = (f"The bands come from {draws} and {starts}; the largest Monte Carlo "
             f"standard error of a band end is {mcse['largest_cohort']:.3f}° on the mean over legs and "
             f"{mcse['largest_legs']:.3f}° on one leg's band")
     if "target" in mcse:
@@ -232,6 +238,11 @@ def run_posterior_evaluate(
     fits = load_fits(folders)
     check_fit_legs(fits, cohort)
     labels = [f.label for f in fits]
+    held = {f.label: f.idata.posterior.sizes["chain"] * f.idata.posterior.sizes["draw"] for f in fits}
+    short = {label: n for label, n in held.items() if n < n_draws}
+    if band_accuracy is None and short:
+        warnings.warn(f"--draws {n_draws}: " + ", ".join(f"{label} holds {n}" for label, n in short.items())
+                      + "; its bands come from every draw it holds", DataWarning, stacklevel=2)
 
     t0 = time.perf_counter()
     accuracy = {}
@@ -258,7 +269,7 @@ def run_posterior_evaluate(
     md.append("")
     md.append(write_table(_table_v_rows(J, labels), out / "tables", "table5_posterior",
                           "Table V (posterior): J_φ,p of the mean over legs, median and 90 % band [deg]"))
-    md += [_mcse_sentence(mcse, n_draws, start_stride), ""]
+    md += [_mcse_sentence(mcse, {label: min(n_draws, n) for label, n in held.items()}, start_stride), ""]
     md.append(write_table(_per_leg_rows(J_legs, fits), out / "tables", "j_per_leg_posterior",
                           "J_φ,p per leg and trial, median and 90 % band over draws [deg]"))
     md.append(write_table(sign_test_rows(tests), out / "tables", "sign_tests_posterior",
@@ -295,7 +306,7 @@ def run_posterior_evaluate(
                 "folder": str(f.folder),
                 "legs": list(f.desc["legs"]),
                 "trials_fitted": list(f.desc["trials"]),
-                "draws_used": min(n_draws, f.idata.posterior.sizes["chain"] * f.idata.posterior.sizes["draw"]),
+                "draws_used": min(n_draws, held[f.label]),
                 "banner": f.summary.banner,
                 "fit_id": f.summary.fit_id,
             }
@@ -304,7 +315,7 @@ def run_posterior_evaluate(
         legs=list(dict.fromkeys(leg for f in fits for leg in f.desc["legs"])),
         horizons_samples=list(horizon_samples(cohort.sampling_period_s).values()),
         interval=list(INTERVAL),
-        n_draws=n_draws,
+        n_draws=min(n_draws, max(held.values())),
         start_stride=start_stride,
         seed=seed,
         evaluation_seconds=elapsed,
