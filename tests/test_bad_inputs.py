@@ -1097,6 +1097,43 @@ def test_lists_and_values_that_make_no_sense_are_refused_before_any_work(base, t
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize(("argv", "said"), [
+    (["fit", "DATA", "--time-limit", "60"], "--time-limit acts only with --target-ess"),
+    (["fit", "DATA", "--time=60"], "--time-limit acts only with --target-ess"),  # argparse's prefix of it
+    (["evaluate", "DATA", "--draws", "50"], "--draws acts only with --fit"),
+    (["evaluate", "DATA", "--start-stride", "5"], "--start-stride acts only with --fit"),
+    (["evaluate", "DATA", "--fit", "FIT", "--band-mcse", "0.1", "--draws", "50"], "--draws is chosen by --band-mcse"),
+    (["discover", "DATA", "--chains", "4"], "--chains acts only with --confirm"),
+    (["discover", "DATA", "--confirm", "--target-ess", "0", "--time-limit", "60"],
+     "--time-limit acts only with --target-ess above 0"),
+    (["report", "FIT", "--evaluation", "FIT", "--start-stride", "5"], "--start-stride acts only where report computes J"),
+    (["demo", "--target-ess", "0", "--time-limit", "60"], "--time-limit acts only with --target-ess above 0"),
+])
+def test_an_option_that_would_be_ignored_without_its_partner_is_refused(base, tmp_path, capsys, argv, said):
+    """An option that acts only beside another is refused alone, before any work, rather than ignored."""
+    named = {"DATA": str(base / "data"), "FIT": str(tmp_path / "nofit")}
+    argv = [named.get(a, a) for a in argv] + ["--out", str(tmp_path / "out")]
+    rc, lines = _run(argv, capsys)
+    _assert_refused(rc, lines, [said], tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+@pytest.mark.parametrize("argv", [
+    ["fit", "D", "--time-limit", "60", "--target-ess", "100"],
+    ["evaluate", "D", "--fit", "F", "--draws", "50", "--start-stride", "5"],
+    ["evaluate", "D", "--fit", "F", "--band-mcse", "0.1"],
+    ["discover", "D", "--confirm", "--chains", "4", "--time-limit", "60"],
+    ["report", "F", "--start-stride", "5"],
+    ["demo", "--time-limit", "60"],
+])
+def test_an_option_beside_its_partner_is_taken(argv):
+    from quadshank.cli import build_parser, refuse_lone_options
+
+    parser = build_parser()
+    args = parser.parse_args([*argv, "--out", "o"])
+    args.argv = [*argv, "--out", "o"]
+    refuse_lone_options(parser, args)  # raises where an option would be ignored
+
+
 @pytest.mark.parametrize(("option", "said"), [(["--hide", "telepathy"], "unknown effect(s) 'telepathy'"),
                                               (["--chains", "0"], "chains (--chains) must be at least 1")])
 def test_the_demos_options_are_checked_before_its_first_step(tmp_path, capsys, option, said):

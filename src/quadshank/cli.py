@@ -57,6 +57,54 @@ OUTPUT_KINDS = {
 OPTIONAL_OUT = ("check",)
 #: Commands that build or load models, and so may need a user's effects (--effects-file).
 EFFECT_USERS = ("fit", "diagnose", "discover", "compare", "evaluate", "report", "predict", "recovery")
+#: Options that act only beside another: per command, (option, whether ``args`` gives what it acts
+#: beside, why it would be ignored). Such an option given alone is refused before any work.
+_WITH_CONFIRM = "acts only with --confirm (the NUTS fits); without it discover screens alone"
+NEEDS_PARTNER = {
+    "fit": [("--time-limit", lambda a: a.target_ess is not None,
+             "acts only with --target-ess (a fit of fixed length runs to its end)")],
+    "evaluate": [
+        *[(option, lambda a: bool(a.fit), "acts only with --fit (the posterior's bands); without it evaluate "
+                                          "identifies and gives point estimates")
+          for option in ("--draws", "--start-stride", "--band-mcse")],
+        *[(option, lambda a: a.band_mcse is None, f"is chosen by --band-mcse: give one of {option} and --band-mcse")
+          for option in ("--draws", "--start-stride")],
+    ],
+    "discover": [
+        *[(option, lambda a: bool(a.confirm), _WITH_CONFIRM)
+          for option in ("--chains", "--target-ess", "--time-limit", "--warmup", "--draws", "--seed")],
+        ("--time-limit", lambda a: a.target_ess != 0, "acts only with --target-ess above 0 (fits of fixed length "
+                                                      "run to their end)"),
+    ],
+    "report": [("--start-stride", lambda a: not a.evaluation,
+                "acts only where report computes J: with --evaluation, J's bands are that evaluation's")],
+    "demo": [("--time-limit", lambda a: a.target_ess != 0,
+              "acts only with --target-ess above 0 (a fit of fixed length runs to its end)")],
+}
+
+
+def _given(parser, args, option: str) -> bool:
+    """Whether ``option`` is on ``args``' command line, as itself, as ``option=value`` or as the
+    unambiguous prefix argparse takes for it."""
+    sub = next(a for a in parser._subparsers._group_actions if a.choices).choices[args.command]
+    names = [n for n in sub._option_string_actions if n.startswith("--")]
+    for token in args.argv[args.argv.index(args.command) + 1:]:
+        if token == "--":
+            break
+        name = token.split("=", 1)[0]
+        if name == option or (len(name) > 2 and option.startswith(name)
+                              and [n for n in names if n.startswith(name)] == [option]):
+            return True
+    return False
+
+
+def refuse_lone_options(parser, args) -> None:
+    """Refuse an option given without the one it acts beside (:data:`NEEDS_PARTNER`)."""
+    for option, present, why in NEEDS_PARTNER.get(args.command, ()):
+        if not present(args) and _given(parser, args, option):
+            raise ValueError(f"{option} {why}")
+
+
 #: Commands whose output folder is a folder of recordings.
 DATA_WRITERS = ("simulate", "convert")
 #: The hidden file that marks a folder as a command's output (the command's name in it).
@@ -929,6 +977,7 @@ def main(argv: list[str] | None = None) -> int:
     use_compilation_cache()  # a program compiled by an earlier command is loaded, not compiled again
     mark = None
     try:
+        refuse_lone_options(parser, args)
         if args.command == "convert":
             if not args.dst.strip():
                 raise ValueError("convert: give the destination (a folder, or a file ending in .nc)")
