@@ -358,6 +358,16 @@ def test_a_report_refuses_mixed_fit_files_other_data_and_another_fits_evaluation
     assert "different fits" in capsys.readouterr().err
     assert not (root / "r-mixed" / "summary.json").exists()
 
+    renamed = root / "renamed"  # a summary.json whose legs were edited
+    shutil.copytree(made["fit"], renamed)
+    s = json.loads((renamed / "summary.json").read_text())
+    first = next(iter(s["legs"]))
+    s["legs"] = {("P01" if leg == first else leg): v for leg, v in s["legs"].items()}
+    (renamed / "summary.json").write_text(json.dumps(s))
+    assert main(["-q", "report", str(renamed), "--out", str(root / "r-renamed")]) == 2
+    err = capsys.readouterr().err
+    assert "summary.json and fit.nc name different legs" in err and "P01" in err and first in err
+
     other = root / "other-data"  # the same legs, other recordings
     assert main(["-q", "simulate", "--out", str(other), "--minutes", "0.5", "--legs", ",".join(LEGS),
                  "--trials", "1", "--seed", "1"]) == 0

@@ -636,12 +636,18 @@ def load_fit(folder: str | os.PathLike):
 
 
 def check_fit_files(folder: str | os.PathLike, idata, summary: FitResult) -> None:
-    """Refuse a fit folder whose ``fit.nc`` and ``summary.json`` come from different fits."""
+    """Refuse a fit folder whose ``fit.nc`` and ``summary.json`` come from different fits, or name
+    different legs (an edited summary)."""
     nc_id = idata.posterior.attrs.get("quadshank_fit_id")
     if (nc_id or summary.fit_id) and nc_id != summary.fit_id:
         raise FitFolderError(
             f"{folder}: fit.nc and summary.json come from different fits (fit ids {nc_id or 'none'} and "
             f"{summary.fit_id or 'none'}); run `quadshank fit` again into this folder")
+    nc_legs = [str(leg) for leg in idata.posterior["leg"].values] if "leg" in idata.posterior.coords else None
+    if nc_legs is not None and summary.legs and sorted(summary.legs) != sorted(nc_legs):
+        raise FitFolderError(
+            f"{folder}: summary.json and fit.nc name different legs ({', '.join(summary.legs)} against "
+            f"{', '.join(nc_legs)}); run `quadshank fit` again into this folder")
 
 
 def posterior_models(idata, model: Model, leg: str, n_draws: int | None = None, seed: int = 0):
