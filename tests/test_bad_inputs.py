@@ -1087,6 +1087,9 @@ def _fit_summary_at(folder: Path, period_s: float) -> Path:
     (["predict", "FIT", "--stimulation", "DATA", "--angle0", "nan"], "--angle0 must be a knee angle in degrees"),
     (["predict", "FIT", "--stimulation", "DATA", "--velocity0", "1e9"], "--velocity0 must be an angular velocity"),
     (["fit", "DATA", "--delay-from", "FIT20"], "that fit ran at 20 ms and these data are at 10 ms"),
+    (["simulate", "--trials", "2", "--minutes", "0.1"], "--trials 2: a folder of recordings numbers each leg's trials "
+                                                        "from 1, and trial(s) 1 would be missing"),
+    (["simulate", "--sampling-period-ms", "nan"], "the simulator records at whole milliseconds from 1 to 32 ms"),
 ])
 def test_lists_and_values_that_make_no_sense_are_refused_before_any_work(base, tmp_path, capsys, argv, said):
     named = {"DATA": str(base / "data"), "FIT": str(tmp_path / "nofit"),

@@ -31,7 +31,7 @@ from .common._progress import write_above_bars
 from .common._xla_cache import use_compilation_cache
 from .data._interchange import DataWarning, convert, load_cohort, write_interchange
 from .data._paper import LEGS
-from .data._simulate import simulate_cohort, write_truth
+from .data._simulate import TRIAL_RECRUITMENT, simulate_cohort, write_truth
 from .evaluation._posterior import PosteriorEvaluation, check_fit_legs, load_fits
 from .evaluation._prediction import Evaluation
 from .inference._fitio import FitResult, read_summary
@@ -253,6 +253,12 @@ def cmd_simulate(args) -> int:
     legs = _csv_list(args.legs, "--legs") if args.legs else list(LEGS)
     effects = _csv_list(args.effects, "--effects") if args.effects else []
     trials = _int_list(args.trials, "--trials")
+    lacking = sorted(set(range(1, max(trials, default=0) + 1)) - set(trials))
+    if lacking and all(t in TRIAL_RECRUITMENT for t in trials):  # an unknown trial: simulate_cohort says which exist
+        raise ValueError(f"--trials {args.trials}: a folder of recordings numbers each leg's trials from 1, and "
+                         f"trial(s) {', '.join(map(str, lacking))} would be missing; simulate "
+                         f"{','.join(map(str, range(1, max(trials) + 1)))} and choose trials in later commands "
+                         "(their --trials)")
     cohort, truth = simulate_cohort(
         legs=legs, minutes=args.minutes, seed=args.seed, effects=effects, trials=trials, progress=not args.quiet,
         sampling_period_s=args.sampling_period_ms / 1000.0,

@@ -531,6 +531,9 @@ def isolated_pulses(pulses: np.ndarray, n_samples: int, sampling_period_s: float
 def _substeps(sampling_period_s: float) -> int:
     """Internal 1-ms steps per sample; the period must be a whole number of them that the
     impulse buffer holds."""
+    if not math.isfinite(sampling_period_s) or sampling_period_s <= 0:
+        raise ValueError(f"the simulator records at whole milliseconds from 1 to {_BUFFER // 2} ms, "
+                         f"not a sampling period of {sampling_period_s} s")
     k = int(round(sampling_period_s / INTERNAL_STEP_S))
     if not (k >= 1 and abs(k * INTERNAL_STEP_S - sampling_period_s) < 1e-9 and k <= _BUFFER // 2):
         raise ValueError(f"the simulator records at whole milliseconds from 1 to {_BUFFER // 2} ms, "
