@@ -419,6 +419,18 @@ def test_predict_rolls_the_posterior_through_a_plan_as_evaluate_does(made, capsy
     lo = np.array([float(r[rows[0].index("TN-left lo [deg]")]) for r in rows[1:]])
     hi = np.array([float(r[rows[0].index("TN-left hi [deg]")]) for r in rows[1:]])
     assert np.all(lo <= hi) and np.ptp(hi) > 1.0  # the pulses move the shank
+    seen = s["fitted_angle_range_deg"]["TN-left"]
+    # the fitted trial 1, none of its samples excluded
+    assert seen == pytest.approx([trial.angle_deg.min(), trial.angle_deg.max()], abs=1e-3)
+    assert s["beyond_fitted_range"] == {}
+
+    far = seen[1] + 60.0  # a start far beyond the fitted swings: warned of, not refused
+    assert main(["predict", str(made["fit"]), "--stimulation", str(plan), "--angle0", str(far), "--draws", "8",
+                 "--legs", "TN-left", "--out", str(made["root"] / "predict-far")]) == 0
+    err = capsys.readouterr().err
+    assert f"TN-left: the start at {far:.1f}°" in err and "beyond the angles the fit saw" in err
+    s = json.loads((made["root"] / "predict-far" / "summary.json").read_text())
+    assert s["beyond_fitted_range"]["TN-left"]["start"] == pytest.approx(far)
 
     bad = made["root"] / "bad-plan.csv"
     bad.write_text("time_s,stimulation\n0.0,0\n0.01,1.5\n0.02,0\n")

@@ -7,6 +7,7 @@ import csv
 import dataclasses
 import io
 import math
+import warnings
 from pathlib import Path
 from typing import ClassVar
 
@@ -14,7 +15,7 @@ import numpy as np
 
 from ..common._io import atomic_write_text, save_figure
 from ..common._results import Result
-from ..data._interchange import read_plan
+from ..data._interchange import DataWarning, read_plan
 from ..evaluation._posterior import load_fits, plan_predictions
 from ..inference._fitio import posterior_models
 from ..inference._summaries import INTERVAL, interval
@@ -42,6 +43,37 @@ class PlanPrediction(Result):
     files: list
     extremes: dict  # leg -> the band at the plan's last sample, its lowest and highest angle
     plan_columns: list | None = None  # a stimulator's columns the plan gave, made each leg's levels; None: levels
+    fitted_angle_range_deg: dict | None = None  # leg -> [lowest, highest] angle of the samples the fit saw
+    beyond_fitted_range: dict | None = None  # leg -> the start or predicted angle beyond that range by more than the margin
+
+
+#: How far [deg] a start or a predicted median may leave the angles the fit saw before a warning
+#: says the model is extrapolated there.
+EXTRAPOLATION_MARGIN_DEG = 10.0
+
+
+def fitted_angle_range(idata, leg: str) -> tuple[float, float] | None:
+    """The lowest and highest angle of ``leg``'s samples that a saved fit's likelihood saw (None
+    where the fit holds no angles)."""
+    data = getattr(idata, "constant_data", None)
+    if data is None or "angle" not in data or leg not in list(data["leg"].values):
+        return None
+    i = list(data["leg"].values).index(leg)
+    angle = np.asarray(data["angle"])[i]
+    if "sample_mask" in data:
+        angle = angle[np.asarray(data["sample_mask"])[i].astype(bool)]
+    angle = angle[np.isfinite(angle)]
+    return (float(angle.min()), float(angle.max())) if angle.size else None
+
+
+def _beyond(angle0: float, median: np.ndarray, seen: tuple[float, float]) -> dict | None:
+    """Where the start or the median prediction leaves ``seen`` by more than the margin."""
+    lo, hi = seen[0] - EXTRAPOLATION_MARGIN_DEG, seen[1] + EXTRAPOLATION_MARGIN_DEG
+    far = [("start", angle0)] if not lo <= angle0 <= hi else []
+    out = median[(median < lo) | (median > hi)]
+    if out.size:
+        far.append(("prediction", float(out[np.argmax(np.abs(out - 0.5 * (lo + hi)))])))
+    return {what: round(v, 2) for what, v in far} or None
 
 
 def run_predict(
@@ -79,6 +111,16 @@ def run_predict(
         models, _ = posterior_models(fit.idata, fit.model, leg, n_draws, seed)
         band = interval(plan_predictions(models, levels[leg], angle0, velocity0), axis=0)
         bands[leg] = {k: np.asarray(v) for k, v in band.items()}
+    seen = {leg: fitted_angle_range(fit.idata, leg) for leg in legs}
+    beyond = {}
+    for leg, r in seen.items():
+        far = _beyond(angle0, bands[leg]["median"], r) if r is not None else None
+        if far:
+            beyond[leg] = far
+            what = " and ".join(f"the {k} at {v:.1f}°" for k, v in far.items())
+            warnings.warn(f"{leg}: {what} lie(s) beyond the angles the fit saw ({r[0]:.1f}° to {r[1]:.1f}°): "
+                          "the model is extrapolated there and its bands do not say how far to trust it",
+                          DataWarning, stacklevel=2)
     # the plan's columns as given and, for a stimulator's, each leg's levels (its charge over the leg's largest)
     values = planned.stimulator or {"stimulation": planned.stimulation}
     given = list(values)
@@ -94,7 +136,9 @@ def run_predict(
     shown = planned.stimulation if planned.stimulation is not None else planned.charge
     ylabel = None if planned.unit is None else (
         {"µs": "pulse width", "mA": "current"}.get(planned.unit, "pulse charge") + f" [{planned.unit}]")
-    save_figure(plot_plan_predictions(time_s, shown, bands, fit.label, ylabel=ylabel), out / "predictions.png")
+    save_figure(plot_plan_predictions(time_s, shown, bands, fit.label, ylabel=ylabel,
+                                      fitted_range={leg: r for leg, r in seen.items() if r is not None}),
+                out / "predictions.png")
     used = min(n_draws, fit.idata.posterior.sizes["chain"] * fit.idata.posterior.sizes["draw"])
     result = PlanPrediction(
         fit=str(fit_dir), model=fit.label, plan=str(plan), legs=legs, angle0_deg=float(angle0),
@@ -102,6 +146,8 @@ def run_predict(
         files=["predictions.csv", "predictions.png"], plan_columns=list(planned.columns) or None,
         extremes={leg: {"end": {k: float(b[k][-1]) for k in ("median", "lo", "hi")},
                        "max_deg": float(b["hi"].max()), "min_deg": float(b["lo"].min())} for leg, b in bands.items()},
+        fitted_angle_range_deg={leg: [round(r[0], 3), round(r[1], 3)] for leg, r in seen.items() if r is not None},
+        beyond_fitted_range=beyond,
     )
     result.write(out)
     return result

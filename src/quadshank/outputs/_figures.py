@@ -272,14 +272,21 @@ def plot_delay_angle(legs: dict, label: str = "", population: dict | None = None
     return fig
 
 
-def plot_plan_predictions(time_s, stimulation, bands: dict, label: str = "", ylabel: str | None = None):
+def plot_plan_predictions(time_s, stimulation, bands: dict, label: str = "", ylabel: str | None = None,
+                          fitted_range: dict | None = None):
     """A planned stimulation sequence and, per leg, the angle it would produce: the posterior
     median with its 90 % band (``bands``: leg -> {"median", "lo", "hi"} arrays over samples).
-    ``ylabel``: None for recruitment levels u, else what the stimulator's values are (pulse width [µs], …)."""
+    ``ylabel``: None for recruitment levels u, else what the stimulator's values are (pulse width [µs], …).
+    ``fitted_range``: leg -> (lowest, highest) angle the fit saw, drawn as dotted lines in the leg's colour."""
     fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
     for leg, b in bands.items():
         line, = axes[0].plot(time_s, b["median"], lw=1.2, label=f"{leg} (median)")
         axes[0].fill_between(time_s, b["lo"], b["hi"], color=line.get_color(), alpha=0.25, lw=0)
+        if fitted_range and leg in fitted_range:
+            for y in fitted_range[leg]:
+                axes[0].axhline(y, color=line.get_color(), ls=":", lw=0.8)
+    if fitted_range:
+        axes[0].plot([], [], color="0.4", ls=":", lw=0.8, label="angles the fit saw")
     axes[0].set_ylabel("knee angle [deg]")
     axes[0].set_title(f"Predicted response to the plan{' (' + label + ')' if label else ''}: median and 90 % band")
     axes[0].legend(fontsize=8, loc="best")
