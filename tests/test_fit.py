@@ -91,7 +91,7 @@ def test_interrupted_fit_leaves_no_complete_looking_folder(data_dir, monkeypatch
     def boom(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(fit_command, "to_inference_data", boom)
+    monkeypatch.setattr(fit_command, "run_nuts", boom)  # interrupted while sampling, where Ctrl-C is most likely
     with pytest.raises(KeyboardInterrupt):
         fit_command.run_fit(
             load_cohort(data_dir / "data"),
