@@ -207,15 +207,17 @@ def test_too_few_quiet_samples_from_an_angle_zeroed_elsewhere_say_so():
 
 def test_signals_that_are_not_finite_are_refused_not_fed_to_least_squares():
     """A sample beyond what a float holds (an overflow that reached the trial) is refused naming the
-    leg and trial; least squares on it would not return."""
-    from quadshank.data import Cohort, simulate_cohort
-    from quadshank.inference._identify import IdentificationError, identify_cohort
+    leg, trial, signal and sample, as a file's would be; least squares on it would not return."""
+    from quadshank.data import Cohort, InterchangeError, simulate_cohort
+    from quadshank.inference._identify import identify_cohort
 
     cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.5, seed=0, trials=[1])
     t = cohort.trials[0]
     acc = t.acceleration_deg_s2.copy()
-    acc[np.flatnonzero(t.stimulation > 0)[3] + 5] = np.inf
-    with pytest.raises(IdentificationError, match=r"TN-left trial 1: the .* is not finite on 1 of the samples used"):
+    at = np.flatnonzero(t.stimulation > 0)[3] + 5
+    acc[at] = np.inf
+    with pytest.raises(InterchangeError, match=rf"TN-left trial 1, column 'acceleration_deg_s2', index {at}: "
+                                               "non-finite value inf"):
         identify_cohort(Cohort((t.replace(acceleration_deg_s2=acc),)))
 
 

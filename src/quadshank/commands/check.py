@@ -20,7 +20,7 @@ import numpy as np
 from ..common._io import file_stems, save_figure
 from ..common._results import Result
 from ..data._cohort import Cohort, Trial
-from ..data._interchange import DataWarning, charge_scales, load_cohort
+from ..data._interchange import DataWarning, charge_scales, check_cohort, load_cohort
 from ..inference._identify import (
     MIN_PASSIVE_SAMPLES,
     MIN_TWITCHES,
@@ -154,7 +154,7 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", DataWarning)
         if isinstance(data, Cohort):
-            cohort, data = data, "a cohort in memory"
+            cohort, data = check_cohort(data), "a cohort in memory"
         else:
             cohort = load_cohort(data)
         try:

@@ -27,6 +27,7 @@ from ._interchange import (
     read_netcdf,
     StimulationPlan,
     charge_scales,
+    check_cohort,
     read_plan,
     read_stimulation_plan,
     trim,
@@ -60,7 +61,7 @@ from ._simulate import (
 
 __all__ = [
     "Cohort", "Trial", "derive_velocity", "derive_acceleration", "leg_key", "VELOCITY_WINDOW", "ACCELERATION_WINDOW_S",
-    "InterchangeError", "Problem", "DataWarning", "plausibility", "read_interchange", "read_netcdf", "write_interchange", "load_cohort", "convert",
+    "InterchangeError", "Problem", "DataWarning", "plausibility", "check_cohort", "read_interchange", "read_netcdf", "write_interchange", "load_cohort", "convert",
     "parse_number", "trim", "read_stimulation_plan", "read_plan", "StimulationPlan", "charge_scales", "resample_trial", "resample_cohort",
     "MANIFEST_NAME", "DEFAULT_SAMPLING_PERIOD_S",
     "EFFECTS", "PASSIVE_TRUTH", "default_truth", "simulate_cohort", "simulate_pendulum_test", "simulate_response", "stimulation_sequence",

@@ -13,6 +13,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import weakref
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -151,6 +152,22 @@ def derivation_settings(sampling_period_s: float) -> dict:
         "acceleration": {"method": "Savitzky-Golay, zero-phase", "window_samples": _acceleration_window(sampling_period_s),
                          "polyorder": ACCELERATION_POLYORDER},
     }
+
+
+#: Trials that passed the data rules: read by a reader, made by the simulator, or checked once by
+#: :func:`quadshank.data.check_cohort`.  Held weakly: a trial no longer used is forgotten.
+_CHECKED: weakref.WeakSet = weakref.WeakSet()
+
+
+def mark_checked(cohort: Cohort) -> Cohort:
+    """Record ``cohort``'s trials as checked against the data rules; returns ``cohort``."""
+    _CHECKED.update(cohort.trials)
+    return cohort
+
+
+def is_checked(trial: Trial) -> bool:
+    """Whether ``trial`` was checked against the data rules (:func:`mark_checked`)."""
+    return trial in _CHECKED
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -119,7 +119,7 @@ from scipy.signal import savgol_filter
 from ..common._arrays import stretches
 from ..common._io import file_stem, temp_sibling
 from ._cohort import (ANGLE_LIMIT_DEG, MAX_SAMPLING_PERIOD_S, MISSING_MARKERS, Cohort, Trial, derive_acceleration,
-                      fingerprint_problem, leg_key, quiet_mask)
+                      fingerprint_problem, is_checked, leg_key, mark_checked, quiet_mask)
 from ._paper import TWITCH_REACH_S
 from ._resample import resample_cohort, resample_trial
 
@@ -1449,7 +1449,7 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
     attrs = {"source": str(folder), "source_format": "interchange"}
     if scales:
         attrs[CHARGE_SCALE_ATTR] = scales
-    cohort = Cohort(tuple(trials), attrs)
+    cohort = mark_checked(Cohort(tuple(trials), attrs))
     _warn_implausible(cohort, [str(folder / e.file) for e in entries])
     _warn_unselectable_subjects(entries)
     _warn_case_twins(entries)
@@ -1872,24 +1872,75 @@ def _check_cohort(cohort: Cohort, names: Sequence[str], *, listing: str = MANIFE
     _check_listing(entries, complete, listing, problems)
 
     for t, e in zip(cohort.trials, entries):
-        lines = np.arange(first_row, t.n_samples + first_row)
-        signals: dict[str, np.ndarray | None] = {}
-        for column in _written_columns(t):
-            if column == "velocity_deg_s" and not t.velocity_measured:
-                continue
-            values = getattr(t, column)
-            bad = np.flatnonzero(~np.isfinite(values))
-            _report_cells(
-                problems, e.file, column, [(int(lines[j]), repr(float(values[j]))) for j in bad],
-                "non-finite value {} (NaN and infinity are not allowed)",
-            )
-            signals[column] = None if bad.size else values
-        if t.n_samples == 0:
-            problems.append(Problem(e.file, None, None, "no samples"))
-            continue
-        _check_signals(e.file, lines, signals, e.sampling_period_s, f"of the trial ({row_label} {e.line} of "
-                       f"{listing})", problems)
+        _check_trial_signals(t, e.file, first_row, e.sampling_period_s, f"of the trial ({row_label} {e.line} of "
+                             f"{listing})", problems)
     return [dataclasses.replace(p, row_label=listing_row_label if p.file == listing else row_label) for p in problems]
+
+
+def _check_trial_signals(t: Trial, file: str, first_row: int, period: float | None, context: str,
+                         problems: list[Problem]) -> None:
+    """The rules on one trial's signals, its samples counted from ``first_row``."""
+    lines = np.arange(first_row, t.n_samples + first_row)
+    signals: dict[str, np.ndarray | None] = {}
+    for column in _written_columns(t):
+        if column == "velocity_deg_s" and not t.velocity_measured:
+            continue
+        values = getattr(t, column)
+        bad = np.flatnonzero(~np.isfinite(values))
+        _report_cells(
+            problems, file, column, [(int(lines[j]), repr(float(values[j]))) for j in bad],
+            "non-finite value {} (NaN and infinity are not allowed)",
+        )
+        signals[column] = None if bad.size else values
+    if t.n_samples == 0:
+        problems.append(Problem(file, None, None, "no samples"))
+        return
+    _check_signals(file, lines, signals, period, context, problems)
+
+
+def check_cohort(cohort: Cohort) -> Cohort:
+    """Refuse a cohort built in Python (``Trial``, ``Trial.from_signals``, ``Trial.replace``,
+    ``Cohort``) whose trials break the rules the readers apply to files (data-format.md): a
+    non-finite value, a stimulation outside [0, 1], time not increasing at the sampling period,
+    a period out of range, a leg other than left or right, a trial number below 1, two
+    subjects whose legs share one key, and the rest.  Raises :class:`InterchangeError` listing
+    every problem, each naming the leg, the trial, the signal and the sample's index in its
+    array (from 0); then warns of what looks implausible (units, signs), as the readers do.
+
+    Identification, evaluation, the screen and the fit call it on the cohort they are given;
+    trials read from files or simulated are not checked again.  Returns ``cohort``.
+    """
+    new = [t for t in cohort.trials if not is_checked(t)]
+    if not new:
+        return cohort
+    problems: list[Problem] = []
+    owners: dict[str, tuple[str, str]] = {}
+    for t in cohort.trials:  # one key, one (subject, leg): "JM-x" + "left" and "JM" + "x-left" would merge
+        other = owners.setdefault(t.key, (t.subject, t.leg))
+        if other != (t.subject, t.leg):
+            problems.append(Problem(f"{t.key} trial {t.trial}", "subject", None,
+                                    f"subject {t.subject!r} with leg {t.leg!r} and subject {other[0]!r} with leg "
+                                    f"{other[1]!r} make the same leg {t.key!r}: rename one"))
+    for t in new:
+        name = f"{t.key} trial {t.trial}"
+        said = _subject_problem(t.subject) if isinstance(t.subject, str) else f"subject {t.subject!r} is not a string"
+        if said:
+            problems.append(Problem(name, "subject", None, said))
+        if t.leg not in _LEGS:
+            problems.append(Problem(name, "leg", None, _leg_problem(str(t.leg))))
+        if isinstance(t.trial, bool) or not isinstance(t.trial, (int, np.integer)) or t.trial < 1:
+            problems.append(Problem(name, "trial", None, f"trial number {t.trial!r}: trials are numbered 1, 2, ..."))
+        period = float(t.sampling_period_s)
+        said = _period_problem(repr(period), period)
+        if said:
+            problems.append(Problem(name, "sampling_period_s", None, said))
+        _check_trial_signals(t, name, 0, None if said else period, "of the trial", problems)
+    if problems:
+        raise InterchangeError([dataclasses.replace(p, row_label="index") for p in problems],
+                               "a cohort built in Python breaks the data rules (data-format.md)")
+    _warn_implausible(Cohort(tuple(new)), ["built in Python"] * len(new))
+    mark_checked(Cohort(tuple(new)))
+    return cohort
 
 
 def _written_columns(trial: Trial) -> list[str]:
@@ -2049,7 +2100,7 @@ def read_netcdf(path: str | os.PathLike) -> Cohort:
     if changed:
         raise InterchangeError([Problem(path.name, None, None, changed)], f"{path}: invalid cohort file")
     _warn_implausible(cohort, [str(path)] * len(cohort))
-    return cohort
+    return mark_checked(cohort)
 
 
 def load_cohort(path: str | os.PathLike) -> Cohort:

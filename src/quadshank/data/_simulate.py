@@ -215,7 +215,7 @@ from scipy.optimize import brentq
 from tqdm.auto import tqdm
 
 from ..common._io import write_json
-from ._cohort import Cohort, Trial
+from ._cohort import Cohort, Trial, mark_checked
 from ._paper import (
     DELAY_STEP_ANGLE,
     LEGS,
@@ -884,7 +884,7 @@ def simulate_cohort(
         "effects": list(effects),
         "truth_format": TRUTH_FORMAT,
     }
-    return Cohort(tuple(out_trials), attrs), truth
+    return mark_checked(Cohort(tuple(out_trials), attrs)), truth  # made within the rules (written and read back in its tests)
 
 
 def simulate_response(

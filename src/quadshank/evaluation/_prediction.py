@@ -28,7 +28,7 @@ from ..common._arrays import stretches
 from ..common._progress import progress_bar
 from ..common._results import Result
 from ..data._cohort import Cohort, Trial
-from ..data._interchange import DataWarning
+from ..data._interchange import DataWarning, check_cohort
 from ..data._paper import HORIZONS_MS
 from ..model._model import Model, measured_angle, predict_ahead, simulate_angles, true_angle
 
@@ -78,6 +78,7 @@ def predictions(model: Model, trial: Trial, horizon: int | None = None) -> tuple
 def prediction_errors(model: Model, trial: Trial, horizons=None) -> dict[int, float]:
     """J_φ,p [deg] for each horizon p (samples), eq. (12); by default those of :data:`HORIZONS_MS`
     at the trial's period."""
+    check_cohort(Cohort((trial,)))  # a trial built in Python meets the rules a file's does
     if horizons is None:
         horizons = tuple(horizon_samples(trial.sampling_period_s).values())
     horizon = max(horizons)

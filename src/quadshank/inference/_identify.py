@@ -44,7 +44,7 @@ from ..common._io import nulls_as_nan
 from ..common._progress import progress_bar
 from ..common._results import Result
 from ..data._cohort import SAME_PERIOD_REL, Cohort, Trial, quiet_mask
-from ..data._interchange import DataWarning
+from ..data._interchange import DataWarning, check_cohort
 from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S, TWITCH_REACH_S, TWITCH_SAMPLES
 from ..model._likelihood import TWITCH_S, twitch_window
 from ..model._model import Model, equivalent_acceleration, paper_model, passive_effects, simulate_angles
@@ -551,6 +551,7 @@ def fit_darma(y: np.ndarray, u: np.ndarray, pulses: np.ndarray, d: int, order: i
 
 def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification:
     """Identify the passive system and models 1–3 from one trial of one leg."""
+    check_cohort(Cohort((trial,)))  # a trial built in Python meets the rules a file's does
     where = f"{trial.key} trial {trial.trial}"
     if passive is None:
         passive, p_rms, n_quiet, p_se = _passive_equation_error([trial])
@@ -675,6 +676,7 @@ def identify_cohort(
     """
     if passive_objective not in PASSIVE_OBJECTIVES + ("auto",):
         raise ValueError(f"unknown passive objective {passive_objective!r}; use auto, acceleration or angle")
+    check_cohort(cohort)  # a cohort built in Python meets the rules a file's does
     check_delay_range(cohort.sampling_period_s, muscle=any(np.any(t.stimulation > 0) for t in cohort))
     out: dict = {}
     for leg in progress_bar(cohort.legs, desc="identify", enabled=progress):

@@ -118,6 +118,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..data._cohort import Cohort
+from ..data._interchange import check_cohort
 from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S, TWITCH_SAMPLES
 from ._effects import FIRST_IPI_S, Effect, PulseContext, StepContext
 from ._model import (
@@ -405,6 +406,7 @@ def resolve_objective(model: Model, objective: str = "auto") -> str:
 def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None, objective: str = "auto") -> LikelihoodData:
     """Arrange a cohort's chosen trials for the likelihood of ``model``; ``objective``: what it
     compares (:func:`resolve_objective`)."""
+    check_cohort(cohort)  # a cohort built in Python meets the rules a file's does
     objective = resolve_objective(model, objective)
     act = model.activation
     resolution = getattr(act, "resolution", "sample")
