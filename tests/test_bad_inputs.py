@@ -625,7 +625,7 @@ def test_an_earlier_output_of_the_same_command_is_written_over(base, tmp_path, c
     for _ in range(2):  # the second run finds the first's mark
         rc, lines = _run(["convert", str(base / "cohort.nc"), str(out)], capsys)
         assert rc == 0, lines
-    assert (out / ".quadshank-output").read_text().strip() == "convert"
+    assert (out / ".quadshank-output").read_text().splitlines()[0] == "convert"
     rc, lines = _run(COMMANDS["identify"](base / "data", out), capsys)  # a folder of recordings
     _assert_refused(rc, lines, [str(out), "holds recordings"], None)
     other = tmp_path / "other"
@@ -633,6 +633,29 @@ def test_an_earlier_output_of_the_same_command_is_written_over(base, tmp_path, c
     (other / ".quadshank-output").write_text("fit\n")  # another command's output
     rc, lines = _run(COMMANDS["identify"](base / "data", other), capsys)
     _assert_refused(rc, lines, [str(other), "no earlier output of `quadshank identify`"], None)
+
+
+def test_a_rerun_removes_what_its_earlier_run_wrote_and_keeps_the_users_files(base, tmp_path, capsys):
+    """A rerun into its own earlier output leaves no figure of a leg the new data lack; a file the
+    user put there stays, and a mark edited to name a file outside the folder removes nothing there."""
+    out = tmp_path / "check"
+    rc, lines = _run(["check", str(base / "data"), "--out", str(out)], capsys)
+    assert rc == 0, lines
+    before = {p.name for p in out.rglob("*.png")}
+    assert any("JM-right" in name for name in before), before
+    (out / "notes.txt").write_text("mine")
+    outside = tmp_path / "outside.txt"
+    outside.write_text("not the command's")
+    mark = out / ".quadshank-output"
+    mark.write_text(mark.read_text() + "../outside.txt\n")
+    data = _copy(base, tmp_path, "renamed")
+    _set_cell(data / MAN, 4, "subject", "KB")  # JM-right is KB-right now
+    rc, lines = _run(["check", str(data), "--out", str(out)], capsys)
+    assert rc == 0, lines
+    after = {p.name for p in out.rglob("*.png")}
+    assert not any("JM-right" in name for name in after) and any("KB-right" in name for name in after), after
+    assert (out / "notes.txt").read_text() == "mine" and outside.read_text() == "not the command's"
+    assert "notes.txt" not in mark.read_text().splitlines()  # the user's file is not listed as written
 
 
 FIT_COMMANDS = {

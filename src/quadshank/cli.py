@@ -107,8 +107,36 @@ def refuse_lone_options(parser, args) -> None:
 
 #: Commands whose output folder is a folder of recordings.
 DATA_WRITERS = ("simulate", "convert")
-#: The hidden file that marks a folder as a command's output (the command's name in it).
+#: The hidden file that marks a folder as a command's output: the command's name on its first
+#: line, then the files that run wrote (relative paths), which a rerun into the folder removes first.
 OUTPUT_MARK = ".quadshank-output"
+
+
+def _files_in(out: Path) -> set[str]:
+    """The files under ``out`` (relative POSIX paths; the mark itself left out)."""
+    return {p.relative_to(out).as_posix() for p in out.rglob("*")
+            if (p.is_file() or p.is_symlink()) and p.name != OUTPUT_MARK}
+
+
+def _remove_earlier_files(out: Path) -> None:
+    """Remove the files an earlier run of the same command listed in its mark, and the folders
+    that leaves empty: a rerun must not leave pages, tables or figures of legs it no longer has
+    beside its own.  Files the mark does not list (the user's) stay."""
+    try:
+        listed = (out / OUTPUT_MARK).read_text().splitlines()[1:]
+    except (OSError, UnicodeDecodeError):
+        return
+    root = out.resolve()
+    for rel in listed:
+        path = out / rel
+        if not rel or rel.startswith("/") or not path.resolve().is_relative_to(root):
+            continue  # a mark edited by hand names nothing outside the folder
+        if path.is_file() or path.is_symlink():
+            path.unlink()
+    for folder in sorted((p for p in out.rglob("*") if p.is_dir() and not p.is_symlink()),
+                         key=lambda p: len(p.parts), reverse=True):
+        if not any(folder.iterdir()):
+            folder.rmdir()
 
 
 def _command_line(args) -> str:
@@ -177,7 +205,7 @@ def _earlier_output(out: Path, command: str) -> bool:
     mark = out / OUTPUT_MARK
     if mark.is_file():
         try:
-            return mark.read_text().strip() == command
+            return (mark.read_text().splitlines() or [""])[0].strip() == command
         except (OSError, UnicodeDecodeError):
             return False
     summary = out / "summary.json"
@@ -222,8 +250,11 @@ def prepare_output(out: Path, command: str, inputs, overwrite: bool = False):
         raise FileExistsError(
             f"{out}: the folder is not empty and holds no earlier output of `quadshank {command}`; give a new "
             "folder (or --overwrite to write into it: files of the same names are replaced, others kept)")
+    if out.is_dir() and not foreign:
+        _remove_earlier_files(out)
     (out / "summary.json").unlink(missing_ok=True)
     new = not out.exists()
+    kept = _files_in(out) if out.is_dir() else set()  # the user's files, which this run did not write
 
     def mark(failed: bool = False) -> None:
         if failed and new and out.is_dir():
@@ -239,7 +270,8 @@ def prepare_output(out: Path, command: str, inputs, overwrite: bool = False):
         # a folder written into by --overwrite stays unmarked: it holds more than this output
         if not foreign and out.is_dir():
             try:
-                (out / OUTPUT_MARK).write_text(command + "\n")
+                written = sorted(_files_in(out) - kept)
+                (out / OUTPUT_MARK).write_text("".join(f"{line}\n" for line in [command, *written]))
             except OSError:  # the command's own outcome is what the user needs to hear of
                 pass
 
