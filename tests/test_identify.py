@@ -221,6 +221,17 @@ def test_signals_that_are_not_finite_are_refused_not_fed_to_least_squares():
         identify_cohort(Cohort((t.replace(acceleration_deg_s2=acc),)))
 
 
+def test_a_free_run_that_diverges_from_its_start_is_named_with_what_to_do():
+    """A start whose free run overflows (a stiff knee on 60° swings) is an identification error naming
+    the trial and the way out, not scipy's "Residuals are not finite"."""
+    from quadshank.inference._identify import IdentificationError, _passive_free_run
+
+    trial = simulate_pendulum_test({"damping": 2.2, "gravity": 1800.0, "k1": 1.0, "k2": 0.01}, angle0=60.0, seed=2)
+    with pytest.raises(IdentificationError, match=r"PT-left trial 1: the free run of the passive system diverged "
+                                                  r"from every start .*--passive-objective acceleration"):
+        _passive_free_run([trial], start={"damping": 50.0, "gravity": 1800.0, "k1": 1e6, "k2": 0.1})
+
+
 def test_an_angle_zeroed_elsewhere_is_named_by_its_missing_gravity():
     """A constant added to every angle (a goniometer zeroed 30° away from the rest) leaves the
     passive fit no gravity about angle 0: named with the leg and G'; the recording as it is draws nothing."""

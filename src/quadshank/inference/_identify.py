@@ -474,15 +474,35 @@ def _passive_free_run(trials, start: dict | None = None, gravity_offset: bool = 
                                       "samples to compare a free run with")
         resid = jax.jit(lambda p: _free_run_residuals(p, segments, dt))
         jac = jax.jit(jax.jacfwd(lambda p: _free_run_residuals(p, segments, dt)))
-        fit = None
+        def jacobian(p):
+            # a run that grows past what a float holds (a stiff start on a swing beyond the fitted
+            # range) has no slope there: zero, so that the trust region turns back instead of failing
+            J = np.asarray(jac(jnp.asarray(p)))
+            return np.where(np.isfinite(J), J, 0.0)
+
+        fit, failed = None, []
         for s0 in starts:  # the lowest of the local minima along the valley
             x0 = np.log([max(float(s0[k]), 1e-6) for k in _PASSIVE_NAMES])
             if gravity_offset:
                 x0 = np.append(x0, float(s0.get("gravity_angle", 0.0)))
-            this = least_squares(lambda p: np.asarray(resid(jnp.asarray(p))), x0,
-                                 jac=lambda p: np.asarray(jac(jnp.asarray(p))), method="trf", x_scale="jac")
-            if fit is None or this.cost < fit.cost:
+            if not np.all(np.isfinite(np.asarray(resid(jnp.asarray(x0))))):
+                failed.append("its free run diverges from the start")
+                continue
+            with np.errstate(over="ignore", invalid="ignore"):
+                try:
+                    this = least_squares(lambda p: np.asarray(resid(jnp.asarray(p))), x0, jac=jacobian,
+                                         method="trf", x_scale="jac")
+                except (ValueError, np.linalg.LinAlgError) as exc:
+                    failed.append(str(exc))
+                    continue
+            if np.isfinite(this.cost) and (fit is None or this.cost < fit.cost):
                 fit = this
+        if fit is None:
+            where = ", ".join(f"{t.key} trial {t.trial}" for t in trials)
+            raise IdentificationError(
+                f"{where}: the free run of the passive system diverged from every start ({failed[0]}); fit the "
+                "acceleration instead (`identify --passive-objective acceleration`), or leave out the swings beyond "
+                "the knee's range (start_s, end_s or exclude)")
         n = int(sum(float(jnp.sum(w)) for *_, w in segments))
     params = dict(zip(_PASSIVE_NAMES, map(float, np.exp(fit.x[:4]))))
     if gravity_offset:
