@@ -10,6 +10,7 @@ import pytest
 
 from quadshank.cli import main
 from quadshank.commands import Check, run_check
+from quadshank.data._cohort import Cohort
 from quadshank.data._interchange import DataWarning, convert, write_interchange
 from quadshank.data._simulate import simulate_cohort
 
@@ -179,6 +180,27 @@ def test_a_period_too_short_for_the_delays_considered_is_said():
     assert result.data == "a cohort in memory" and result.sampling_period_s == pytest.approx(0.005)
     assert any("resample" in w for w in result.warnings)
     assert result.trials[0]["sampling_period_ms"] == pytest.approx(5.0)
+
+
+def test_a_period_too_short_for_a_muscles_delays_is_each_legs_verdict():
+    """Below 3 ms identify and a muscle's fit refuse stimulated data: check says so per leg, not "models 1-3"."""
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.5, seed=1, trials=(1,), sampling_period_s=0.002)
+    with pytest.warns(DataWarning):
+        uses = run_check(cohort).legs["TN-left"]
+    assert uses["identify"].startswith("no: at 2 ms the delays considered reach 20 ms") and "--resample" in uses["identify"]
+    assert uses["fit"] == "--model passive only, until resampled"
+
+
+def test_twitches_that_flex_the_knee_are_each_legs_verdict():
+    """A flipped angle: check warns, and its verdict says identify will refuse the twitches."""
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=1.0, seed=1, trials=(1,))
+    t = cohort.trials[0]
+    flipped = Cohort((t.replace(angle_deg=-t.angle_deg, velocity_deg_s=-t.velocity_deg_s,
+                                acceleration_deg_s2=-t.acceleration_deg_s2),))
+    with pytest.warns(DataWarning, match="positive in flexion"):
+        uses = run_check(flipped).legs["TN-left"]
+    assert uses["identify"].startswith("no: its twitches flex the knee"), uses
+    assert run_check(cohort).legs["TN-left"]["identify"].startswith("models 1-3")
 
 
 def _copy(folder, tmp_path):

@@ -21,7 +21,10 @@ from ..common._io import file_stems, save_figure
 from ..common._results import Result
 from ..data._cohort import Cohort, Trial
 from ..data._interchange import DataWarning, charge_scales, check_cohort, load_cohort
+from ..data._interchange import twitch_direction
+from ..data._paper import MAX_DELAY
 from ..inference._identify import (
+    DelayRangeError,
     MIN_PASSIVE_SAMPLES,
     MIN_TWITCHES,
     PASSIVE_MAX_ANGLE_DEG,
@@ -174,6 +177,19 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
     isolated = [_isolated(t) for t in cohort]
     rows = [trial_row(t, scales.get(t.key), i) for t, i in zip(cohort, isolated)]
     legs = {leg: leg_uses([r for r in rows if r["leg"] == leg], identification_trial) for leg in cohort.legs}
+    for t in cohort:  # an identification trial whose twitches flex the knee: identify refuses it
+        uses = legs[t.key]
+        if t.trial == identification_trial and uses["identify"].startswith("models") and twitch_direction(t):
+            uses["identify"] = uses["identify"].replace(
+                "models 1-3", "no: its twitches flex the knee (is angle_deg positive in flexion?), and identify "
+                "refuses twitches that do not extend it; with the sign turned, models 1-3", 1)
+    if period is not None and any(r["pulses"] for r in rows):
+        try:  # a period too short for a muscle's delays: identify and a muscle's fit refuse it
+            check_delay_range(period, muscle=True, warn=False)
+        except DelayRangeError:
+            resample = (f"no: at {period * 1000:g} ms the delays considered reach {MAX_DELAY * period * 1000:g} ms, "
+                        "short of a muscle's; resample first (`quadshank convert DATA data.nc --resample 0.01`)")
+            legs = {leg: {"identify": resample, "fit": "--model passive only, until resampled"} for leg in legs}
     if mixed:
         refused = "no: the trials are sampled at different periods (resample them: `quadshank convert --resample`)"
         legs = {leg: {"identify": refused, "fit": refused} for leg in legs}

@@ -289,7 +289,7 @@ def plausibility(trial: Trial) -> list[str]:
         return glitches
     stimulated = bool(np.any(trial.stimulation > 0))
     found = glitches + _markers(trial) + _faint_pulses(trial) + _pulse_runs(trial) \
-        + (_rest_plausibility(trial) + _twitch_direction(trial) + _unmoved_pulses(trial) if stimulated
+        + (_rest_plausibility(trial) + twitch_direction(trial) + _unmoved_pulses(trial) if stimulated
            else _pendulum_plausibility(trial))
     checks = [("acceleration_deg_s2", 2, "deg/s²")] if trial.acceleration_measured else []
     if trial.velocity_measured:
@@ -488,7 +488,7 @@ TWITCH_ONSETS_MIN = 8
 TWITCH_FALL_SE = 3.0
 
 
-def _twitch_direction(trial: Trial) -> list[str]:
+def twitch_direction(trial: Trial) -> list[str]:
     """A stimulated trial whose angle falls after its pulses: the quadriceps extends the knee, so
     after a pulse that starts a twitch (none in the :data:`TWITCH_REACH_S` before it) the angle's
     acceleration (derived from the angle, as the model sees it) should rise.  A fall of
