@@ -635,6 +635,18 @@ def test_an_earlier_output_of_the_same_command_is_written_over(base, tmp_path, c
     _assert_refused(rc, lines, [str(other), "no earlier output of `quadshank identify`"], None)
 
 
+def test_overwrite_never_replaces_another_commands_summary(base, tmp_path, capsys):
+    """--overwrite into a fit's folder would swap its summary.json for identify's and leave a folder
+    that is neither: refused before any work, the fit's summary kept."""
+    fitdir = tmp_path / "fit"
+    fitdir.mkdir()
+    summary = '{"schema": "quadshank/fit", "model": "model3"}'
+    (fitdir / "summary.json").write_text(summary)
+    rc, lines = _run(COMMANDS["identify"](base / "data", fitdir) + ["--overwrite"], capsys)
+    _assert_refused(rc, lines, [str(fitdir), "holds the output of `quadshank fit`"], None)
+    assert (fitdir / "summary.json").read_text() == summary and sorted(p.name for p in fitdir.iterdir()) == ["summary.json"]
+
+
 def test_a_rerun_removes_what_its_earlier_run_wrote_and_keeps_the_users_files(base, tmp_path, capsys):
     """A rerun into its own earlier output leaves no figure of a leg the new data lack; a file the
     user put there stays, and a mark edited to name a file outside the folder removes nothing there."""

@@ -219,6 +219,18 @@ def _earlier_output(out: Path, command: str) -> bool:
     return False
 
 
+def _other_summary(out: Path, command: str) -> str | None:
+    """The command whose ``summary.json`` ``out`` holds, where that is another command's (None otherwise)."""
+    try:
+        doc = read_json(out / "summary.json")
+    except (OSError, ValueError):
+        return None
+    kind = doc.get("schema", "").removeprefix("quadshank/") if isinstance(doc, dict) else ""
+    if not kind or kind in OUTPUT_KINDS.get(command, set()):
+        return None
+    return next((name for name, kinds in OUTPUT_KINDS.items() if kind in kinds), kind)
+
+
 def prepare_output(out: Path, command: str, inputs, overwrite: bool = False):
     """Check the output folder before any work: a folder (or a name for a new one) that is
     writable, not inside or equal to an input, and new, empty or an earlier output of the same
@@ -250,6 +262,11 @@ def prepare_output(out: Path, command: str, inputs, overwrite: bool = False):
         raise FileExistsError(
             f"{out}: the folder is not empty and holds no earlier output of `quadshank {command}`; give a new "
             "folder (or --overwrite to write into it: files of the same names are replaced, others kept)")
+    other = _other_summary(out, command) if foreign else None
+    if other:
+        raise FileExistsError(
+            f"{out}: holds the output of `quadshank {other}` (its summary.json), which --overwrite would replace with "
+            f"this command's and leave a folder that is neither; give a folder of its own")
     if out.is_dir() and not foreign:
         _remove_earlier_files(out)
     (out / "summary.json").unlink(missing_ok=True)
