@@ -409,12 +409,15 @@ def test_predict_rolls_the_posterior_through_a_plan_as_evaluate_does(made, capsy
     capsys.readouterr()
     assert main(["predict", str(made["fit"]), "--stimulation", str(plan), "--angle0", "-5", "--draws", "8",
                  "--out", str(out)]) == 0
-    assert "TN-left: from -5° the angle ranges over" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "TN-left: from -5° the angle ranges over" in err
+    assert f"quadshank: warning: {made['fit']}: FIT FAILED ITS CHECKS" in err  # one chain: its bands are not to be trusted
     rows = list(csv.reader((out / "predictions.csv").open()))
     assert rows[0][:2] == ["time_s", "stimulation"] and "JM-left median [deg]" in rows[0]
     assert len(rows) == 301 and float(rows[1][rows[0].index("TN-left median [deg]")]) == pytest.approx(-5.0, abs=1e-3)
     s = json.loads((out / "summary.json").read_text())
     assert s["schema"] == "quadshank/prediction" and s["legs"] == list(LEGS) and s["samples"] == 300
+    assert s["banner"].startswith("FIT FAILED ITS CHECKS")
     assert (out / "predictions.png").stat().st_size > 10_000
     lo = np.array([float(r[rows[0].index("TN-left lo [deg]")]) for r in rows[1:]])
     hi = np.array([float(r[rows[0].index("TN-left hi [deg]")]) for r in rows[1:]])

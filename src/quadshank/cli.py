@@ -662,6 +662,8 @@ def cmd_predict(args) -> int:
     legs = _csv_list(args.legs, "--legs") if args.legs else None
     summary = run_predict(args.fitdir, args.plan, args.out, legs=legs,
                           angle0=args.angle0, velocity0=args.velocity0, n_draws=args.draws, seed=args.seed)
+    if summary.banner:
+        print(f"quadshank: warning: {args.fitdir}: {summary.banner}", file=sys.stderr)
     for leg, e in summary.extremes.items():
         _say(args, f"{leg}: from {args.angle0:g}° the angle ranges over [{e['min_deg']:.1f}, {e['max_deg']:.1f}]° "
                    f"(90 % band) and ends at {e['end']['median']:.1f}° [{e['end']['lo']:.1f}, {e['end']['hi']:.1f}]")

@@ -45,6 +45,7 @@ class PlanPrediction(Result):
     plan_columns: list | None = None  # a stimulator's columns the plan gave, made each leg's levels; None: levels
     fitted_angle_range_deg: dict | None = None  # leg -> [lowest, highest] angle of the samples the fit saw
     beyond_fitted_range: dict | None = None  # leg -> the start or predicted angle beyond that range by more than the margin
+    banner: str | None = None  # the fit's, where it failed its checks: its bands come from draws not to be trusted
 
 
 #: How far [deg] a start or a predicted median may leave the angles the fit saw before a warning
@@ -136,7 +137,8 @@ def run_predict(
     shown = planned.stimulation if planned.stimulation is not None else planned.charge
     ylabel = None if planned.unit is None else (
         {"µs": "pulse width", "mA": "current"}.get(planned.unit, "pulse charge") + f" [{planned.unit}]")
-    save_figure(plot_plan_predictions(time_s, shown, bands, fit.label, ylabel=ylabel,
+    label = fit.label + (" — FIT FAILED ITS CHECKS" if fit.summary.banner else "")
+    save_figure(plot_plan_predictions(time_s, shown, bands, label, ylabel=ylabel,
                                       fitted_range={leg: r for leg, r in seen.items() if r is not None}),
                 out / "predictions.png")
     used = min(n_draws, fit.idata.posterior.sizes["chain"] * fit.idata.posterior.sizes["draw"])
@@ -148,6 +150,7 @@ def run_predict(
                        "max_deg": float(b["hi"].max()), "min_deg": float(b["lo"].min())} for leg, b in bands.items()},
         fitted_angle_range_deg={leg: [round(r[0], 3), round(r[1], 3)] for leg, r in seen.items() if r is not None},
         beyond_fitted_range=beyond,
+        banner=fit.summary.banner,
     )
     result.write(out)
     return result
