@@ -704,7 +704,12 @@ def test_a_delay_piled_at_the_longest_considered_is_a_warning():
     (said,) = [w for w in diag["warnings"] if "longest delay considered" in w]
     assert f"{N_DELAYS - 1} samples ({(N_DELAYS - 1) * 10} ms)" in said and "B 0.35" in said and "A " not in said
     quiet = diagnose_sampling(_two_chain_fit([[tail, tail], [tail, tail]]))
-    assert quiet["delay_at_edge"] == {} and quiet["warnings"] == []
+    assert quiet["delay_at_edge"] == {} and quiet["delay_at_zero"] == {} and quiet["warnings"] == []
+    onset = 0.7 * _peaked(0, 0.0) + 0.3 * _peaked(1, 0.0)  # a twitch at its pulse: no muscle's
+    zero = diagnose_sampling(_two_chain_fit([[onset, tail], [onset, tail]]))
+    assert zero["delay_at_zero"] == {"A": 0.7} and zero["delay_at_edge"] == {}
+    (said,) = [w for w in zero["warnings"] if "at no delay" in w]
+    assert "A 0.70" in said and "B " not in said and "identify" in said
 
 
 def test_parameters_the_data_barely_inform_are_named_and_so_is_one_that_holds_the_fit_back():

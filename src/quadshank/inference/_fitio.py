@@ -312,16 +312,17 @@ def _weak_lagging(worst: dict | None, weak: dict) -> str | None:
 DELAY_EDGE_P = 0.2
 
 
-def delay_at_edge(idata) -> dict[str, float]:
+def delay_at_edge(idata, at: int = -1) -> dict[str, float]:
     """The legs whose delay posterior holds at least :data:`DELAY_EDGE_P` at the longest delay
-    considered, with that probability (none for the pendulum alone, which has no delay)."""
+    considered (``at=0``: at no delay, the shortest), with that probability (none for the
+    pendulum alone, which has no delay)."""
     attrs = idata.posterior.attrs
     effects = from_json(attrs["quadshank_model"])["effects"] if "quadshank_model" in attrs else ()
     if "no_muscle" in effects or "delay_logp" not in idata.posterior:
         return {}
     p = np.exp(np.asarray(idata.posterior["delay_logp"], np.float64)).mean(axis=(0, 1))  # (leg, D)
     legs = [str(x) for x in idata.posterior["leg"].values]
-    return {leg: round(float(p[i, -1]), 3) for i, leg in enumerate(legs) if p[i, -1] >= DELAY_EDGE_P}
+    return {leg: round(float(p[i, at]), 3) for i, leg in enumerate(legs) if p[i, at] >= DELAY_EDGE_P}
 
 
 def _where(ds, largest: bool) -> dict | None:
@@ -430,6 +431,15 @@ def diagnose_sampling(idata) -> dict:
             + ("; resampled to 10 ms (`quadshank convert DATA data.nc --resample 0.01`) the delays considered reach "
                "100 ms" if period < SAMPLING_PERIOD_S * (1 - 1e-6) else "")
         )
+    zero = delay_at_edge(idata, at=0)
+    if zero:
+        cautions.append(
+            f"the delay's posterior holds at least {DELAY_EDGE_P:g} at no delay (0 samples): "
+            + ", ".join(f"{leg} {p:.2f}" for leg, p in zero.items()) + ". No muscle's twitch starts with its pulse "
+            "(25-50 ms after it): the model's twitch is then shaped otherwise than the recorded one, and its d is where "
+            "the model's twitch fits best, not the onset (model 3's twitch is a single sample). `quadshank identify` "
+            "gives the delay at the twitch's onset, and model2 or model3s (`--model`) a twitch with a shape"
+        )
     weak = weakly_informed(idata)
     if weak:
         cautions.append(
@@ -469,6 +479,7 @@ def diagnose_sampling(idata) -> dict:
         "delay_splits": splits,
         "delay_missed": missed,
         "delay_at_edge": edge,
+        "delay_at_zero": zero,
         "weakly_informed": weak,
         "mode_jumps": mode_jumps,
         "chains": int(chains),
