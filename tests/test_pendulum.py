@@ -113,6 +113,7 @@ def test_a_fit_marks_what_a_pendulum_leg_cannot_inform(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "PT-left: no pulses in the fitted trials: its delay and gain are the prior's" in err
     assert "TN-left: " not in " ".join(line for line in err.splitlines() if "prior's" in line)
+    assert "PT-left: P(d) is the prior's" in err and "PT-left: P(d) mode" not in err and "TN-left: P(d) mode" in err
     s = json.loads((tmp_path / "fit" / "summary.json").read_text())
     assert s["uninformed"] == {"PT-left": {"pulses": 0, "params": ["gain"], "delay": True, "why": "no pulses"}}
     assert main(["-q", "report", str(tmp_path / "fit"), "--out", str(tmp_path / "report"), "--draws", "5",
@@ -141,6 +142,7 @@ def test_fit_model_passive_recovers_the_pendulum_with_the_release_excluded(tmp_p
     # 2 × 400 draws do not always explore to the checks' ESS; the curve and D' are what must be right
     assert rc in (0, 3) and s["diagnostics"]["rhat_max"] < 1.05 and s["diagnostics"]["divergences"] <= 5
     assert "uninformed" not in s and s["model"] == "passive"
+    assert "delay_evidence_seconds" not in s  # no muscle: no delay to weigh
     assert s["likelihood"] == "angle" and s["legs"]["PT-left"]["params"]["sigma"]["units"] == "deg"
     # the angle's noise: the goniometer's 0.05° (the free runs follow the swing)
     assert all(0.03 < s["legs"][leg]["params"]["sigma"]["median"] < 0.08 for leg in s["legs"])

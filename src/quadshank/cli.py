@@ -457,7 +457,10 @@ def cmd_fit(args) -> int:
     )
     for leg, s in summary.legs.items() if "no_muscle" not in summary.effects else ():  # the pendulum alone: no delay
         p = s["delay_posterior"]
-        _say(args, f"{leg}: P(d) mode {s['delay_mode_samples']} samples ({max(p):.2f})")
+        if leg in (summary.uninformed or {}):  # no pulses to inform it: the prior's mode says nothing
+            _say(args, f"{leg}: P(d) is the prior's (too few pulses to inform it)")
+        else:
+            _say(args, f"{leg}: P(d) mode {s['delay_mode_samples']} samples ({max(p):.2f})")
     diag = summary.diagnostics
     _say(
         args,

@@ -499,13 +499,14 @@ def run_nuts(
     t0 = time.perf_counter()
     screen = fit_screen(cohort, model, settings, legs=legs, progress=progress)
     evidence, moved, evidence_seconds, modes = None, {}, None, None
-    if screen is not None and settings.delay_evidence:
+    muscle = model.activation.name != "no_muscle"  # the pendulum alone has no delay to weigh or jump between
+    if screen is not None and settings.delay_evidence and muscle:
         if progress:
             print("fit: each leg's delays weighed by a Laplace approximation per delay", file=sys.stderr, flush=True)
         t1 = time.perf_counter()
         screen, evidence, moved, modes = delay_start(cohort, settings, screen, log_delay_prior, progress=progress)
         evidence_seconds = time.perf_counter() - t1
-    jumps = (modes, evidence) if settings.mode_jumps else None
+    jumps = (modes, evidence) if settings.mode_jumps and muscle else None
     with jax.enable_x64(True):
         mcmc, data = _fit(cohort, model, settings, legs, progress, log_delay_prior, screen, started=t0, jumps=jumps)
     # JAX dispatches asynchronously: the draws may still be computing when the run returns
