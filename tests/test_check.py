@@ -110,6 +110,7 @@ def test_the_output_folder_holds_the_table_a_figure_per_trial_and_the_summary(fo
     assert "| TN-left | 2 |" in (out / "recordings.md").read_text()
     figures = [f for f in result.files if f.endswith(".png")]
     assert len(figures) == 6 and "recording_TN-left_trial2.png" in figures
+    assert [r[head.index("figure")] for r in body] == [r["figure"] for r in result.trials] == figures
     assert all((out / f).stat().st_size > 10_000 for f in figures)
     back = Check.read(out)
     assert back.to_json() == json.loads(json.dumps(result.to_json()))

@@ -198,14 +198,15 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
+        stems = file_stems(cohort.legs)  # a subject's name may hold '/' or be longer than a file name
+        for t, r in zip(cohort, rows):  # which figure is whose, where two names meet in one file name
+            r["figure"] = f"recording_{stems[t.key]}_trial{t.trial}.png"
         write_table(rows, out, "recordings", "The recordings as read")
         files = ["recordings.csv", "recordings.md"]
-        stems = file_stems(cohort.legs)  # a subject's name may hold '/' or be longer than a file name
         for t, r, i in zip(cohort, rows, isolated):
-            name = f"recording_{stems[t.key]}_trial{t.trial}.png"
             title = f"{r['pulses']} pulses, {r['isolated_twitches']} isolated twitches" if r["pulses"] else NO_PULSES
-            save_figure(plot_recording(t, i, title), out / name)
-            files.append(name)
+            save_figure(plot_recording(t, i, title), out / r["figure"])
+            files.append(r["figure"])
         result.files = files
         result.write(out)
     return result
