@@ -50,6 +50,14 @@ def test_model_structure_is_checked():
         Model(z.effects + (z.effects[-1],))
     with pytest.raises(KeyError, match="no parameter"):
         z.with_params(gamma_angle=0.1)
+    # a delay outside the samples the history holds would be clamped or wrapped by the index
+    for delay in (-1, 11, 2.5, "4"):
+        with pytest.raises(ValueError, match="delay must be a whole number of samples from 0 to 10"):
+            z.with_params(delay=delay)
+    assert z.with_params(delay=np.arange(11)).delay.shape == (11,)  # one per draw
+    for period in (0.0, -0.01, float("nan"), 1.0):
+        with pytest.raises(ValueError, match="sampling_period_s must be a period in seconds"):
+            Model(z.effects, sampling_period_s=period)
 
 
 def test_free_swing_matches_accurate_ode_solution():

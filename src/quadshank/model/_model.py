@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..data._cohort import SAME_PERIOD_REL
+from ..data._cohort import MAX_SAMPLING_PERIOD_S, SAME_PERIOD_REL
 from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S
 from ._effects import (
     FIRST_IPI_S,
@@ -81,6 +81,21 @@ __all__ = [
 HISTORY = MAX_DELAY + 3
 
 
+def _check_delay(delay, name: str) -> None:
+    """Refuse a delay that is not a whole number of samples from 0 to MAX_DELAY (one per draw where
+    it is an array; a traced delay, inside a compiled function, is the program's to keep in range)."""
+    if isinstance(delay, jax.core.Tracer):
+        return
+    try:
+        d = np.asarray(delay)
+        bad = d.dtype.kind not in "iuf" or not np.all(np.isfinite(d)) or np.any(d != np.round(d)) \
+            or np.any(d < 0) or np.any(d > MAX_DELAY)
+    except (TypeError, ValueError):
+        bad = True
+    if bad:
+        raise ValueError(f"model {name!r}: delay must be a whole number of samples from 0 to {MAX_DELAY}, not {delay!r}")
+
+
 @dataclasses.dataclass(frozen=True)
 class Model:
     """A flat composition of effects with a delay of ``delay`` samples."""
@@ -105,6 +120,11 @@ class Model:
         clash = {n for n in pnames if pnames.count(n) > 1}
         if clash:
             raise ValueError(f"model {self.name!r}: parameter name(s) {sorted(clash)} declared by two effects")
+        _check_delay(self.delay, self.name)
+        period = self.sampling_period_s
+        if not isinstance(period, jax.core.Tracer) and not (np.isfinite(period) and 0 < period <= MAX_SAMPLING_PERIOD_S):
+            raise ValueError(f"model {self.name!r}: sampling_period_s must be a period in seconds, above 0 and at most "
+                             f"{MAX_SAMPLING_PERIOD_S:g}, not {period!r}")
 
     # ------------------------------------------------------------------ structure
     @property
@@ -522,6 +542,12 @@ def predict_ahead(model: Model, angle, velocity, stimulation, starts, horizon: i
     drives the rollout.  Returns an array (len(starts), horizon) whose column
     j-1 is the predicted angle j samples after the start.  Vectorised over starts.
     """
+    if not isinstance(starts, jax.core.Tracer):  # an index beyond the recording would be clamped to its end
+        n, at = np.shape(stimulation)[0], np.asarray(starts)
+        outside = at[(at < 0) | (at >= n)] if at.dtype.kind in "iu" else at
+        if outside.size:
+            raise ValueError(f"starts: {', '.join(map(str, outside[:5].tolist()))} lie outside the recording's "
+                             f"samples 0..{n - 1} (or are not whole numbers)")
     return _predict_ahead(model, angle, velocity, stimulation, jnp.asarray(starts), horizon)
 
 
