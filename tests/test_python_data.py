@@ -76,3 +76,49 @@ def test_a_valid_trial_is_checked_once_and_warned_of_as_read_from_a_file(trial):
         warnings.simplefilter("error")
         check_cohort(flipped)  # checked already: no second warning
         check_cohort(simulate_cohort(legs=["TN-left"], minutes=0.2, seed=1, trials=(1,))[0])  # made within the rules
+
+
+def test_arguments_a_wrong_index_would_clamp_or_wrap_are_refused(trial):
+    """Starts outside the recording, horizons below one sample, a leg given twice, a passive system
+    missing a parameter, integer trial numbers and an alpha outside (0, 1): each is named, not
+    silently clamped, wrapped, doubled or matched to nothing."""
+    from quadshank.evaluation import horizon_samples, sign_tests
+    from quadshank.inference import identify_leg
+    from quadshank.model._model import predict_ahead
+
+    model = paper_model(3)
+    signals = (trial.angle_deg, trial.velocity_deg_s, trial.stimulation)
+    for starts in ([trial.n_samples], [-1], [2.5]):
+        with pytest.raises(ValueError, match=rf"starts: .* lie outside the recording's samples 0\.\.{trial.n_samples - 1}"):
+            predict_ahead(model, *signals, np.array(starts), 5)
+    assert predict_ahead(model, *signals, np.array([0, trial.n_samples - 1]), 5).shape == (2, 5)
+    for horizons in ([-1, 10], [0], []):
+        with pytest.raises(ValueError, match="a horizon is a whole number of samples, at least 1"):
+            prediction_errors(model, trial, horizons)
+    with pytest.raises(ValueError, match="a horizon is a positive number of milliseconds"):
+        horizon_samples(0.01, (-100, 100))
+    cohort = Cohort((trial,))
+    with pytest.raises(ValueError, match="legs: JM-left given twice"):
+        prepare(cohort, model, legs=["JM-left", "JM-left"])
+    assert prepare(cohort, model, legs="JM-left").legs == ("JM-left",)  # one name, not its letters
+    with pytest.raises(ValueError, match="passive: give damping, gravity, k1, k2"):
+        identify_leg(trial, passive={"damping": 0.9})
+    J = {"a": {"L": {"2": {100: 1.0}}}, "b": {"L": {"2": {100: 2.0}}}}
+    assert sign_tests(J, trials=(2, 3)) == sign_tests(J, trials=("2", "3")) and len(sign_tests(J)) == 1
+    with pytest.raises(ValueError, match="alpha must lie between 0 and 1"):
+        sign_tests(J, alpha=2)
+
+
+def test_a_derived_signal_is_derived_again_when_the_angle_or_the_period_changes(trial):
+    """``Trial.replace`` of the angle or the period re-derives what was derived from the angle,
+    as ``from_signals`` would; a measured signal, or one given, is kept."""
+    doubled = trial.replace(angle_deg=2 * trial.angle_deg)
+    fresh = Trial.from_signals("JM", "left", 1, trial.sampling_period_s, 2 * trial.angle_deg, None, trial.stimulation)
+    np.testing.assert_allclose(doubled.velocity_deg_s, fresh.velocity_deg_s, atol=1e-9)
+    np.testing.assert_allclose(doubled.acceleration_deg_s2, fresh.acceleration_deg_s2, atol=1e-6)
+    slower = trial.replace(sampling_period_s=2 * trial.sampling_period_s, time_s=2 * trial.time_s)
+    assert np.std(slower.velocity_deg_s) == pytest.approx(np.std(trial.velocity_deg_s) / 2, rel=0.05)
+    given = trial.replace(angle_deg=2 * trial.angle_deg, velocity_deg_s=trial.velocity_deg_s)
+    np.testing.assert_array_equal(given.velocity_deg_s, trial.velocity_deg_s)
+    measured = trial.replace(acceleration_measured=True).replace(angle_deg=2 * trial.angle_deg)
+    np.testing.assert_array_equal(measured.acceleration_deg_s2, trial.acceleration_deg_s2)

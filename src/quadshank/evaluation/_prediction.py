@@ -44,6 +44,9 @@ def horizon_samples(sampling_period_s: float, horizons_ms=HORIZONS_MS) -> dict[i
     """``{horizon_ms: samples}``: each horizon [ms] as whole samples of ``sampling_period_s``, the
     nearest (at least one).  At the paper's 10 ms: 100, 250, 500, 1000 ms are 10, 25, 50, 100
     samples; at 20 ms, 250 ms is 12 samples (240 ms) and keeps its name."""
+    bad = [h for h in horizons_ms if not (isinstance(h, (int, float, np.integer, np.floating)) and np.isfinite(h) and h > 0)]
+    if bad or not len(horizons_ms):
+        raise ValueError(f"horizons_ms: {bad or 'none'}; a horizon is a positive number of milliseconds")
     return {int(h): max(1, int(round(h / 1000.0 / sampling_period_s))) for h in horizons_ms}
 
 
@@ -81,6 +84,9 @@ def prediction_errors(model: Model, trial: Trial, horizons=None) -> dict[int, fl
     check_cohort(Cohort((trial,)))  # a trial built in Python meets the rules a file's does
     if horizons is None:
         horizons = tuple(horizon_samples(trial.sampling_period_s).values())
+    bad = [p for p in horizons if isinstance(p, bool) or not isinstance(p, (int, np.integer)) or p < 1]
+    if bad or not len(horizons):
+        raise ValueError(f"horizons: {bad or 'none'}; a horizon is a whole number of samples, at least 1")
     horizon = max(horizons)
     starts, pred = predictions(model, trial, horizon)
     out = {}
@@ -147,7 +153,11 @@ class DivergedPredictionWarning(DataWarning):
 
 
 def sign_tests(J: dict, trials=("2", "3"), alpha: float = ALPHA) -> list[dict]:
-    """The paper's pairwise sign test between models, per horizon, over legs × trials."""
+    """The paper's pairwise sign test between models, per horizon, over legs × trials (numbered as
+    ``J``'s keys: ``"2"``; a number is taken as its text)."""
+    if not 0 < alpha < 1:
+        raise ValueError(f"alpha must lie between 0 and 1, not {alpha}")
+    trials = tuple(str(t) for t in trials)
     names = sorted(J)
     out = []
     for a, b in itertools.combinations(names, 2):

@@ -573,6 +573,9 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
     """Identify the passive system and models 1–3 from one trial of one leg."""
     check_cohort(Cohort((trial,)))  # a trial built in Python meets the rules a file's does
     where = f"{trial.key} trial {trial.trial}"
+    if passive is not None and not set(_PASSIVE_NAMES) <= set(passive) <= {*_PASSIVE_NAMES, "gravity_angle"}:
+        raise ValueError(f"passive: give {', '.join(_PASSIVE_NAMES)} (and gravity_angle where gravity acts about "
+                         f"another angle), not {', '.join(map(str, passive))}")
     if passive is None:
         passive, p_rms, n_quiet, p_se = _passive_equation_error([trial])
     else:

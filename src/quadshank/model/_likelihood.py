@@ -412,7 +412,10 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None, objective: str
     resolution = getattr(act, "resolution", "sample")
     R = response_length(model)
     K = max_shift(model)
-    legs = tuple(legs) if legs is not None else cohort.legs
+    legs = (legs,) if isinstance(legs, str) else tuple(legs) if legs is not None else cohort.legs
+    twice = sorted({leg for leg in legs if legs.count(leg) > 1})
+    if twice:  # its data would enter the likelihood twice, as two legs of the hierarchy
+        raise ValueError(f"legs: {', '.join(twice)} given twice")
     trials = tuple(int(t) for t in trials)
     gap = MAX_DELAY + R + 1
     per_leg = []
