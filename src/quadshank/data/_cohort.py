@@ -267,6 +267,17 @@ class Trial:
         )
 
     def replace(self, **changes) -> Trial:
+        """A copy with ``changes``.  A velocity or an acceleration derived from the angle (not
+        measured) is derived again where the angle, the period or the excluded samples change
+        and it is not given: the old one would be the old angle's."""
+        if {"angle_deg", "sampling_period_s", "exclude"} & set(changes):
+            angle = np.asarray(changes.get("angle_deg", self.angle_deg), dtype=float)
+            period = float(changes.get("sampling_period_s", self.sampling_period_s))
+            exclude = changes.get("exclude", self.exclude)
+            for name, derive, measured in (("velocity_deg_s", derive_velocity, "velocity_measured"),
+                                           ("acceleration_deg_s2", derive_acceleration, "acceleration_measured")):
+                if name not in changes and not changes.get(measured, getattr(self, measured)):
+                    changes[name] = _derived_by_stretch(derive, angle, period, exclude)
         return dataclasses.replace(self, **changes)
 
 
