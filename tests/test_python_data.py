@@ -122,3 +122,48 @@ def test_a_derived_signal_is_derived_again_when_the_angle_or_the_period_changes(
     np.testing.assert_array_equal(given.velocity_deg_s, trial.velocity_deg_s)
     measured = trial.replace(acceleration_measured=True).replace(angle_deg=2 * trial.angle_deg)
     np.testing.assert_array_equal(measured.acceleration_deg_s2, trial.acceleration_deg_s2)
+
+
+def test_settings_and_declarations_of_the_wrong_type_are_refused_where_they_are_made(scratch_registry):
+    """FitSettings, Param and register_effect refuse what numpyro, numpy or a fit would trip over
+    later: a fractional or text count, a truthy string for a flag, a bare trial number, a prior
+    that does not fit the parameter's shape or support, a mutable effect."""
+    import dataclasses
+
+    from quadshank import Effect, Param, register_effect
+    from quadshank.inference import FitSettings
+
+    for kw, said in (({"chains": 2.7}, "chains (--chains) must be a whole number, not 2.7"),
+                     ({"draws": "100"}, "draws (--draws) must be a whole number, not '100'"),
+                     ({"centred": "no"}, "centred must be True or False"),
+                     ({"trials": 1}, "trials: give the trial numbers to fit"), ({"trials": (0,)}, "trials: give")):
+        with pytest.raises(ValueError, match=said.replace("(", r"\(").replace(")", r"\)")):
+            FitSettings(**kw)
+    assert FitSettings(trials=[1, 2]).trials == (1, 2)
+    for kw, said in ((dict(name=5, units="x"), "must be a Python identifier"),
+                     (dict(name="x", units=None), "units must be a string"),
+                     (dict(name="x", units="1", support="negative", prior=("lognormal", 0.0, 1.0)), "lognormal prior"),
+                     (dict(name="v", units="", prior=("normal", (0, 0, 0), (1, 1, 1)), shape=(2,)), "3 components"),
+                     (dict(name="w", units="", shape=(-1,)), "sizes of at least 1")):
+        with pytest.raises(ValueError, match=said):
+            Param(**kw)
+
+    @dataclasses.dataclass
+    class Mutable(Effect):
+        kind = "gain"
+        name = "mutable_gain"
+        params = (Param("c", "1/deg"),)
+        c: float = 0.0
+
+    with pytest.raises(TypeError, match="must be a frozen dataclass"):
+        register_effect(Mutable)
+
+    @dataclasses.dataclass(frozen=True)
+    class Twice(Effect):
+        kind = "gain"
+        name = "twice_gain"
+        params = (Param("c", "1/deg"), Param("c", "1/deg"))
+        c: float = 0.0
+
+    with pytest.raises(TypeError, match=r"parameter\(s\) \['c'\] declared twice"):
+        register_effect(Twice)

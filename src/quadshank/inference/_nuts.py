@@ -140,6 +140,18 @@ class FitSettings:
     precision: str = "mixed"
 
     def __post_init__(self):
+        for name in ("chains", "warmup", "draws", "max_tree_depth", "seed", "target_ess"):
+            v = getattr(self, name)
+            if (v is not None or name != "target_ess") and (isinstance(v, bool) or not isinstance(v, (int, np.integer))):
+                raise ValueError(f"{_named(name)} must be a whole number, not {v!r}")
+        for name in ("centred", "dense_mass", "adapt_metric", "delay_evidence", "mode_jumps"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"{name} must be True or False, not {getattr(self, name)!r}")
+        trials = self.trials
+        if isinstance(trials, (str, bytes)) or not hasattr(trials, "__iter__") or any(
+                isinstance(t, bool) or not isinstance(t, (int, np.integer)) or t < 1 for t in trials):
+            raise ValueError(f"trials: give the trial numbers to fit, whole numbers from 1 (a tuple: (1,)), not {trials!r}")
+        object.__setattr__(self, "trials", tuple(int(t) for t in trials))
         if self.start not in STARTS:
             raise ValueError(f"start must be one of {', '.join(STARTS)}, not {self.start!r}")
         if self.chain_method not in CHAIN_METHODS:

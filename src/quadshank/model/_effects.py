@@ -84,6 +84,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from typing import Any, ClassVar, NamedTuple
 
 import jax
@@ -185,6 +186,13 @@ class Param:
     shape: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name.isidentifier():
+            raise ValueError(f"parameter {self.name!r}: its name must be a Python identifier (a string)")
+        if not isinstance(self.units, str):
+            raise ValueError(f"parameter {self.name!r}: units must be a string ('' for none), not {self.units!r}")
+        if not isinstance(self.shape, tuple) or any(
+                isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1 for n in self.shape):
+            raise ValueError(f"parameter {self.name!r}: shape {self.shape!r} must be () or a tuple of sizes of at least 1")
         if self.level not in LEVELS:
             raise ValueError(f"parameter {self.name!r}: level {self.level!r} not in {LEVELS}")
         if self.support not in SUPPORTS:
@@ -200,6 +208,13 @@ class Param:
         if loc is None or not (np.all(np.isfinite(loc)) and np.all(np.isfinite(scale)) and np.all(scale > 0)):
             raise ValueError(f"parameter {self.name!r}: prior {self.prior!r} must be ({self.prior[0]!r}, location, scale) "
                              "with finite numbers and a positive scale")
+        size = int(np.prod(self.shape))
+        if any(np.size(a) not in (1, size) for a in (loc, scale)):
+            raise ValueError(f"parameter {self.name!r}: prior {self.prior!r} gives {max(np.size(loc), np.size(scale))} "
+                             f"components for a parameter of shape {self.shape}")
+        if self.prior[0] == "lognormal" and self.support != "positive":
+            raise ValueError(f"parameter {self.name!r}: a lognormal prior draws positive values only, and its support "
+                             f"is {self.support!r}; declare support='positive' or a normal prior")
 
     def from_standard(self, z, *, xp=np, dtype=np.float64, flat: bool = False):
         """:func:`from_standard` with this parameter's prior and shape."""
@@ -306,7 +321,7 @@ _REGISTRY: dict[str, type[Effect]] = {}
 
 def register_effect(cls: type[Effect]) -> type[Effect]:
     """Register an effect class: a JAX pytree over its declared parameters, listed by name."""
-    if not dataclasses.is_dataclass(cls):
+    if not dataclasses.is_dataclass(cls) or not cls.__dataclass_params__.frozen:
         raise TypeError(f"{cls.__name__} must be a frozen dataclass (decorate with @dataclasses.dataclass(frozen=True))")
     if cls.kind not in KINDS:
         raise TypeError(f"{cls.__name__}.kind must be one of {', '.join(KINDS)}, not {cls.kind!r}")
@@ -314,6 +329,9 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
         raise TypeError(f"{cls.__name__} needs a class attribute 'name'")
     fields = [f.name for f in dataclasses.fields(cls)]
     param_names = [p.name for p in cls.params]
+    twice = sorted({n for n in param_names if param_names.count(n) > 1})
+    if twice:
+        raise TypeError(f"{cls.__name__}: parameter(s) {twice} declared twice")
     missing = [n for n in param_names if n not in fields]
     if missing:
         raise TypeError(f"{cls.__name__}: declared parameters {missing} are not dataclass fields")
@@ -323,6 +341,9 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
     builtin = _REGISTRY.get(cls.name)
     if builtin is not None and builtin.__module__ == __name__ and cls.__module__ != __name__:
         raise TypeError(f"{cls.__name__}: the name {cls.name!r} is a built-in effect's; give the effect a name of its own")
+    if builtin is not None and (builtin.__module__, builtin.__qualname__) != (cls.__module__, cls.__qualname__):
+        warnings.warn(f"effect {cls.name!r}: {cls.__module__}.{cls.__qualname__} replaces {builtin.__module__}."
+                      f"{builtin.__qualname__}, registered under that name before", stacklevel=2)
     discrete = list(getattr(cls, "discrete", ()))
     meta = [n for n in fields if n not in param_names and n not in discrete]
     register_pytree(cls, param_names + discrete, meta)
