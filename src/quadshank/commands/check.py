@@ -20,8 +20,7 @@ import numpy as np
 from ..common._io import file_stems, save_figure
 from ..common._results import Result
 from ..data._cohort import Cohort, Trial
-from ..data._interchange import DataWarning, charge_scales, check_cohort, load_cohort
-from ..data._interchange import twitch_direction
+from ..data._interchange import DataWarning, charge_scales, check_cohort, load_cohort, twitch_direction
 from ..data._paper import MAX_DELAY
 from ..inference._identify import (
     DelayRangeError,

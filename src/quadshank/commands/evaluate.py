@@ -242,7 +242,7 @@ def run_posterior_evaluate(
     short = {label: n for label, n in held.items() if n < n_draws}
     if band_accuracy is None and short:
         warnings.warn(f"--draws {n_draws}: " + ", ".join(f"{label} holds {n}" for label, n in short.items())
-                      + "; its bands come from every draw it holds", DataWarning, stacklevel=2)
+                      + "; such a fit's bands come from every draw it holds", DataWarning, stacklevel=2)
 
     t0 = time.perf_counter()
     accuracy = {}
