@@ -221,6 +221,26 @@ def test_signals_that_are_not_finite_are_refused_not_fed_to_least_squares():
         identify_cohort(Cohort((t.replace(acceleration_deg_s2=acc),)))
 
 
+def test_a_delay_at_the_longest_considered_is_warned_of_and_kept_in_the_report(tmp_path):
+    """Pulses logged 7 samples before the stimulator fired put model 2's best delay beyond the scan: the
+    delay at its edge is warned of, and identify's summary and report keep what it warned of."""
+    import warnings
+
+    from quadshank.commands.identify import run_identify
+    from quadshank.data import Cohort, simulate_cohort
+
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=1.0, seed=1, trials=[1])
+    t = cohort.trials[0]
+    for shift, edge in ((7, True), (3, False)):
+        early = Cohort((t.replace(stimulation=np.roll(t.stimulation, -shift)),))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            result = run_identify(early, tmp_path / f"early{shift}")
+        said = [w for w in result.warnings if "the delay comes out at 10 samples (100 ms), the longest considered" in w]
+        assert (result.legs["TN-left"]["delay_samples"] == 10) == edge and bool(said) == edge, result.warnings
+        assert all(f"- {w}" in (tmp_path / f"early{shift}" / "report.md").read_text() for w in result.warnings)
+
+
 def test_a_free_run_that_diverges_from_its_start_is_named_with_what_to_do():
     """A start whose free run overflows (a stiff knee on 60° swings) is an identification error naming
     the trial and the way out, not scipy's "Residuals are not finite"."""

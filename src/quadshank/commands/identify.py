@@ -5,12 +5,14 @@ Tables I–IV, figures, ``report.md`` and, last, ``summary.json``; every file at
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..common._io import atomic_write_text, save_figure
 from ..data._cohort import Cohort
+from ..data._interchange import DataWarning
 from ..evaluation._classical_recovery import recovery, recovery_rows
 from ..inference._identify import PASSIVE_GRAVITY_REL_SE, Identification, identify_cohort, passive_separated
 from ..model._model import equivalent_acceleration
@@ -39,8 +41,15 @@ def run_identify(
     """Classical identification of every leg; Tables I–IV, figures, summary.json.
     ``passive_objective``, ``gravity_offset``: see :func:`~quadshank.inference.identify_cohort`."""
     out = Path(out)
-    ident = identify_cohort(cohort, trial=trial, progress=progress, passive_objective=passive_objective,
-                            gravity_offset=gravity_offset)
+    with warnings.catch_warnings(record=True) as caught:  # kept in the report and the summary, and said again
+        warnings.simplefilter("always", DataWarning)
+        ident = identify_cohort(cohort, trial=trial, progress=progress, passive_objective=passive_objective,
+                                gravity_offset=gravity_offset)
+    said = []
+    for w in caught:
+        if issubclass(w.category, DataWarning):
+            said.append(str(w.message))
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     md = [f"# Classical identification (trial {trial})", ""]
     md.append(write_table(table_passive(ident, truth), out / "tables", "passive", "Passive system (eq. 8)"))
     unseparated = [leg for leg, r in ident.items() if not passive_separated(r.passive, r.passive_se)]
@@ -73,7 +82,9 @@ def run_identify(
         save_figure(plot_signals(t2, np.asarray(mi)), out / "figures" / "fig2_signals.png")
         save_figure(plot_twitch_dependence(active[_pick("TN-left", active)]), out / "figures" / "fig3_4_twitch_dependence.png")
         save_figure(plot_delay_scan(active), out / "figures" / "delay_scan.png")
+    if said:
+        md += ["## Warnings", "", *[f"- {text}" for text in said], ""]
     atomic_write_text(out / "report.md", "\n".join(md))
-    result = Identification(trial=trial, sampling_period_s=cohort.sampling_period_s, legs=legs)
+    result = Identification(trial=trial, sampling_period_s=cohort.sampling_period_s, legs=legs, warnings=said)
     result.write(out)
     return result

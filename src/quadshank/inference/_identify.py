@@ -500,7 +500,8 @@ def _passive_free_run(trials, start: dict | None = None, gravity_offset: bool = 
         if fit is None:
             where = ", ".join(f"{t.key} trial {t.trial}" for t in trials)
             raise IdentificationError(
-                f"{where}: the free run of the passive system diverged from every start ({failed[0]}); fit the "
+                f"{where}: the free run of the passive system diverged from every start "
+                f"({failed[0] if failed else 'no finite error'}); fit the "
                 "acceleration instead (`identify --passive-objective acceleration`), or leave out the swings beyond "
                 "the knee's range (start_s, end_s or exclude)")
         n = int(sum(float(jnp.sum(w)) for *_, w in segments))
@@ -603,6 +604,12 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
     fits = [fit_darma(mi, u, pulses, d, epoch=epoch) for d in range(MAX_DELAY + 1)]
     residuals = np.array([f[3] for f in fits])
     d = int(np.argmin(residuals))
+    if d == MAX_DELAY:  # the scan's edge: the residual may fall further beyond it
+        warnings.warn(
+            f"{where}: the delay comes out at {MAX_DELAY} samples ({MAX_DELAY * dt * 1000:g} ms), the longest considered: "
+            "model 2's residual is lowest at the edge of the scan, and the muscle's delay may be longer"
+            + (" (resampled to 10 ms, `quadshank convert DATA data.nc --resample 0.01`, the delays considered reach "
+               "100 ms)" if dt < SAMPLING_PERIOD_S * (1 - 1e-6) else ""), DataWarning, stacklevel=3)
     a, b, c, _ = fits[d]
 
     # integrated twitch responses (per unit recruitment)
@@ -836,6 +843,7 @@ class Identification(Result):
     trial: int  # the identification trial
     sampling_period_s: float  # of the data identified; the models run at it
     legs: dict  # leg -> LegIdentification.summary() (and "recovery" where a truth was given)
+    warnings: list | None = None  # what the identification warned of, as printed
 
     def models(self) -> dict[str, dict[str, Model]]:
         """The identified models 1–3 of every leg (see :func:`models_from_summary`)."""
