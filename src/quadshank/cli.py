@@ -133,6 +133,12 @@ def _remove_earlier_files(out: Path) -> None:
             continue  # a mark edited by hand names nothing outside the folder
         if path.is_file() or path.is_symlink():
             path.unlink()
+    _remove_empty_folders(out)
+
+
+def _remove_empty_folders(out: Path) -> None:
+    """Remove the folders under ``out`` that hold nothing (deepest first, so a folder that held
+    only empty ones goes too)."""
     for folder in sorted((p for p in out.rglob("*") if p.is_dir() and not p.is_symlink()),
                          key=lambda p: len(p.parts), reverse=True):
         if not any(folder.iterdir()):
@@ -277,10 +283,7 @@ def prepare_output(out: Path, command: str, inputs, overwrite: bool = False):
         if failed and new and out.is_dir():
             # made for this output: the folders that nothing came of go (a round begun, say), then
             # the output folder itself where nothing else was written
-            for folder in sorted((p for p in out.rglob("*") if p.is_dir() and not p.is_symlink()),
-                                 key=lambda p: len(p.parts), reverse=True):
-                if not any(folder.iterdir()):
-                    folder.rmdir()
+            _remove_empty_folders(out)
             if not any(out.iterdir()):
                 out.rmdir()
                 return

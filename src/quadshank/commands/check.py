@@ -20,7 +20,7 @@ import numpy as np
 from ..common._io import file_stems, save_figure
 from ..common._results import Result
 from ..data._cohort import Cohort, Trial
-from ..data._interchange import DataWarning, charge_scales, check_cohort, load_cohort, twitch_direction
+from ..data._interchange import DataWarning, charge_scales, check_cohort, kept_warnings, load_cohort, twitch_direction
 from ..data._paper import MAX_DELAY
 from ..inference._identify import (
     DelayRangeError,
@@ -153,8 +153,7 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
     (and a sampling period too short for the delays considered) are returned and issued again.
     ``out``: where to write ``recordings.csv`` and ``recordings.md``, a figure per trial and
     ``summary.json`` (None: nothing written)."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", DataWarning)
+    with kept_warnings() as said:
         if isinstance(data, Cohort):
             cohort, data = check_cohort(data), "a cohort in memory"
         else:
@@ -167,11 +166,6 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
         else:
             mixed = None
             check_delay_range(period)  # what fit and identify would warn of at this period
-    said = []
-    for w in caught:
-        if issubclass(w.category, DataWarning):
-            said.append(str(w.message))
-        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     scales = charge_scales(cohort)
     isolated = [_isolated(t) for t in cohort]
     rows = [trial_row(t, scales.get(t.key), i) for t, i in zip(cohort, isolated)]

@@ -5,14 +5,13 @@ Tables I–IV, figures, ``report.md`` and, last, ``summary.json``; every file at
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..common._io import atomic_write_text, save_figure
 from ..data._cohort import Cohort
-from ..data._interchange import DataWarning
+from ..data._interchange import kept_warnings
 from ..evaluation._classical_recovery import recovery, recovery_rows
 from ..inference._identify import PASSIVE_GRAVITY_REL_SE, Identification, identify_cohort, passive_separated
 from ..model._model import equivalent_acceleration
@@ -41,15 +40,9 @@ def run_identify(
     """Classical identification of every leg; Tables I–IV, figures, summary.json.
     ``passive_objective``, ``gravity_offset``: see :func:`~quadshank.inference.identify_cohort`."""
     out = Path(out)
-    with warnings.catch_warnings(record=True) as caught:  # kept in the report and the summary, and said again
-        warnings.simplefilter("always", DataWarning)
+    with kept_warnings() as said:  # kept in the report and the summary, and said again
         ident = identify_cohort(cohort, trial=trial, progress=progress, passive_objective=passive_objective,
                                 gravity_offset=gravity_offset)
-    said = []
-    for w in caught:
-        if issubclass(w.category, DataWarning):
-            said.append(str(w.message))
-        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     md = [f"# Classical identification (trial {trial})", ""]
     md.append(write_table(table_passive(ident, truth), out / "tables", "passive", "Passive system (eq. 8)"))
     unseparated = [leg for leg, r in ident.items() if not passive_separated(r.passive, r.passive_se)]

@@ -100,6 +100,7 @@ trials' own fields are not stored in an interchange folder.
 from __future__ import annotations
 
 import codecs
+import contextlib
 import csv
 import dataclasses
 import difflib
@@ -253,6 +254,23 @@ def _report_cells(
 # --------------------------------------------------------------------------- plausibility
 class DataWarning(UserWarning):
     """Recordings that pass the rules but look implausible: a unit or a sign that seems off."""
+
+
+@contextlib.contextmanager
+def kept_warnings():
+    """Record the warnings issued inside (every :class:`DataWarning`, even one said before) and issue
+    them again on leaving, failure or not; yields the list the DataWarnings' texts are put in, for
+    a command's report and summary."""
+    said: list[str] = []
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", DataWarning)
+            yield said
+    finally:
+        for w in caught:
+            if issubclass(w.category, DataWarning):
+                said.append(str(w.message))
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
 
 #: Length [s] of the Savitzky–Golay window that smooths the derivatives compared below.
