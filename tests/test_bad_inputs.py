@@ -1155,6 +1155,7 @@ def test_an_option_that_would_be_ignored_without_its_partner_is_refused(base, tm
     _assert_refused(rc, lines, [said], tmp_path / "out")
     assert not (tmp_path / "out").exists()
 
+
 @pytest.mark.parametrize("argv", [
     ["fit", "D", "--time-limit", "60", "--target-ess", "100"],
     ["evaluate", "D", "--fit", "F", "--draws", "50", "--start-stride", "5"],
