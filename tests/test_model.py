@@ -206,3 +206,23 @@ def test_register_effect_rejects_malformed_classes():
 
     with pytest.raises(TypeError, match="not dataclass fields"):
         register_effect(MissingField)
+
+    @dataclasses.dataclass  # not frozen
+    class Mutable(Effect):
+        kind = "gain"
+        name = "mutable_gain"
+        params = (Param("c", "1/deg"),)
+        c: float = 0.0
+
+    with pytest.raises(TypeError, match="must be a frozen dataclass"):
+        register_effect(Mutable)
+
+    @dataclasses.dataclass(frozen=True)
+    class Twice(Effect):
+        kind = "gain"
+        name = "twice_gain"
+        params = (Param("c", "1/deg"), Param("c", "1/deg"))
+        c: float = 0.0
+
+    with pytest.raises(TypeError, match=r"parameter\(s\) \['c'\] declared twice"):
+        register_effect(Twice)

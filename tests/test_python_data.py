@@ -124,13 +124,11 @@ def test_a_derived_signal_is_derived_again_when_the_angle_or_the_period_changes(
     np.testing.assert_array_equal(measured.acceleration_deg_s2, trial.acceleration_deg_s2)
 
 
-def test_settings_and_declarations_of_the_wrong_type_are_refused_where_they_are_made(scratch_registry):
-    """FitSettings, Param and register_effect refuse what numpyro, numpy or a fit would trip over
-    later: a fractional or text count, a truthy string for a flag, a bare trial number, a prior
-    that does not fit the parameter's shape or support, a mutable effect."""
-    import dataclasses
-
-    from quadshank import Effect, Param, register_effect
+def test_settings_and_declarations_of_the_wrong_type_are_refused_where_they_are_made():
+    """FitSettings and Param refuse what numpyro, numpy or a fit would trip over later: a
+    fractional or text count, a truthy string for a flag, a bare trial number, a prior that does
+    not fit the parameter's shape or support (register_effect's refusals: test_model.py)."""
+    from quadshank import Param
     from quadshank.inference import FitSettings
 
     for kw, said in (({"chains": 2.7}, "chains (--chains) must be a whole number, not 2.7"),
@@ -147,23 +145,3 @@ def test_settings_and_declarations_of_the_wrong_type_are_refused_where_they_are_
                      (dict(name="w", units="", shape=(-1,)), "sizes of at least 1")):
         with pytest.raises(ValueError, match=said):
             Param(**kw)
-
-    @dataclasses.dataclass
-    class Mutable(Effect):
-        kind = "gain"
-        name = "mutable_gain"
-        params = (Param("c", "1/deg"),)
-        c: float = 0.0
-
-    with pytest.raises(TypeError, match="must be a frozen dataclass"):
-        register_effect(Mutable)
-
-    @dataclasses.dataclass(frozen=True)
-    class Twice(Effect):
-        kind = "gain"
-        name = "twice_gain"
-        params = (Param("c", "1/deg"), Param("c", "1/deg"))
-        c: float = 0.0
-
-    with pytest.raises(TypeError, match=r"parameter\(s\) \['c'\] declared twice"):
-        register_effect(Twice)
