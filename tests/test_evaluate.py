@@ -118,3 +118,26 @@ def test_a_model_whose_predictions_diverge_is_named():
     with warnings.catch_warnings():
         warnings.simplefilter("error", DivergedPredictionWarning)
         assert np.isfinite(evaluate_cohort(cohort, {trial.key: {"model2": stable}})["model2"][trial.key]["2"][1000])
+
+
+def test_a_user_effect_that_returns_nan_is_named():
+    """A user's effect whose factor is not finite gives J that is not finite; the warning names the
+    model, the trial, the first start that fails and the user's effects, not only a bare NaN."""
+    from quadshank import build_model
+    from quadshank.evaluation import prediction_errors
+    from quadshank.evaluation._prediction import DivergedPredictionWarning
+
+    trial = _noisy_trial()
+    model = build_model("model3", "cubic_torque_angle")  # one name, not a list: conftest.py registers it
+    assert model.name == "model3+cubic_torque_angle"
+    model = model.with_params(**PARAMS["model3"], c3=float("nan"))
+    first = int(trial.pulse_indices[0])
+    with pytest.warns(DivergedPredictionWarning) as caught:
+        J = prediction_errors(model, trial, (10, 25))
+    said = [str(w.message) for w in caught if issubclass(w.category, DivergedPredictionWarning)]
+    assert not np.isfinite(J[10]) and len(said) == 1
+    said = said[0]
+    assert said.startswith(f"model3+cubic_torque_angle on {trial.key} trial 2: its predictions are not finite "
+                           "(J at 100 ms, 250 ms), first from sample ")
+    assert "or an effect (cubic_torque_angle) returns a value that is not finite" in said
+    assert int(said.split("first from sample ")[1].split(":")[0]) <= first

@@ -180,6 +180,7 @@ def test_user_written_effect_slots_in(scratch_registry):
     base = paper_model(1, passive_effects(**PASSIVE))
     ext = base.add("test_cubic_torque_angle").with_params(c3=-1e-5)
     assert ext.params()["c3"] == -1e-5
+    assert ext.name == "model1+test_cubic_torque_angle"  # named as build_model names it: results are keyed by it
     u = jnp.asarray(pulse_train(500))
     a0, _, m0 = simulate_angles(base, u)
     a1, _, m1 = simulate_angles(ext, u)

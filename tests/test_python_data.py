@@ -37,7 +37,7 @@ def _nan_at(trial, i):
     (lambda t: {"stimulation": t.stimulation * 5}, "JM-left trial 1, column 'stimulation': every pulse is 5, outside [0, 1]"),
     (lambda t: {"angle_deg": _nan_at(t, 17)}, "JM-left trial 1, column 'angle_deg', index 17: non-finite value nan"),
     (lambda t: {"time_s": t.time_s[::-1].copy()}, "JM-left trial 1, column 'time_s', index 1"),
-    (lambda t: {"sampling_period_s": -0.01}, "column 'sampling_period_s': '-0.01' is not a positive finite number"),
+    (lambda t: {"sampling_period_s": 0.2}, "column 'sampling_period_s': 0.2 s is longer than"),
     (lambda t: {"leg": "Left"}, "JM-Left trial 1, column 'leg': 'Left' is not 'left' or 'right'"),
     (lambda t: {"trial": 0}, "JM-left trial 0, column 'trial': trial number 0"),
     (lambda t: {"subject": ""}, "column 'subject': subject '' is empty"),
@@ -145,3 +145,103 @@ def test_settings_and_declarations_of_the_wrong_type_are_refused_where_they_are_
                      (dict(name="w", units="", shape=(-1,)), "sizes of at least 1")):
         with pytest.raises(ValueError, match=said):
             Param(**kw)
+
+
+def test_a_trial_is_refused_at_construction_where_no_rule_could_read_it(trial):
+    """Types and shapes the data rules cannot even look at are refused when the Trial is made,
+    naming the field; a trial number given as text is read as the number."""
+    signals = (trial.sampling_period_s, trial.angle_deg, None, trial.stimulation)
+    for args, kwargs, error, said in (
+            (("JM", 3, 1, *signals), {}, TypeError, "leg must be a string, not 3"),
+            ((None, "left", 1, *signals), {}, TypeError, "subject must be a string, not None"),
+            (("JM", "left", 1.7, *signals), {}, TypeError, r"trial must be a whole number \(1, 2, ...\), not 1.7"),
+            (("JM", "left", 1, 0.0, *signals[1:]), {}, ValueError, "sampling_period_s must be a positive number of seconds, not 0.0"),
+            (("JM", "left", 1, "0.01", *signals[1:]), {}, ValueError, "sampling_period_s must be a positive number"),
+            (("JM", "left", 1, trial.sampling_period_s, trial.angle_deg[:, None], None, trial.stimulation), {},
+             ValueError, r"angle_deg has shape \(6000, 1\); give one value per sample"),
+            (("JM", "left", 1, *signals), {"exclude": np.zeros(10)}, ValueError, r"exclude has shape \(10,\), expected \(6000,\)"),
+            (("JM", "left", 1, *signals), {"exclude": np.full(trial.n_samples, 2)}, ValueError,
+             "exclude must be 0 or 1 .* index 0 holds 2")):
+        with pytest.raises(error, match=said):
+            Trial.from_signals(*args, **kwargs)
+    with pytest.raises(ValueError, match=r"JM-left trial 1: stimulation has shape \(5,\), expected \(6000,\)"):
+        trial.replace(stimulation=trial.stimulation[:5])
+    assert trial.replace(trial="2").trial == 2
+    assert Cohort((trial.replace(trial="1"),)).get("JM-left", 1).trial == 1
+    with pytest.raises(TypeError, match=r"Cohort takes a sequence of trials; one trial is Cohort\(\(trial,\)\)"):
+        Cohort(trial)
+    with pytest.raises(TypeError, match="Cohort takes a sequence of Trial, not str"):
+        Cohort(("a", "b"))
+    assert Cohort((trial,)).select(legs="JM-left", trials=1).trials == (trial,)
+
+
+def test_a_trials_signals_are_its_own_and_read_only(trial):
+    """Writing into a trial's signal is refused, and changing the array it was built from leaves
+    it as it was: a cohort built from it, and the fingerprint a fit recorded, cannot change."""
+    angle = trial.angle_deg.copy()
+    built = Trial.from_signals("JM", "left", 1, trial.sampling_period_s, angle, None, trial.stimulation)
+    cohort = Cohort((built,))
+    before = cohort.fingerprint()
+    angle[:] = 0.0
+    assert built.angle_deg[100] == trial.angle_deg[100] != 0.0
+    for name in ("angle_deg", "stimulation", "velocity_deg_s", "exclude"):
+        with pytest.raises(ValueError, match="read-only"):
+            getattr(built, name)[0] = 1
+    assert cohort.select(legs=["JM-left"]).fingerprint() == before
+
+
+def test_empty_and_misplaced_arguments_are_named():
+    """What had failed deep in numpy, scipy or a dict lookup names the argument instead."""
+    from quadshank.evaluation import evaluate_cohort
+    from quadshank.inference import FitSettings, fit, identify_passive
+
+    for kwargs, said in (({"legs": []}, "legs: give at least one leg; known legs"),
+                         ({"trials": []}, "trials: give at least one trial"),
+                         ({"seed": -1}, "seed must be a whole number from 0"),
+                         ({"seed": 1.5}, "seed must be a whole number"),
+                         ({"trials": [1.0]}, r"unknown trial\(s\) \[1.0\]"),
+                         ({"minutes": "1"}, "minutes must be positive")):
+        with pytest.raises(ValueError, match=said):
+            simulate_cohort(**{"legs": ["JM-left"], "minutes": 0.1, **kwargs})
+    cohort, _ = simulate_cohort(legs=["JM-left", "TN-left"], minutes=0.2, seed=1, trials=(1,))
+    model = paper_model(3)
+    with pytest.raises(KeyError, match="models has no entry for leg\\(s\\) TN-left \\(it has JM-left\\)"):
+        evaluate_cohort(cohort, {"JM-left": {"model3": model}})
+    with pytest.raises(TypeError, match=r"models: give models\[leg\]\[model_name\]"):
+        evaluate_cohort(cohort, {"model3": model})
+    with pytest.raises(ValueError, match="legs: give at least one leg \\(the data has JM-left, TN-left\\)"):
+        prepare(cohort, model, legs=[])
+    with pytest.raises(ValueError, match="legs: give at least one leg \\(the data hold no trials\\)"):
+        prepare(Cohort(()), model)
+    with pytest.raises(ValueError, match="trials: give at least one trial"):
+        identify_passive([])
+    with pytest.raises(TypeError, match=r"model: give a Model \(quadshank.build_model\('model3s'\) builds one"):
+        fit(cohort, "model3s", FitSettings(chains=1, warmup=10, draws=10), progress=False)
+    from quadshank.inference import identify_leg
+    with pytest.raises(TypeError, match="trial: give one Trial .*, not Cohort"):
+        identify_leg(cohort)
+
+
+def test_save_fit_refuses_a_folder_that_holds_files(tmp_path):
+    """``save_fit`` writes into a new or empty folder; another fit, or a data folder, is refused
+    unless ``overwrite=True``, and what is not a fit is refused before anything is written."""
+    from quadshank.inference import save_fit
+
+    class Posterior:  # the least save_fit reads before it writes: a folder refusal comes first
+        posterior = None
+
+    other = tmp_path / "other-fit"
+    other.mkdir()
+    (other / "summary.json").write_text("{}")
+    with pytest.raises(FileExistsError, match="other-fit: the folder already holds a fit; give a new folder, or "
+                                              "overwrite=True"):
+        save_fit(Posterior(), other)
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "manifest.csv").write_text("subject\n")
+    with pytest.raises(FileExistsError, match="already holds files"):
+        save_fit(Posterior(), data)
+    assert (other / "summary.json").read_text() == "{}" and sorted(p.name for p in data.iterdir()) == ["manifest.csv"]
+    with pytest.raises(TypeError, match="idata: give the fit's InferenceData"):
+        save_fit(None, tmp_path / "new")
+    assert not (tmp_path / "new").exists()

@@ -133,4 +133,4 @@ def run_fit(
     uninformed = uninformed_legs(m, fitted)
     if uninformed:
         extra["uninformed"] = uninformed
-    return save_fit(idata, out, extra=extra)
+    return save_fit(idata, out, extra=extra, overwrite=True)  # the command line's output rules chose the folder

@@ -21,7 +21,7 @@ import numpy as np
 import xarray as xr
 from scipy.signal import savgol_filter
 
-from ..common._arrays import stretches
+from ..common._arrays import is_whole_number, stretches
 from ..common._io import atomic_path
 
 __all__ = [
@@ -170,6 +170,48 @@ def is_checked(trial: Trial) -> bool:
     return trial in _CHECKED
 
 
+def _trial_number(trial) -> int:
+    """A trial number as an int: a whole number, or a string of digits (as read from a file name)."""
+    if isinstance(trial, str) and trial.strip().isdigit():
+        return int(trial)
+    if not is_whole_number(trial):
+        raise TypeError(f"trial must be a whole number (1, 2, ...), not {trial!r}")
+    return int(trial)
+
+
+def _check_names(subject, leg) -> None:
+    """Refuse a subject or a leg that is not a string (the data rules, :func:`quadshank.data.check_cohort`,
+    say which strings)."""
+    for field, value in (("subject", subject), ("leg", leg)):
+        if not isinstance(value, str):
+            raise TypeError(f"{field} must be a string, not {value!r}")
+
+
+def _period(period, key: str, trial: int) -> float:
+    """The sampling period as a float, refused where it is no positive finite number of seconds."""
+    if isinstance(period, (bool, np.bool_)) or not isinstance(period, (int, float, np.integer, np.floating)) \
+            or not np.isfinite(period) or period <= 0:
+        raise ValueError(f"{key} trial {trial}: sampling_period_s must be a positive number of seconds, not {period!r}")
+    return float(period)
+
+
+def _exclude_mask(exclude, n: int, key: str, trial: int) -> np.ndarray:
+    """``exclude`` as a boolean array of ``n`` samples, refused where it holds other values than 0 and 1."""
+    values = np.array(exclude)
+    if values.shape != (n,):
+        raise ValueError(f"{key} trial {trial}: exclude has shape {values.shape}, expected ({n},): "
+                         "one 0 or 1 per sample")
+    if values.dtype != bool:
+        try:
+            bad = np.flatnonzero((values != 0) & (values != 1))
+        except TypeError:
+            bad = np.arange(n)
+        if bad.size:
+            raise ValueError(f"{key} trial {trial}: exclude must be 0 or 1 (True or False) per sample; "
+                             f"index {bad[0]} holds {values[bad[0]].item()!r}")
+    return values.astype(bool)
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Trial:
     """One recording of one leg on a uniform grid of ``sampling_period_s``.
@@ -197,15 +239,21 @@ class Trial:
     exclude: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        n = len(self.time_s)
+        object.__setattr__(self, "trial", _trial_number(self.trial))
+        _check_names(self.subject, self.leg)
+        object.__setattr__(self, "sampling_period_s", _period(self.sampling_period_s, self.key, self.trial))
+        n = np.shape(self.time_s)[0] if np.ndim(self.time_s) else -1
         for name in _SIGNALS:
-            arr = np.asarray(getattr(self, name), dtype=float)
+            # a copy the trial alone holds, read-only: a frozen trial's signals cannot change under a
+            # cohort built from it, or under the fingerprint a fit recorded of them
+            arr = np.array(getattr(self, name), dtype=float)
             if arr.shape != (n,):
-                raise ValueError(f"{self.key} trial {self.trial}: {name} has shape {arr.shape}, expected ({n},)")
+                raise ValueError(f"{self.key} trial {self.trial}: {name} has shape {arr.shape}, expected ({max(n, 0)},): "
+                                 "each signal is one value per sample")
+            arr.setflags(write=False)
             object.__setattr__(self, name, arr)
-        exclude = np.zeros(n, bool) if self.exclude is None else np.asarray(self.exclude, dtype=bool)
-        if exclude.shape != (n,):
-            raise ValueError(f"{self.key} trial {self.trial}: exclude has shape {exclude.shape}, expected ({n},)")
+        exclude = np.zeros(n, bool) if self.exclude is None else _exclude_mask(self.exclude, n, self.key, self.trial)
+        exclude.setflags(write=False)
         object.__setattr__(self, "exclude", exclude)
 
     @property
@@ -241,7 +289,15 @@ class Trial:
         knee's (beyond :data:`ANGLE_LIMIT_DEG` or one of :data:`MISSING_MARKERS`): there it
         runs on each side apart, so that the marker does not reach the kept samples beside it
         through the filter's window."""
+        trial = _trial_number(trial)
+        _check_names(subject, leg)
+        sampling_period_s = _period(sampling_period_s, leg_key(subject, leg), trial)
         angle = np.asarray(angle_deg, dtype=float)
+        if angle.ndim != 1:
+            raise ValueError(f"{leg_key(subject, leg)} trial {trial}: angle_deg has shape {angle.shape}; "
+                             "give one value per sample (a 1-D array)")
+        if exclude is not None:
+            exclude = _exclude_mask(exclude, angle.size, leg_key(subject, leg), trial)
         if time_s is None:
             time_s = np.arange(angle.size) * sampling_period_s
         measured = velocity_deg_s is not None
@@ -253,8 +309,8 @@ class Trial:
         return cls(
             subject=subject,
             leg=leg,
-            trial=int(trial),
-            sampling_period_s=float(sampling_period_s),
+            trial=trial,
+            sampling_period_s=sampling_period_s,
             time_s=np.asarray(time_s, dtype=float),
             angle_deg=angle,
             velocity_deg_s=np.asarray(velocity_deg_s, dtype=float),
@@ -289,7 +345,14 @@ class Cohort:
     attrs: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        if isinstance(self.trials, Trial):
+            raise TypeError("Cohort takes a sequence of trials; one trial is Cohort((trial,))")
         object.__setattr__(self, "trials", tuple(self.trials))
+        odd = [t for t in self.trials if not isinstance(t, Trial)]
+        if odd:
+            raise TypeError(f"Cohort takes a sequence of Trial, not {type(odd[0]).__name__} ({odd[0]!r:.60})")
+        if not isinstance(self.attrs, dict):
+            raise TypeError(f"attrs must be a dict, not {type(self.attrs).__name__}")
         seen = set()
         for t in self.trials:
             ident = (t.subject, t.leg, t.trial)
@@ -349,7 +412,9 @@ class Cohort:
         return h.hexdigest()[:16]
 
     def select(self, legs: Sequence[str] | None = None, trials: Sequence[int] | None = None) -> Cohort:
-        """A sub-cohort with only the given legs and/or trial numbers."""
+        """A sub-cohort with only the given legs and/or trial numbers (a single leg or number is taken as one)."""
+        legs = (legs,) if isinstance(legs, str) else legs
+        trials = (trials,) if is_whole_number(trials) else trials
         if legs is not None:
             missing = [leg for leg in legs if leg not in self.legs]
             if missing:

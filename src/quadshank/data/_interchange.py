@@ -117,7 +117,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 from scipy.signal import savgol_filter
 
-from ..common._arrays import stretches
+from ..common._arrays import is_whole_number, stretches
 from ..common._io import file_stem, temp_sibling
 from ._cohort import (ANGLE_LIMIT_DEG, MAX_SAMPLING_PERIOD_S, MISSING_MARKERS, Cohort, Trial, derive_acceleration,
                       fingerprint_problem, is_checked, leg_key, mark_checked, quiet_mask)
@@ -1941,12 +1941,12 @@ def check_cohort(cohort: Cohort) -> Cohort:
                                     f"{other[1]!r} make the same leg {t.key!r}: rename one"))
     for t in new:
         name = f"{t.key} trial {t.trial}"
-        said = _subject_problem(t.subject) if isinstance(t.subject, str) else f"subject {t.subject!r} is not a string"
+        said = _subject_problem(t.subject)
         if said:
             problems.append(Problem(name, "subject", None, said))
         if t.leg not in _LEGS:
             problems.append(Problem(name, "leg", None, _leg_problem(str(t.leg))))
-        if isinstance(t.trial, bool) or not isinstance(t.trial, (int, np.integer)) or t.trial < 1:
+        if not is_whole_number(t.trial) or t.trial < 1:
             problems.append(Problem(name, "trial", None, f"trial number {t.trial!r}: trials are numbered 1, 2, ..."))
         period = float(t.sampling_period_s)
         said = _period_problem(repr(period), period)

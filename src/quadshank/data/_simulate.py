@@ -215,6 +215,7 @@ from scipy.optimize import brentq
 from tqdm.auto import tqdm
 
 from ..common._io import write_json
+from ..common._arrays import is_whole_number
 from ._cohort import Cohort, Trial, mark_checked
 from ._paper import (
     DELAY_STEP_ANGLE,
@@ -345,6 +346,8 @@ def check_legs(legs) -> tuple[str, ...]:
     if isinstance(legs, str):
         legs = (legs,)
     legs = tuple(legs)
+    if not legs:
+        raise ValueError(f"legs: give at least one leg; known legs: {', '.join(LEGS)}")
     unknown = [leg for leg in legs if leg not in LEGS]
     if unknown:
         raise ValueError(f"unknown leg(s) {', '.join(map(repr, unknown))}; known legs: {', '.join(LEGS)}")
@@ -354,8 +357,10 @@ def check_legs(legs) -> tuple[str, ...]:
 
 
 def check_trials(trials) -> tuple[int, ...]:
-    trials = tuple(int(t) for t in trials)
-    bad = [t for t in trials if t not in TRIAL_RECRUITMENT]
+    trials = tuple(trials)
+    if not trials:
+        raise ValueError(f"trials: give at least one trial; the protocol has trials {tuple(TRIAL_RECRUITMENT)}")
+    bad = [t for t in trials if not is_whole_number(t) or t not in TRIAL_RECRUITMENT]
     if bad:
         raise ValueError(f"unknown trial(s) {bad}; the protocol has trials {tuple(TRIAL_RECRUITMENT)}")
     return tuple(sorted(set(trials)))
@@ -824,8 +829,10 @@ def simulate_cohort(
     legs = check_legs(legs)
     effects = check_effects(effects)
     trials = check_trials(trials)
-    if not 0 < minutes <= MAX_MINUTES:
-        raise ValueError(f"minutes must be positive and at most {MAX_MINUTES:g} (a day), got {minutes}")
+    if not is_whole_number(seed) or not 0 <= seed < 2**32:
+        raise ValueError(f"seed must be a whole number from 0 to {2**32 - 1}, not {seed!r}")
+    if isinstance(minutes, (bool, str)) or not 0 < minutes <= MAX_MINUTES:
+        raise ValueError(f"minutes must be positive and at most {MAX_MINUTES:g} (a day), got {minutes!r}")
     dt = float(sampling_period_s)
     _substeps(dt)  # checked before any work
     n = int(round(minutes * 60.0 / dt))

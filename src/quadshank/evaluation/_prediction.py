@@ -24,7 +24,7 @@ from typing import ClassVar
 import numpy as np
 from scipy.stats import binomtest
 
-from ..common._arrays import stretches
+from ..common._arrays import is_whole_number, stretches
 from ..common._progress import progress_bar
 from ..common._results import Result
 from ..data._cohort import Cohort, Trial
@@ -84,7 +84,7 @@ def prediction_errors(model: Model, trial: Trial, horizons=None) -> dict[int, fl
     check_cohort(Cohort((trial,)))  # a trial built in Python meets the rules a file's does
     if horizons is None:
         horizons = tuple(horizon_samples(trial.sampling_period_s).values())
-    bad = [p for p in horizons if isinstance(p, bool) or not isinstance(p, (int, np.integer)) or p < 1]
+    bad = [p for p in horizons if not is_whole_number(p) or p < 1]
     if bad or not len(horizons):
         raise ValueError(f"horizons: {bad or 'none'}; a horizon is a whole number of samples, at least 1")
     horizon = max(horizons)
@@ -93,6 +93,15 @@ def prediction_errors(model: Model, trial: Trial, horizons=None) -> dict[int, fl
     for p in horizons:
         err = trial.angle_deg[starts + p] - pred[:, p - 1]
         out[p] = float(np.sqrt(np.mean(err**2)))
+    lost = [p for p in horizons if not np.isfinite(out[p])]
+    if lost:
+        first = int(starts[np.flatnonzero(~np.isfinite(pred).all(axis=1))[0]])
+        own = [e.name for e in model.effects if type(e).__module__.split(".")[0] != "quadshank"]
+        warnings.warn(f"{model.name} on {trial.key} trial {trial.trial}: its predictions are not finite (J at "
+                      f"{', '.join(f'{p * trial.sampling_period_s * 1000:g} ms' for p in lost)}), first from sample {first}: the identified model is "
+                      "unstable or diverges on this trial" + (f", or an effect ({', '.join(own)}) returns a value "
+                      "that is not finite" if own else "") + "; a mean that includes it is not finite either",
+                      DivergedPredictionWarning, stacklevel=2)
     return out
 
 
@@ -135,16 +144,17 @@ def evaluate_cohort(
     """
 
     J: dict = {}
+    if not isinstance(models, dict) or not all(isinstance(v, dict) for v in models.values()):
+        raise TypeError("models: give models[leg][model_name], one identified model per leg and name")
+    missing = [leg for leg in cohort.legs if leg not in models]
+    if missing:
+        raise KeyError(f"models has no entry for leg(s) {', '.join(missing)} (it has {', '.join(models) or 'none'}); "
+                       "models[leg][model_name] is the model identified on that leg")
     jobs = [(t, name, m) for t in cohort for name, m in models[t.key].items()]
     for t, name, m in progress_bar(jobs, desc="evaluate", enabled=progress):
         hs = horizon_samples(t.sampling_period_s, horizons_ms)
         errs = prediction_errors(m, t, tuple(hs.values()))
         J.setdefault(name, {}).setdefault(t.key, {})[str(t.trial)] = {h: errs[p] for h, p in hs.items()}
-        lost = [f"{h} ms" for h, p in hs.items() if not np.isfinite(errs[p])]
-        if lost:
-            warnings.warn(f"{name} on {t.key} trial {t.trial}: its predictions are not finite (J at {', '.join(lost)}): "
-                          "the identified model is unstable or diverges on this trial, and the means over legs that "
-                          "include it are not finite either", DivergedPredictionWarning, stacklevel=2)
     return J
 
 

@@ -600,11 +600,20 @@ def _fit_id(idata) -> str:
     return h.hexdigest()[:16]
 
 
-def save_fit(idata, folder: str | os.PathLike, extra: dict | None = None) -> FitResult:
+def save_fit(idata, folder: str | os.PathLike, extra: dict | None = None, *, overwrite: bool = False) -> FitResult:
     """Write fit.nc then summary.json (with ``extra`` entries and ``code``, the package's version
     and source fingerprint, :func:`quadshank.common._provenance.code_provenance`) atomically; returns the
-    :class:`FitResult`."""
+    :class:`FitResult`.  ``folder`` must be new or empty unless ``overwrite``: a fit saved into a
+    folder that holds another fit, or a data folder, would replace or blur what is there."""
+    if not hasattr(idata, "posterior"):
+        raise TypeError(f"idata: give the fit's InferenceData (to_inference_data), not {type(idata).__name__}")
     folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise NotADirectoryError(f"{folder}: exists and is not a folder")
+    if not overwrite and folder.is_dir() and any(not p.name.startswith(".") for p in folder.iterdir()):
+        held = "a fit" if (folder / "fit.nc").exists() or (folder / "summary.json").exists() else "files"
+        raise FileExistsError(f"{folder}: the folder already holds {held}; give a new folder, or overwrite=True to "
+                              "write fit.nc and summary.json over those there")
     folder.mkdir(parents=True, exist_ok=True)
     fit_id = _fit_id(idata)
     idata.posterior.attrs["quadshank_fit_id"] = fit_id

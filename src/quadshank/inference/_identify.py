@@ -314,6 +314,8 @@ def identify_passive(trials: list[Trial] | tuple[Trial, ...], gravity_offset: bo
     """Passive parameters (D', G', k1', k2) from the quiet samples of ``trials`` by equation
     error; returns the parameters, the RMS residual acceleration [deg/s²] and the number of
     quiet samples used (:func:`_passive_equation_error` documents the method)."""
+    if not len(trials):
+        raise ValueError("trials: give at least one trial")
     return _passive_equation_error(trials, gravity_offset)[:3]
 
 
@@ -436,6 +438,8 @@ def identify_passive_free_run(trials: list[Trial] | tuple[Trial, ...], start: di
     """Passive parameters (D', G', k1', k2) of trials without pulses (pendulum tests) by output
     error on the free swing; returns the parameters, the RMS angle error [deg] of the free runs
     and the number of samples compared (:func:`_passive_free_run` documents the method)."""
+    if not len(trials):
+        raise ValueError("trials: give at least one trial")
     return _passive_free_run(trials, start, gravity_offset)[:3]
 
 
@@ -572,6 +576,8 @@ def fit_darma(y: np.ndarray, u: np.ndarray, pulses: np.ndarray, d: int, order: i
 
 def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification:
     """Identify the passive system and models 1–3 from one trial of one leg."""
+    if not isinstance(trial, Trial):
+        raise TypeError(f"trial: give one Trial (cohort.get(leg, 1), say), not {type(trial).__name__}")
     check_cohort(Cohort((trial,)))  # a trial built in Python meets the rules a file's does
     where = f"{trial.key} trial {trial.trial}"
     if passive is not None and not set(_PASSIVE_NAMES) <= set(passive) <= {*_PASSIVE_NAMES, "gravity_angle"}:

@@ -32,6 +32,7 @@ from numpyro.infer.util import constrain_fn, potential_energy
 from scipy import optimize
 
 from ..common._random import numpy_rng
+from ..common._arrays import is_whole_number
 from ..data._cohort import Cohort
 from ..model._likelihood import (
     N_DELAYS,
@@ -142,14 +143,14 @@ class FitSettings:
     def __post_init__(self):
         for name in ("chains", "warmup", "draws", "max_tree_depth", "seed", "target_ess"):
             v = getattr(self, name)
-            if (v is not None or name != "target_ess") and (isinstance(v, bool) or not isinstance(v, (int, np.integer))):
+            if (v is not None or name != "target_ess") and not is_whole_number(v):
                 raise ValueError(f"{_named(name)} must be a whole number, not {v!r}")
         for name in ("centred", "dense_mass", "adapt_metric", "delay_evidence", "mode_jumps"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"{name} must be True or False, not {getattr(self, name)!r}")
         trials = self.trials
         if isinstance(trials, (str, bytes)) or not hasattr(trials, "__iter__") or any(
-                isinstance(t, bool) or not isinstance(t, (int, np.integer)) or t < 1 for t in trials):
+                not is_whole_number(t) or t < 1 for t in trials):
             raise ValueError(f"trials: give the trial numbers to fit, whole numbers from 1 (a tuple: (1,)), not {trials!r}")
         object.__setattr__(self, "trials", tuple(int(t) for t in trials))
         if self.start not in STARTS:
@@ -508,6 +509,11 @@ def run_nuts(
     3 + angle_delay, 5 legs × 5 min: 255 leapfrog steps per draw in single precision, 12 in
     double).  Its terms are computed at the data's precision (:attr:`FitSettings.precision`).
     """
+    if not isinstance(model, Model):
+        raise TypeError(f"model: give a Model (quadshank.build_model({model!r}) builds one from a name), not {model!r}"
+                        if isinstance(model, str) else f"model: give a Model, not {type(model).__name__}")
+    if not isinstance(settings, FitSettings):
+        raise TypeError(f"settings: give a FitSettings, not {type(settings).__name__}")
     t0 = time.perf_counter()
     screen = fit_screen(cohort, model, settings, legs=legs, progress=progress)
     evidence, moved, evidence_seconds, modes = None, {}, None, None

@@ -49,11 +49,10 @@ def build_model(name: str, add_effects=(), sampling_period_s: float = SAMPLING_P
     """One of the paper's models, optionally extended by registered effects (by name or instance),
     running at ``sampling_period_s`` (give the data's: ``cohort.sampling_period_s``)."""
     base = paper_model(name, sampling_period_s=sampling_period_s)
+    if isinstance(add_effects, str) or not hasattr(add_effects, "__iter__"):
+        add_effects = (add_effects,)  # one effect, by name or instance
     extra = [get_effect(e)() if isinstance(e, str) else e for e in add_effects]
-    if not extra:
-        return base
-    suffix = "+".join(e.name for e in extra)
-    return base.add(*extra, name=f"{base.name}+{suffix}")
+    return base.add(*extra) if extra else base
 
 
 def model_params(model: Model) -> list[Param]:

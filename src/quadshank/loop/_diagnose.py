@@ -147,7 +147,7 @@ def trials_of(cohort: Cohort, legs) -> tuple[int, ...]:
 
 
 def _extend(model: Model, name: str) -> Model:
-    return model.add(name, name=f"{model.name}+{name}")
+    return model.add(name)
 
 
 def j_draws(fit: LaplaceFit, cohort: Cohort, trials, *, n_draws: int, start_stride: int) -> np.ndarray:

@@ -91,6 +91,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..common._arrays import is_whole_number
 from ..data._paper import HORIZONS_MS
 
 __all__ = [
@@ -191,7 +192,7 @@ class Param:
         if not isinstance(self.units, str):
             raise ValueError(f"parameter {self.name!r}: units must be a string ('' for none), not {self.units!r}")
         if not isinstance(self.shape, tuple) or any(
-                isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1 for n in self.shape):
+                not is_whole_number(n) or n < 1 for n in self.shape):
             raise ValueError(f"parameter {self.name!r}: shape {self.shape!r} must be () or a tuple of sizes of at least 1")
         if self.level not in LEVELS:
             raise ValueError(f"parameter {self.name!r}: level {self.level!r} not in {LEVELS}")

@@ -413,6 +413,8 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None, objective: str
     R = response_length(model)
     K = max_shift(model)
     legs = (legs,) if isinstance(legs, str) else tuple(legs) if legs is not None else cohort.legs
+    if not legs:
+        raise ValueError(f"legs: give at least one leg ({'the data has ' + ', '.join(cohort.legs) if len(cohort) else 'the data hold no trials'})")
     twice = sorted({leg for leg in legs if legs.count(leg) > 1})
     if twice:  # its data would enter the likelihood twice, as two legs of the hierarchy
         raise ValueError(f"legs: {', '.join(twice)} given twice")

@@ -210,12 +210,15 @@ class Model:
         """A copy with further effects (instances, or registered names with default values).
 
         An added effect takes the place of the effects it ``replaces`` (a
-        torque–angle relation with a maximum replaces the linear one).
+        torque–angle relation with a maximum replaces the linear one).  The copy is named
+        ``name``, by default this model's name and the added effects' (``model3+fatigue``), as
+        :func:`build_model` names it: results are keyed by model name.
         """
         new = tuple(get_effect(e)() if isinstance(e, str) else e for e in effects)
         gone = {r for e in new for r in e.replaces}
         kept = tuple(e for e in self.effects if e.name not in gone)
-        return dataclasses.replace(self, effects=kept + new, name=name or self.name)
+        name = name or "+".join((self.name, *(e.name for e in new)))
+        return dataclasses.replace(self, effects=kept + new, name=name)
 
     def describe(self) -> dict:
         """A JSON-able description of the structure (effects, parameters, units, priors, levels)."""
