@@ -45,3 +45,26 @@ def test_the_derived_acceleration_is_not_the_accelerometers(both):
     assert any(sensor[leg].passive["k1"] != derived[leg].passive["k1"] for leg in sensor)
     assert not np.allclose([s.passive["damping"] for s in sensor.values()],
                            [d.passive["damping"] for d in derived.values()], rtol=1e-9, atol=0)
+
+
+def test_a_page_of_results_says_which_signals_were_derived():
+    """The sentence at the top of every report names the period and each signal derived from the
+    angle (method, window, how many trials), and at another period than the paper's says how the
+    per-sample gains compare with its values."""
+    from quadshank.data import Trial
+    from quadshank.data._cohort import Cohort, derived_signals
+    from quadshank.outputs._tables import recordings_sentence
+
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.2, seed=0, trials=[1, 2])
+    t1, t2 = cohort.trials
+    angle_only = Trial.from_signals("TN", "left", 1, t1.sampling_period_s, t1.angle_deg, None, t1.stimulation,
+                                    velocity_deg_s=t1.velocity_deg_s)
+    derived = derived_signals(Cohort((angle_only, t2)))
+    assert derived["acceleration"]["trials"] == ["TN-left trial 1"]  # trial 2 holds the accelerometer's
+    assert "acceleration" not in derived_signals(cohort)
+    said = recordings_sentence(0.01, {"acceleration": derived["acceleration"]})
+    assert said == ("Recordings sampled every 10 ms; acceleration derived from the angle (Savitzky-Golay, zero-phase, "
+                    "7 samples) in 1 trial.")
+    assert recordings_sentence(0.005, None) == ("Recordings sampled every 5 ms. Gains are per sample: at 5 ms a twitch's "
+                                                "gain is about 2× the paper's values at 10 ms quoted beside them.")
+    assert recordings_sentence(0.005, None, muscle=False) == "Recordings sampled every 5 ms."

@@ -936,6 +936,23 @@ def test_a_stimulated_trial_resting_far_from_zero_is_named(base, tmp_path):
     assert not [w for w in warned if "where no twitch acts" in w]
 
 
+def test_a_stimulated_trial_offset_from_zero_is_named(tmp_path):
+    """A goniometer zeroed 20° into extension is named with the effects that model it; the same
+    recording zeroed at rest draws nothing."""
+    from quadshank.data import simulate_cohort
+
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.5, seed=2, trials=(1,))
+    data = write_interchange(cohort, tmp_path / "data")
+    _, _, warned = _read(data)
+    assert not [w for w in warned if "where no twitch acts" in w], warned
+    _map_column(data / T1, "angle_deg", lambda v: v + 20.0)
+    _, error, warned = _read(data)
+    said = [w for w in warned if "where no twitch acts" in w]
+    assert error == "" and len(said) == 1 and "is the goniometer's zero offset?" in said[0], warned
+    assert "goniometer_offset" in said[0] and "flexion angle" not in said[0]
+    assert 15.0 < float(said[0].split("the angle's median is ")[1].split("°")[0]) < 25.0
+
+
 def test_trials_at_different_periods_are_named_with_their_files(tmp_path):
     """One model runs at one period: the refusal names each trial's file and period, and the
     command that resamples them."""

@@ -141,3 +141,25 @@ def test_a_user_effect_that_returns_nan_is_named():
                            "(J at 100 ms, 250 ms), first from sample ")
     assert "or an effect (cubic_torque_angle) returns a value that is not finite" in said
     assert int(said.split("first from sample ")[1].split(":")[0]) <= first
+
+
+def test_figures_leave_a_gap_where_a_prediction_meets_an_excluded_sample():
+    """The predictions a figure draws are those J scores: where the run from a start meets an
+    excluded sample the band is NaN (a gap), and every other start is predicted."""
+    import jax
+
+    from quadshank.evaluation._posterior import figure_window, window_predictions
+    from quadshank.evaluation._prediction import scored
+
+    trial = _noisy_trial()
+    exclude = np.zeros(trial.n_samples, bool)
+    exclude[3200:3400] = True
+    trial = trial.replace(exclude=exclude)
+    model = paper_model(3, passive_effects(**PASSIVE), delay=4).with_params(**PARAMS["model3"])
+    draws = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), model)  # two draws of one model
+    window = figure_window(trial, (30.0, 10.0))
+    out = window_predictions(draws, trial, (10, 100), window)
+    for p, (starts, pred) in out.items():
+        gap = (starts + p >= 3200) & (starts <= 3399)
+        assert np.isnan(pred[:, gap]).all() and np.isfinite(pred[:, ~gap]).all(), p
+        np.testing.assert_array_equal(~gap, scored(trial, starts, p))

@@ -115,7 +115,9 @@ def test_unknown_effect_and_missing_trial_are_plain_errors(data_dir, capsys):
     assert main([*args, "--add-effect", "no_such_effect"]) == 2
     assert "unknown effect 'no_such_effect'" in capsys.readouterr().err
     assert main([*args, "--trials", "7"]) == 2
-    assert "has no trial 7" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "has no trial 7" in err and "fit:" not in err  # refused before the first progress line
+    assert not (data_dir / "bad").exists()  # and before anything is written
 
 
 def _spread_mixture_by_hand(s, leg_subject):

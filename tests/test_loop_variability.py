@@ -4,6 +4,7 @@ paper's Table IV).  Without a noise term for it, the variation is taken for an e
 (the accelerometer's resonance clears the bar); with ``twitch_variability`` in the model
 it is noise, and nothing else is called missing."""
 
+import re
 import warnings
 
 import pytest
@@ -36,7 +37,9 @@ def test_varying_twitches_are_found_as_noise(varying):
     assert top["delta_elpd"] > 4 * top["delta_elpd_se"]
     cv = float(r.fits["twitch_variability"].values(LEG)["twitch_cv"])
     assert abs(cv - EFFECT_PARAMETERS["twitch_variability"]["cv"]) < 0.08, cv
-    assert "scatter about the model, not its dynamics" in verdict_sentence(r)
+    said = verdict_sentence(r)
+    assert "scatter about the model, not its dynamics, so J does not judge it (at 1 s " in said
+    assert re.search(r"at 1 s \d+\.\d\d° without it, \d+\.\d\d° with it\)", said), said
 
 
 def test_with_the_noise_term_nothing_else_is_called_missing(varying):

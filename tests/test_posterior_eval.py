@@ -171,6 +171,27 @@ def test_one_fit_has_nothing_to_compare(run, tmp_path):
     assert s["loo"]["compare"] == [] and s["loo"]["not_compared"] == []
 
 
+def test_two_fits_of_one_model_are_labelled_by_their_folders(run, tmp_path, capsys):
+    """Two fits of one model (here one fit copied) are evaluated side by side, each labelled by the
+    model and its folder; one folder given twice is refused."""
+    import shutil
+
+    copy = tmp_path / "model1-again"
+    shutil.copytree(run["fits"][0], copy)
+    assert [f.label for f in pe.load_fits([run["fits"][0], copy])] == ["model1@model1", "model1@model1-again"]
+    out = tmp_path / "same-model"
+    assert main(["-q", "evaluate", str(run["data"]), "--fit", str(run["fits"][0]), "--fit", str(copy),
+                 "--draws", "10", "--start-stride", "10", "--out", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert list(s["J"]) == ["model1@model1", "model1@model1-again"]
+    assert s["J"]["model1@model1"] == s["J"]["model1@model1-again"]  # one posterior, the same draws
+    assert set(s["loo"]["compare"][0]["table"]) == {"model1@model1", "model1@model1-again"}
+    capsys.readouterr()
+    assert main(["-q", "evaluate", str(run["data"]), "--fit", str(copy), "--fit", str(copy),
+                 "--out", str(tmp_path / "twice")]) == 2
+    assert "are one folder; give each fit once" in capsys.readouterr().err
+
+
 def test_more_draws_than_the_fit_holds_are_said_to_be_fewer(run, tmp_path, capsys):
     """--draws beyond a fit's draws: the bands use every draw it holds, and the warning, the
     summary and the report say how many."""

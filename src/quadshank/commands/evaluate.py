@@ -10,7 +10,7 @@ import warnings
 from pathlib import Path
 
 from ..common._io import atomic_write_text, save_figure
-from ..data._cohort import Cohort, Trial
+from ..data._cohort import Cohort, Trial, derived_signals
 from ..data._interchange import DataWarning
 from ..data._paper import HORIZONS_MS, TABLE_V
 from ..evaluation._blackbox import better_than, blackbox_j
@@ -56,7 +56,7 @@ from ..outputs._figures import (
 )
 from ..outputs._loop import residual_figures
 from ..outputs._residual_figures import plot_structure
-from ..outputs._tables import markdown_table, sign_test_rows, table_v_rows, write_table
+from ..outputs._tables import markdown_table, recordings_sentence, sign_test_rows, table_v_rows, write_table
 from .identify import _pick
 
 
@@ -261,7 +261,8 @@ def run_posterior_evaluate(
     tests = sign_tests(posterior_medians(J_legs)) if len(fits) >= 2 else []
     loo = loo_report(fits)
 
-    md = ["# Posterior evaluation: k-step-ahead angle prediction (eq. 12) and PSIS-LOO", ""]
+    md = ["# Posterior evaluation: k-step-ahead angle prediction (eq. 12) and PSIS-LOO", "",
+          _recordings_line(cohort, muscle=any("no_muscle" not in f.summary.effects for f in fits)), ""]
     for f in fits:
         banner = f.summary.banner
         md.append(f"- {f.label}: fit {f.folder}, fitted on trial(s) {', '.join(map(str, f.desc['trials']))}"
@@ -329,6 +330,11 @@ def run_posterior_evaluate(
     return result
 
 
+def _recordings_line(cohort: Cohort, muscle: bool = True) -> str:
+    """The sampling period and the signals derived from the angle, said at the top of a report."""
+    return recordings_sentence(cohort.sampling_period_s, derived_signals(cohort), muscle)
+
+
 def run_evaluate(
     cohort: Cohort, models: dict[str, dict[str, Model]], out: str | Path, *, progress: bool = False
 ) -> Evaluation:
@@ -343,7 +349,7 @@ def run_evaluate(
     elapsed = time.perf_counter() - t0
     T = table_v(J)
     tests = sign_tests(J)
-    md = ["# Evaluation: k-step-ahead angle prediction (eq. 12)", ""]
+    md = ["# Evaluation: k-step-ahead angle prediction (eq. 12)", "", _recordings_line(cohort), ""]
     md.append(write_table(table_v_rows(T), out / "tables", "table5", "Table V: mean (s.d.) of J_φ,p over legs [deg]"))
     md.append(write_table(sign_test_rows(tests), out / "tables", "sign_tests", "Sign tests between models (trials 2 and 3)"))
     per_leg = [

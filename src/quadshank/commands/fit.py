@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data._cohort import Cohort, derivation_settings
+from ..data._cohort import Cohort, derived_signals
 from ..data._interchange import DataWarning, charge_scales
 from ..inference._fitio import (
     FitResult,
@@ -21,7 +21,7 @@ from ..inference._identify import check_delay_range
 from ..inference._nuts import FitSettings, run_nuts
 from ..inference._priors import build_model, delay_prior_from
 from ..model._effects import reads_sensor_only
-from ..model._likelihood import resolve_objective, twitch_window
+from ..model._likelihood import chosen_legs, resolve_objective, twitch_window
 
 #: A leg with fewer pulses than this in its fitted trials has active parameters its own data hardly
 #: inform (the classical identification asks for 8 isolated twitches; one twitch pins nothing down).
@@ -90,6 +90,7 @@ def run_fit(
     m = build_model(model, add_effects, sampling_period_s=cohort.sampling_period_s)
     check_delay_range(cohort.sampling_period_s, muscle=m.activation.name != "no_muscle")
     resolve_objective(m, settings.likelihood)  # refuse the angle for a muscle before anything is written
+    chosen_legs(cohort, legs, settings.trials)  # and legs or trials the data lack
     _warn_sensor_effects_without_sensor(m, cohort, legs, settings.trials)
     log_prior = None
     if delay_from is not None:
@@ -119,12 +120,7 @@ def run_fit(
     desc = from_json(idata.posterior.attrs["quadshank_model"])
     extra["data_fingerprint"] = cohort.fingerprint(desc["legs"], desc["trials"])
     fitted = cohort.select(desc["legs"], desc["trials"])
-    derived = {
-        signal: {**how, "trials": [f"{t.key} trial {t.trial}" for t in fitted.trials
-                                   if not getattr(t, f"{signal}_measured")]}
-        for signal, how in derivation_settings(cohort.sampling_period_s).items()
-    }
-    derived = {signal: d for signal, d in derived.items() if d["trials"]}
+    derived = derived_signals(fitted)
     if derived:
         extra["derived_signals"] = derived
     scales = {leg: v for leg, v in charge_scales(cohort).items() if leg in desc["legs"]}

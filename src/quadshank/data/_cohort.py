@@ -26,7 +26,7 @@ from ..common._io import atomic_path
 
 __all__ = [
     "Trial", "Cohort", "derive_velocity", "derive_acceleration", "derivation_settings", "VELOCITY_WINDOW",
-    "ACCELERATION_WINDOW_S", "leg_key",
+    "ACCELERATION_WINDOW_S", "leg_key", "derived_signals",
 ]  # fmt: skip
 
 #: Savitzky–Golay window (samples) used to derive velocity from the angle at T_s = 10 ms and
@@ -152,6 +152,18 @@ def derivation_settings(sampling_period_s: float) -> dict:
         "acceleration": {"method": "Savitzky-Golay, zero-phase", "window_samples": _acceleration_window(sampling_period_s),
                          "polyorder": ACCELERATION_POLYORDER},
     }
+
+
+def derived_signals(cohort: Cohort) -> dict:
+    """The signals of ``cohort`` derived from the angle (no sensor): per signal, how
+    (:func:`derivation_settings`) and in which trials (``"JM-left trial 1"``); signals measured in
+    every trial are left out."""
+    out = {}
+    for signal, how in derivation_settings(cohort.sampling_period_s).items():
+        trials = [f"{t.key} trial {t.trial}" for t in cohort.trials if not getattr(t, f"{signal}_measured")]
+        if trials:
+            out[signal] = {**how, "trials": trials}
+    return out
 
 
 #: Trials that passed the data rules: read by a reader, made by the simulator, or checked once by

@@ -475,24 +475,36 @@ def _pendulum_plausibility(trial: Trial) -> list[str]:
 #: A stimulated trial whose angle, where no twitch acts, has its median further than this [deg] from
 #: 0 (the shank hanging at rest) gets a warning: a flexion angle reads 90° there.
 REST_MEDIAN_DEG = 45.0
+#: ... and one further than this [deg], a warning of an offset zero: between twitches a shank swings
+#: about its rest, and that median lies within 5° of it on simulated legs of two designs ...
+REST_OFFSET_DEG = 10.0
+#: ... where at least this many seconds [s] are free of twitches: a shorter stretch may hold part
+#: of one swing, whose median lies anywhere within the swing.
+REST_OFFSET_QUIET_S = 5.0
 
 
 def _rest_plausibility(trial: Trial) -> list[str]:
     """A trial with pulses should rest near angle 0 between its twitches: the samples no twitch
     reaches (none in the :data:`~quadshank.data._paper.TWITCH_REACH_S` after a pulse), not
     excluded, at least a second of them, whose median lies beyond :data:`REST_MEDIAN_DEG` say that
-    the angle's zero or convention is off.  A trial stimulated throughout has no such samples and
-    is not judged."""
+    the angle's zero or convention is off, and beyond :data:`REST_OFFSET_DEG` (over at least
+    :data:`REST_OFFSET_QUIET_S`) that its zero may be offset.  A trial stimulated throughout has no such samples and is not judged."""
     reach = max(1, int(round(TWITCH_REACH_S / trial.sampling_period_s)))
     quiet = quiet_mask(trial.stimulation, reach) & ~trial.exclude
     if np.count_nonzero(quiet) * trial.sampling_period_s < 1.0:
         return []
     median = float(np.median(trial.angle_deg[quiet]))
     # a shank that went over the top (a simulated knee without an end of range) hangs at 360°
-    if abs(median - 360.0 * round(median / 360.0)) <= REST_MEDIAN_DEG:
+    off = abs(median - 360.0 * round(median / 360.0))
+    if off <= REST_OFFSET_DEG or (off <= REST_MEDIAN_DEG and
+                                  np.count_nonzero(quiet) * trial.sampling_period_s < REST_OFFSET_QUIET_S):
         return []
-    return [f"where no twitch acts ({np.count_nonzero(quiet)} samples) the angle's median is {median:.1f}°, where the "
-            "shank hanging at rest is 0: is angle_deg zeroed with the shank hanging, positive in extension? (a "
+    said = f"where no twitch acts ({np.count_nonzero(quiet)} samples) the angle's median is {median:.1f}°, where the shank "
+    if off <= REST_MEDIAN_DEG:
+        return [said + "hanging at rest is 0: is the goniometer's zero offset? The passive model's gravity acts about "
+                "angle 0, and an offset shrinks G' and inflates the gains; zero angle_deg with the shank hanging, or add "
+                "the effect goniometer_offset (a sensor's zero) or gravity_offset (a rest the tissues hold)"]
+    return [said + "hanging at rest is 0: is angle_deg zeroed with the shank hanging, positive in extension? (a "
             "flexion angle reads 90° at rest)"]
 
 

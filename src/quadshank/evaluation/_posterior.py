@@ -68,7 +68,7 @@ from ..inference._fitio import (
 )
 from ..inference._summaries import INTERVAL, interval
 from ..model._model import Model, measured_angle, predict_ahead, simulate_angles, true_angle
-from ._prediction import horizon_samples, prediction_starts
+from ._prediction import horizon_samples, prediction_starts, scored
 
 __all__ = [
     "LoadedFit",
@@ -148,21 +148,24 @@ class LoadedFit(NamedTuple):
 
 
 def load_fits(folders) -> list[LoadedFit]:
-    """Load fit folders; a missing or incomplete folder, or two fits of one model, is an error."""
+    """Load fit folders; a missing or incomplete folder, or one given twice, is an error.  Each
+    fit is labelled by its model's name, or, where two fits are of one model (another likelihood,
+    other trials), by the model's name and its folder's (``model3@fit-angle``)."""
     fits = []
     for folder in folders:
         idata, model, desc = load_fit(folder)
         summary = read_summary(folder)
         check_fit_files(folder, idata, summary)
         fits.append(LoadedFit(desc["model"], Path(folder), idata, model, desc, summary))
-    seen: dict[str, Path] = {}
+    where: dict[Path, Path] = {}
     for f in fits:
-        if f.label in seen:
-            raise ValueError(
-                f"fits {seen[f.label]} and {f.folder} are both of {f.label!r}; give one fit per model"
-            )
-        seen[f.label] = f.folder
-    return fits
+        same = where.setdefault(f.folder.resolve(), f.folder)
+        if same is not f.folder:
+            raise ValueError(f"fits {same} and {f.folder} are one folder; give each fit once")
+    names = [f.label for f in fits]
+    labels = [f"{f.label}@{f.folder.resolve().name}" if names.count(f.label) > 1 else f.label for f in fits]
+    labels = [f"{label}#{i + 1}" if labels.count(label) > 1 else label for i, label in enumerate(labels)]
+    return [f._replace(label=label) for f, label in zip(fits, labels)]
 
 
 def check_fit_legs(fits: list[LoadedFit], cohort: Cohort) -> None:
@@ -263,12 +266,16 @@ def figure_window(trial: Trial, window_s: tuple[float, float]) -> tuple[float, i
 
 def window_predictions(models: Model, trial: Trial, horizons, window: tuple[float, int, int]) -> dict:
     """Per horizon p [samples]: ``(starts, predicted)``, the angles predicted p samples after each
-    start whose target falls in the :func:`figure_window` ``window``; predicted is (draws, starts)."""
+    start whose target falls in the :func:`figure_window` ``window``; predicted is (draws, starts),
+    NaN where the run from the start meets an excluded sample (J does not score it, and a figure
+    leaves a gap)."""
     _, i0, i1 = window
     out = {}
     for p in horizons:
         starts = np.arange(max(0, i0 - p), i1 - p)
-        out[p] = (starts, posterior_predictions(models, trial, starts, (p,))[:, :, 0])
+        pred = posterior_predictions(models, trial, starts, (p,))[:, :, 0].astype(float)
+        pred[:, ~scored(trial, starts, p)] = np.nan
+        out[p] = (starts, pred)
     return out
 
 

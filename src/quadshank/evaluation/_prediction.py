@@ -50,6 +50,14 @@ def horizon_samples(sampling_period_s: float, horizons_ms=HORIZONS_MS) -> dict[i
     return {int(h): max(1, int(round(h / 1000.0 / sampling_period_s))) for h in horizons_ms}
 
 
+def scored(trial: Trial, starts, horizon: int) -> np.ndarray:
+    """True for each start whose run from n to n + ``horizon`` meets no excluded sample
+    (``Trial.exclude``): the predictions J scores."""
+    starts = np.asarray(starts)
+    before = np.concatenate([[0], np.cumsum(trial.exclude, dtype=np.int64)])  # excluded samples before k
+    return before[starts + horizon + 1] == before[starts]
+
+
 def prediction_starts(trial: Trial, horizon: int, stride: int = 1) -> np.ndarray:
     """Starts n = 0, stride, 2·stride, … < N - horizon (all horizons share them), leaving out
     every start whose run from n to n + horizon meets an excluded sample (``Trial.exclude``):
@@ -59,8 +67,7 @@ def prediction_starts(trial: Trial, horizon: int, stride: int = 1) -> np.ndarray
         raise ValueError(f"{trial.key} trial {trial.trial}: {trial.n_samples} samples, fewer than the horizon {horizon}")
     starts = np.arange(0, n, stride)
     if trial.exclude.any():
-        before = np.concatenate([[0], np.cumsum(trial.exclude, dtype=np.int64)])  # excluded samples before k
-        starts = starts[before[starts + horizon + 1] == before[starts]]
+        starts = starts[scored(trial, starts, horizon)]
         if not starts.size:
             raise ValueError(f"{trial.key} trial {trial.trial}: no stretch of {horizon + 1} samples without an "
                              "excluded sample, so no prediction to score")

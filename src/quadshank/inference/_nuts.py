@@ -38,6 +38,7 @@ from ..model._likelihood import (
     N_DELAYS,
     OBJECTIVES,
     LikelihoodData,
+    chosen_legs,
     prepare,
 )
 from ..model._model import Model
@@ -514,6 +515,7 @@ def run_nuts(
                         if isinstance(model, str) else f"model: give a Model, not {type(model).__name__}")
     if not isinstance(settings, FitSettings):
         raise TypeError(f"settings: give a FitSettings, not {type(settings).__name__}")
+    chosen_legs(cohort, legs, settings.trials)  # before the first progress line
     t0 = time.perf_counter()
     screen = fit_screen(cohort, model, settings, legs=legs, progress=progress)
     evidence, moved, evidence_seconds, modes = None, {}, None, None

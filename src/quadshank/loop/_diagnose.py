@@ -482,14 +482,14 @@ def verdict_sentence(ranking: Ranking) -> str:
         if cls is not None and cls.kind == "noise":
             return (
                 f"Adding {r['effect']} improves ELPD by {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f}; it describes how "
-                f"the measurements scatter about the model, not its dynamics, so J at 1 s stays near "
-                f"{j10['before']['median']:.2f}° ({j10['after']['median']:.2f}° with it). Keep it in the model: with it, "
+                f"the measurements scatter about the model, not its dynamics, so J does not judge it (at 1 s "
+                f"{j10['before']['median']:.2f}° without it, {j10['after']['median']:.2f}° with it). Keep it in the model: with it, "
                 f"the next candidates are judged against that scatter, not taken for it.{tail}"
             )
         return (
             f"Adding {r['effect']} improves ELPD by {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f}; it changes what the "
-            f"accelerometer reads, not the angle, so J at 1 s stays near {j10['before']['median']:.2f}° "
-            f"({j10['after']['median']:.2f}° with it).{tail}"
+            f"accelerometer reads, not the angle, so J does not judge it (at 1 s {j10['before']['median']:.2f}° "
+            f"without it, {j10['after']['median']:.2f}° with it).{tail}"
         )
     parts = []
     for h in r["judged_at_ms"]:

@@ -403,6 +403,30 @@ def resolve_objective(model: Model, objective: str = "auto") -> str:
     return objective
 
 
+def chosen_legs(cohort: Cohort, legs=None, trials=(1,)) -> tuple[tuple[str, ...], tuple[int, ...]]:
+    """The legs (all of ``cohort``'s by default; one name is one leg) and trial numbers a fit uses,
+    refused where a leg is unknown or given twice, or lacks a trial: checked before any work."""
+    legs = (legs,) if isinstance(legs, str) else tuple(legs) if legs is not None else cohort.legs
+    if not legs:
+        raise ValueError(f"legs: give at least one leg ({'the data has ' + ', '.join(cohort.legs) if len(cohort) else 'the data hold no trials'})")
+    twice = sorted({leg for leg in legs if legs.count(leg) > 1})
+    if twice:  # its data would enter the likelihood twice, as two legs of the hierarchy
+        raise ValueError(f"legs: {', '.join(twice)} given twice")
+    trials = tuple(int(t) for t in trials)
+    unknown = [leg for leg in legs if leg not in cohort.legs]
+    if unknown:
+        raise KeyError(f"no leg {', '.join(unknown)} in the data (it has {', '.join(cohort.legs)})")
+    for leg in legs:
+        have = sorted(t.trial for t in cohort.trials_of(leg))
+        if not set(trials) & set(have):
+            raise KeyError(f"leg {leg} has no trial {', '.join(map(str, trials))} (it has {have})")
+        missing = [tr for tr in trials if tr not in have]
+        if missing:  # a leg fitted to fewer trials than asked for would be recorded as fitted to all
+            raise KeyError(f"leg {leg} has no trial {', '.join(map(str, missing))} (it has {have}); ask for the "
+                           "trials every leg has, or leave this leg out")
+    return legs, trials
+
+
 def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None, objective: str = "auto") -> LikelihoodData:
     """Arrange a cohort's chosen trials for the likelihood of ``model``; ``objective``: what it
     compares (:func:`resolve_objective`)."""
@@ -412,27 +436,11 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None, objective: str
     resolution = getattr(act, "resolution", "sample")
     R = response_length(model)
     K = max_shift(model)
-    legs = (legs,) if isinstance(legs, str) else tuple(legs) if legs is not None else cohort.legs
-    if not legs:
-        raise ValueError(f"legs: give at least one leg ({'the data has ' + ', '.join(cohort.legs) if len(cohort) else 'the data hold no trials'})")
-    twice = sorted({leg for leg in legs if legs.count(leg) > 1})
-    if twice:  # its data would enter the likelihood twice, as two legs of the hierarchy
-        raise ValueError(f"legs: {', '.join(twice)} given twice")
-    trials = tuple(int(t) for t in trials)
+    legs, trials = chosen_legs(cohort, legs, trials)
     gap = MAX_DELAY + R + 1
     per_leg = []
-    unknown = [leg for leg in legs if leg not in cohort.legs]
-    if unknown:
-        raise KeyError(f"no leg {', '.join(unknown)} in the data (it has {', '.join(cohort.legs)})")
     for leg in legs:
         chosen = [t for t in cohort.trials_of(leg) if t.trial in trials]
-        have = sorted(t.trial for t in cohort.trials_of(leg))
-        if not chosen:
-            raise KeyError(f"leg {leg} has no trial {', '.join(map(str, trials))} (it has {have})")
-        missing = [tr for tr in trials if tr not in have]
-        if missing:  # a leg fitted to fewer trials than asked for would be recorded as fitted to all
-            raise KeyError(f"leg {leg} has no trial {', '.join(map(str, missing))} (it has {have}); ask for the "
-                           "trials every leg has, or leave this leg out")
         cols = {k: [] for k in ("angle", "velocity", "acceleration", "stimulation", "mask", "pulse_ok", "start", "segment",
                                  "trial_start")}
         offset = 0

@@ -105,7 +105,9 @@ def plot_predictions(trial, predicted: dict, p: int, *, start_s: float = 30.0, l
         keep = (target >= sl.start) & (target < sl.stop)
         ax.plot(trial.time_s[sl], trial.angle_deg[sl], "k-", lw=1.2, label="measured")
         _shade_excluded(ax, trial, sl)
-        ax.plot(trial.time_s[target[keep]], pred[keep, p - 1], "--", color=_MODEL_COLOURS.get(name), lw=1.2,
+        shown = np.full(sl.stop - sl.start, np.nan)  # NaN where no prediction is scored: a gap, not a bridge
+        shown[target[keep] - sl.start] = pred[keep, p - 1]
+        ax.plot(trial.time_s[sl], shown, "--", color=_MODEL_COLOURS.get(name), lw=1.2,
                 label=f"{name}, {p * trial.sampling_period_s * 1000:.0f} ms ahead")
         err = trial.angle_deg[target] - pred[:, p - 1]
         ax.set_title(f"{name}: J = {np.sqrt(np.mean(err ** 2)):.2f}° over the trial", fontsize=9)

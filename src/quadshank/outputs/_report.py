@@ -48,6 +48,7 @@ from ..data._paper import SAMPLING_PERIOD_S, TABLE_V
 from ..inference._summaries import INTERVAL, interval
 from ..model._effects import registered_effects, to_standard
 from ._figures import horizon_axis, plot_delay_angle
+from ._tables import recordings_sentence
 
 __all__ = ["write_report", "plot_shrinkage", "plot_delay_posterior", "plot_leg_predictions", "PREDICTION_WINDOW_S", "PREDICTION_HORIZONS_MS"]
 
@@ -455,7 +456,7 @@ def write_report(
     base, paper = _paper_table_v(label)
     header = (f'<p class="note">Model <strong>{_e(label)}</strong> ({_e(", ".join(desc["effects"]))}), fit {_e(fit_dir)}, '
               f"fitted on trial(s) {_e(fitted_trials)}; intervals are 90 % (5 % to 95 % quantiles) around the posterior "
-              f"median. J_φ,p {_e(j_how)}.</p>")
+              f"median. J_φ,p {_e(j_how)}. {_e(recordings_sentence(dt, fs.derived_signals, 'no_muscle' not in fs.effects))}</p>")
     files: list[str] = []
 
     # ---------------------------------------------------------------- per leg: CSV and JSON

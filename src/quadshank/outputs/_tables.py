@@ -33,6 +33,7 @@ __all__ = [
     "table_iv",
     "table_v_rows",
     "sign_test_rows",
+    "recordings_sentence",
 ]
 
 
@@ -233,3 +234,23 @@ def sign_test_rows(tests: list[dict]) -> list[dict]:
         }
         for t in sorted(tests, key=lambda t: (t["horizon_ms"], t["model_a"], t["model_b"]))
     ]
+
+
+def recordings_sentence(sampling_period_s: float, derived: dict | None, muscle: bool = True) -> str:
+    """What a page of results should say about the recordings behind it: the sampling period,
+    which signals were derived from the angle (``derived``: a fit's ``derived_signals``, signal
+    → ``{"method", "window_samples", "trials"}``), and, away from the paper's 10 ms, that gains
+    counted per sample are not the paper's (a twitch's sum over its samples scales as 1/T_s)."""
+    ms = sampling_period_s * 1000
+    text = f"Recordings sampled every {ms:g} ms"
+    if derived:
+        text += "; " + "; ".join(
+            f"{signal} derived from the angle ({d.get('method', 'filtered')}, {d.get('window_samples', '?')} samples) "
+            f"in {len(d.get('trials', ()))} trial{'s' if len(d.get('trials', ())) != 1 else ''}"
+            for signal, d in derived.items())
+    text += "."
+    ratio = SAMPLING_PERIOD_S / sampling_period_s
+    if muscle and abs(ratio - 1) > 1e-6:
+        text += (f" Gains are per sample: at {ms:g} ms a twitch's gain is about {ratio:.3g}× the paper's values at "
+                 f"{SAMPLING_PERIOD_S * 1000:g} ms quoted beside them.")
+    return text
