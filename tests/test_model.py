@@ -227,3 +227,38 @@ def test_register_effect_rejects_malformed_classes():
 
     with pytest.raises(TypeError, match=r"parameter\(s\) \['c'\] declared twice"):
         register_effect(Twice)
+
+    @dataclasses.dataclass(frozen=True)
+    class ThreeValues(Effect):  # a factor of shape (3,) for one sample: JAX's scan would say only "carry types"
+        kind = "gain"
+        name = "three_values_gain"
+        params = (Param("c", "1/deg"),)
+        c: float = 0.0
+
+        def factor(self, ctx):
+            return jnp.ones(3) * (1.0 + self.c * ctx.angle)
+
+    with pytest.raises(TypeError, match=r"ThreeValues.factor\(\) must return one value per sample it is given "
+                                        r"\(shape \(\) for inputs of shape \(\)\), not \(3,\)"):
+        register_effect(ThreeValues)
+
+    @dataclasses.dataclass(frozen=True)
+    class NoPulseFactor(Effect):
+        kind = "pulse"
+        name = "no_pulse_factor"
+
+    with pytest.raises(TypeError, match=r"NoPulseFactor: pulse effect 'no_pulse_factor' must define pulse_factor\(\)"):
+        register_effect(NoPulseFactor)
+    assert "three_values_gain" not in registered_effects() and "no_pulse_factor" not in registered_effects()
+
+
+def test_every_registered_effect_contributes_one_value_per_sample():
+    """The shape check a user's effect meets at registration holds for every built-in (and the
+    user's effect of conftest.py), on one sample and on many; an effect that returns a constant
+    passes, since it broadcasts."""
+    from quadshank.model._effects import CONTRIBUTIONS, check_contribution
+
+    checked = [cls for cls in registered_effects().values() if cls.kind in CONTRIBUTIONS]
+    assert {cls.kind for cls in checked} == set(CONTRIBUTIONS)
+    for cls in checked:
+        check_contribution(cls)

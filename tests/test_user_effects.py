@@ -113,3 +113,30 @@ def test_effects_offered_by_an_installed_package_are_loaded(tmp_path, monkeypatc
     assert "lab_squared_angle" in registered_effects()
     assert _plugins.effect_origin("lab_squared_angle")["module"] == "lab_effects"
     assert _plugins.effect_origin("gravity") is None
+
+
+def test_an_effect_that_returns_nan_is_named_by_the_fit(scratch_registry):
+    """A user's effect whose factor is NaN everywhere leaves the screen no finite density: the
+    error names the effect beside the model, not only the model."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    from quadshank import Effect, FitSettings, Param, build_model, fit, register_effect, simulate_cohort
+
+    @register_effect
+    @dataclasses.dataclass(frozen=True)
+    class NotANumber(Effect):
+        kind = "gain"
+        name = "test_not_a_number"
+        params = (Param("c0", "1", prior=("normal", 0.0, 1.0)),)
+        c0: float = 0.0
+
+        def factor(self, ctx):
+            return jnp.nan * (1.0 + self.c0 * ctx.angle)
+
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.2, seed=1, trials=(1,))
+    with pytest.raises(FloatingPointError, match=r"TN-left: the screen of model3s\+test_not_a_number found no finite "
+                                                 r"posterior density .*or an effect \(test_not_a_number\) returns"):
+        fit(cohort, build_model("model3s", ["test_not_a_number"]), FitSettings(chains=1, warmup=10, draws=10),
+            progress=False)

@@ -407,7 +407,11 @@ def _laplace_fit(
             if np.isfinite(res.fun) and (best is None or res.fun < best[0].fun):
                 best = (res, v)
         if best is None:
-            raise FloatingPointError(f"{leg}: the screen of {model.name} found no finite posterior density")
+            own = [e.name for e in model.effects if type(e).__module__.split(".")[0] != "quadshank"]
+            raise FloatingPointError(
+                f"{leg}: the screen of {model.name} found no finite posterior density from any start: the model "
+                "diverges on these data from every start" + (f", or an effect ({', '.join(own)}) returns a value that "
+                                                            "is not finite" if own else ""))
         best, mode = best[0], np.asarray(best[1], np.float64)
         H = _hessian(value_and_grad, mode, x)
         w, V = np.linalg.eigh(np.where(np.isfinite(H), H, 0.0))

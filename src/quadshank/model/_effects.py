@@ -105,6 +105,8 @@ __all__ = [
     "StepContext",
     "register_effect",
     "registered_effects",
+    "check_contribution",
+    "CONTRIBUTIONS",
     "get_effect",
     "ZeroOrderActivation",
     "Darma",
@@ -345,11 +347,50 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
     if builtin is not None and (builtin.__module__, builtin.__qualname__) != (cls.__module__, cls.__qualname__):
         warnings.warn(f"effect {cls.name!r}: {cls.__module__}.{cls.__qualname__} replaces {builtin.__module__}."
                       f"{builtin.__qualname__}, registered under that name before", stacklevel=2)
+    if cls.__module__ != __name__:  # the built-ins are checked by the tests
+        check_contribution(cls)
     discrete = list(getattr(cls, "discrete", ()))
     meta = [n for n in fields if n not in param_names and n not in discrete]
     register_pytree(cls, param_names + discrete, meta)
     _REGISTRY[cls.name] = cls
     return cls
+
+
+#: The method through which each kind of effect contributes, given the state at a sample (or a pulse).
+CONTRIBUTIONS = {"gain": "factor", "pulse": "pulse_factor", "passive": "acceleration", "output": "output_factor"}
+
+
+def check_contribution(cls: type[Effect]) -> None:
+    """Refuse an effect class whose contribution (:data:`CONTRIBUTIONS`) is missing, or returns
+    another shape than one value per sample it is given: the models call it on one sample (shape
+    ``()``) and the likelihood on every sample at once (shape ``(n,)``), and a wrong shape would
+    surface as a message from deep inside JAX.  Traced abstractly (``jax.eval_shape``) at the class's
+    default values; a class without defaults for every field, or whose method cannot be traced
+    at them, is left to fail where it is used."""
+    method = CONTRIBUTIONS.get(cls.kind)
+    if method is None or (cls.kind == "gain" and cls.gain is not Effect.gain):  # a stateful gain defines gain()
+        return
+    try:
+        effect = cls()
+    except TypeError:
+        return
+    for shape in ((), (5,)):
+        x = jax.ShapeDtypeStruct(shape, jnp.float32)
+        args = {"passive": (x, x), "pulse": (PulseContext(x, x, x, x, x, x),)}.get(cls.kind, (StepContext(x, x, x, x),))
+        try:
+            out = jax.eval_shape(getattr(effect, method), *args)
+        except NotImplementedError as e:
+            raise TypeError(f"{cls.__name__}: {e}") from None
+        except Exception:  # noqa: BLE001 - not judged here: the fit or the prediction will name it
+            return
+        try:
+            fits = hasattr(out, "shape") and np.broadcast_shapes(tuple(out.shape), shape) == shape
+        except ValueError:
+            fits = False
+        if not fits:
+            raise TypeError(f"{cls.__name__}.{method}() must return one value per sample it is given (shape {shape} "
+                            f"for inputs of shape {shape}), not {getattr(out, 'shape', out)}: it is called on one "
+                            "sample in a prediction and on every sample at once in the likelihood")
 
 
 def register_pytree(cls: type, data: list[str], meta: list[str]) -> None:
