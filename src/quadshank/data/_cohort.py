@@ -13,6 +13,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import unicodedata
 import weakref
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -253,6 +254,8 @@ class Trial:
     def __post_init__(self) -> None:
         object.__setattr__(self, "trial", _trial_number(self.trial))
         _check_names(self.subject, self.leg)
+        # one spelling of a name: 'ë' typed, and 'e' + '¨' as some file systems store it, are one subject
+        object.__setattr__(self, "subject", unicodedata.normalize("NFC", self.subject))
         object.__setattr__(self, "sampling_period_s", _period(self.sampling_period_s, self.key, self.trial))
         n = np.shape(self.time_s)[0] if np.ndim(self.time_s) else -1
         for name in _SIGNALS:
