@@ -110,6 +110,33 @@ def test_same_seed_same_posterior():
     np.testing.assert_array_equal(np.asarray(a.get_samples()["gain"]), np.asarray(b.get_samples()["gain"]))
 
 
+def test_a_ctrl_c_that_jax_swallows_still_stops_the_fit(data_dir, monkeypatch, capsys):
+    """A Ctrl-C while XLA samples reaches Python inside a callback of JAX's, which drops the
+    exception: the command line's handler records it, and the fit stops when sampling returns,
+    exits 130 and leaves no complete-looking folder, where it had run on to a full result."""
+    import signal
+
+    from numpyro.infer import MCMC
+
+    run = MCMC.run
+
+    def run_and_swallow_a_ctrl_c(self, *args, **kwargs):
+        try:
+            signal.raise_signal(signal.SIGINT)  # the handler runs here, as in JAX's garbage-collection hook ...
+        except KeyboardInterrupt:
+            pass  # ... which reports the exception as ignored and goes on
+        return run(self, *args, **kwargs)
+
+    monkeypatch.setattr(MCMC, "run", run_and_swallow_a_ctrl_c)
+    out = data_dir / "swallowed"
+    capsys.readouterr()
+    assert main(["-q", "fit", str(data_dir / "data"), "--model", "model1", "--legs", "TN-left", "--chains", "1",
+                 "--warmup", "5", "--draws", "5", "--out", str(out)]) == 130
+    assert "quadshank: interrupted" in capsys.readouterr().err
+    assert not out.exists()  # the folder the run made is removed: no summary.json claims a fit
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler before is back
+
+
 def test_unknown_effect_and_missing_trial_are_plain_errors(data_dir, capsys):
     args = ["fit", str(data_dir / "data"), *TINY, "--out", str(data_dir / "bad")]
     assert main([*args, "--add-effect", "no_such_effect"]) == 2

@@ -169,6 +169,11 @@ def test_one_fit_has_nothing_to_compare(run, tmp_path):
     s = json.loads((out / "summary.json").read_text())
     assert list(s["J"]) == ["model1"] and s["sign_tests"] == []
     assert s["loo"]["compare"] == [] and s["loo"]["not_compared"] == []
+    # tables with no rows are empty tables, not files of no bytes that no CSV reader takes
+    import csv
+    for name, first in (("loo_compare", "legs"), ("sign_tests_posterior", "horizon [ms]")):
+        rows = list(csv.reader((out / "tables" / f"{name}.csv").open()))
+        assert len(rows) == 1 and rows[0][0] == first, (name, rows)
 
 
 def test_two_fits_of_one_model_are_labelled_by_their_folders(run, tmp_path, capsys):

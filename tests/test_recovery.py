@@ -80,13 +80,26 @@ def test_matching_values_follow_the_paper_tables():
         matching_values("model4", "TN-left")
 
 
-def test_recovery_command_writes_the_coverage_table(tmp_path):
+def test_recovery_command_writes_the_coverage_table(tmp_path, capsys):
+    """The coverage table, its exit code 3 and a warning where a fit failed its checks, and a rerun
+    into the same folder that takes the finished fit again rather than fitting it anew."""
     out = tmp_path / "rec"
-    code = main(["-q", "recovery", "--models", "model1", "--seeds", "3", "--legs", "TN-left,JM-left",
-                 "--minutes", "0.5", "--chains", "1", "--warmup", "30", "--draws", "20", "--start", "prior",
-                 "--out", str(out)])  # fmt: skip
-    assert code == 0
+    args = ["recovery", "--models", "model1", "--seeds", "3", "--legs", "TN-left,JM-left", "--minutes", "0.5",
+            "--chains", "1", "--warmup", "30", "--draws", "20", "--start", "prior", "--out", str(out)]
+    capsys.readouterr()
+    code = main(args)
+    said = capsys.readouterr()
     result = json.loads((out / "coverage.json").read_text())
+    ok = result["models"]["model1"]["fits"][0]["ok"]
+    assert code == (0 if ok else 3) and ("fits failed their checks" in said.err) == (not ok)
+    assert "90 % intervals cover the truth" in said.err and "expected if calibrated" in said.err
+    assert "the delay not estimated (P(d) stayed the prior's on every leg)" in said.err  # model 1 does not see it
+    fit_before = (out / "model1-seed3" / "fit.nc").stat().st_mtime_ns
+    assert main(["-q", *args]) == code  # again into its own folder: the finished fit is taken again
+    again = json.loads((out / "coverage.json").read_text())
+    assert again["models"]["model1"]["fits"][0]["reused"] is True
+    assert (out / "model1-seed3" / "fit.nc").stat().st_mtime_ns == fit_before
+    assert again["models"]["model1"]["covered"] == result["models"]["model1"]["covered"]
     assert result["settings"]["start"] == "prior"
     m = result["models"]["model1"]
     # per leg: gain and four passive parameters, and the delay row

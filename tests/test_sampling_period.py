@@ -38,12 +38,13 @@ def test_simulate_fit_evaluate_report_at_another_period(tmp_path, period_ms, cap
     evaluation = json.loads((ev / "summary.json").read_text())
     assert evaluation["horizons_samples"] == [round(h / period_ms) for h in (100, 250, 500, 1000)]
     assert set(evaluation["J"]["model2"]["2"]) == {"100", "250", "500", "1000"}
-    assert f"Recordings sampled every {period_ms} ms." in (ev / "report.md").read_text()
+    assert f"Recordings sampled every {period_ms} ms; velocity derived from the angle" in (ev / "report.md").read_text()
 
     assert main(["-q", "report", str(fit), "--out", str(rep), "--evaluation", str(ev)]) == 0
     page = (rep / "index.html").read_text()
-    assert f"Recordings sampled every {period_ms} ms. Gains are per sample: at {period_ms} ms a twitch&#x27;s gain is " \
-           f"about {10 / period_ms:g}× the paper&#x27;s values at 10 ms" in page
+    assert f"Recordings sampled every {period_ms} ms; velocity derived from the angle" in page
+    assert f"Gains are per sample: at {period_ms} ms a twitch&#x27;s gain is about {10 / period_ms:g}× the paper&#x27;s " \
+           "values at 10 ms" in page
     delays = re.findall(r"mode d = (\d+) samples \(([\d.]+) ms\)", page)
     assert delays
     for samples, ms in delays:

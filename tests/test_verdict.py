@@ -196,3 +196,23 @@ def test_an_effect_on_the_accelerometer_alone_must_not_raise_j():
     assert "accel_resonance has evidence (ΔELPD 108 ± 25) but acts on what the accelerometer reads alone, and with it " \
            "J rises beyond the bands (" in said and "° → 4.50° at 500 ms" in said, said
     assert "changes J little" not in said  # the note of a lead whose J does not move is not said of it
+
+
+def test_a_nuts_fit_that_failed_its_checks_confirms_nothing(capsys):
+    """NUTS's word on a leader from a fit that failed its checks is "would confirm", with the
+    banner, and the command exits 3 as `fit` does; from fits that passed it is "confirms", exit 0."""
+    from quadshank.cli import _nuts_fits_code
+    from quadshank.loop._diagnose import nuts_sentence
+
+    band = {"median": 2.0, "lo": 1.8, "hi": 2.2}
+    nuts = {"clears_bar": True, "delta_elpd": 40.0, "delta_elpd_se": 8.0,
+            "J_1000ms": {"before": {**band, "median": 2.5}, "after": band}}
+    passed = nuts_sentence([{"effect": "fatigue", "nuts": {**nuts, "banner": None}}])
+    assert passed.startswith("NUTS confirms fatigue: ΔELPD 40 ± 8, J at 1 s 2.50° → 2.00° [1.80, 2.20].")
+    failed = nuts_sentence([{"effect": "fatigue", "nuts": {**nuts, "banner": "FIT FAILED ITS CHECKS: R-hat 1.05"}}])
+    assert failed.startswith("NUTS would confirm fatigue: ") and \
+        failed.endswith("(but its fit failed its checks: FIT FAILED ITS CHECKS: R-hat 1.05).")
+    assert _nuts_fits_code(None, "out") == _nuts_fits_code(True, "out") == 0
+    capsys.readouterr()
+    assert _nuts_fits_code(False, "out") == 3
+    assert "a NUTS fit made to confirm failed its checks" in capsys.readouterr().err

@@ -28,6 +28,7 @@ from .commands.report import Report, run_report
 from .commands.reproduce import Reproduction, run_reproduce
 from .common._io import read_json
 from .common._progress import write_above_bars
+from .common._interrupt import handling_interrupts, interrupt_requested
 from .common._xla_cache import use_compilation_cache
 from .data._interchange import DataWarning, convert, load_cohort, write_interchange
 from .data._paper import LEGS
@@ -118,22 +119,39 @@ def _files_in(out: Path) -> set[str]:
             if (p.is_file() or p.is_symlink()) and p.name != OUTPUT_MARK}
 
 
-def _remove_earlier_files(out: Path) -> None:
+def _reusable_fit(path: Path, out: Path) -> bool:
+    """Whether ``path`` lies in a finished fit of ``recovery`` (a folder of ``out`` holding
+    ``fit.nc``, ``summary.json`` and ``truth.json``), which a rerun takes again where the truth,
+    the settings and the code are the same."""
+    folder = path.parent
+    return folder.resolve() != out.resolve() and all((folder / n).is_file() for n in ("fit.nc", "summary.json", "truth.json"))
+
+
+#: Commands whose earlier output holds work a rerun reuses, and the files that are that work.
+REUSED = {"recovery": _reusable_fit}
+
+
+def _remove_earlier_files(out: Path, keep=None) -> set[str]:
     """Remove the files an earlier run of the same command listed in its mark, and the folders
     that leaves empty: a rerun must not leave pages, tables or figures of legs it no longer has
-    beside its own.  Files the mark does not list (the user's) stay."""
+    beside its own.  Files the mark does not list (the user's) stay, and so do those ``keep(path,
+    out)`` holds to be work the rerun reuses (:data:`REUSED`); returns the latter."""
     try:
         listed = (out / OUTPUT_MARK).read_text().splitlines()[1:]
     except (OSError, UnicodeDecodeError):
-        return
+        return set()
     root = out.resolve()
+    reused = set()
     for rel in listed:
         path = out / rel
         if not rel or rel.startswith("/") or not path.resolve().is_relative_to(root):
             continue  # a mark edited by hand names nothing outside the folder
-        if path.is_file() or path.is_symlink():
+        if keep is not None and keep(path, out):
+            reused.add(rel)
+        elif path.is_file() or path.is_symlink():
             path.unlink()
     _remove_empty_folders(out)
+    return reused
 
 
 def _remove_empty_folders(out: Path) -> None:
@@ -273,11 +291,10 @@ def prepare_output(out: Path, command: str, inputs, overwrite: bool = False):
         raise FileExistsError(
             f"{out}: holds the output of `quadshank {other}` (its summary.json), which --overwrite would replace with "
             f"this command's and leave a folder that is neither; give a folder of its own")
-    if out.is_dir() and not foreign:
-        _remove_earlier_files(out)
+    reused = _remove_earlier_files(out, REUSED.get(command)) if out.is_dir() and not foreign else set()
     (out / "summary.json").unlink(missing_ok=True)
     new = not out.exists()
-    kept = _files_in(out) if out.is_dir() else set()  # the user's files, which this run did not write
+    kept = _files_in(out) - reused if out.is_dir() else set()  # the user's files, which this run did not write
 
     def mark(failed: bool = False) -> None:
         if failed and new and out.is_dir():
@@ -508,15 +525,29 @@ def cmd_recovery(args) -> int:
         add_effects=args.add_effect or (),
         truth_effects=None if args.truth_effects is None else _csv_list(args.truth_effects),
     )
+    code = 0
     for model, m in result["models"].items():
         lo, hi = m["expected_band_95"]
+        passed, n_fits = sum(bool(f["ok"]) for f in m["fits"]), len(m["fits"])
+        reused = sum(bool(f["reused"]) for f in m["fits"])
+        if "delay_legs" not in m:
+            delay = ""
+        elif m.get("delay_seen_legs"):
+            delay = f", delay mode right for {m['delay_mode_right']}/{m['delay_legs']} legs"
+        else:  # the mode of a flat P(d) is no estimate (model 1's likelihood does not see the delay)
+            delay = ", the delay not estimated (P(d) stayed the prior's on every leg)"
         _say(
             args,
             f"{model}: {m['covered']}/{m['n_intervals']} 90 % intervals cover the truth ({m['coverage']:.2f}; "
-            f"calibrated: {lo:.2f}-{hi:.2f}), delay mode right for {m['delay_mode_right']}/{m['delay_legs']} legs",
+            f"{lo:.2f}-{hi:.2f} expected if calibrated){delay}; {passed}/{n_fits} fits passed their checks"
+            + (f" ({reused} reused from this folder)" if reused else ""),
         )
+        if passed < n_fits:
+            print(f"quadshank: warning: {model}: {n_fits - passed} of {n_fits} fits failed their checks (R-hat, ESS, "
+                  "divergences; coverage.md): its coverage is no evidence of calibration", file=sys.stderr)
+            code = 3
     _say(args, f"table: {Path(args.out) / 'coverage.md'}")
-    return 0
+    return code
 
 
 def cmd_likelihood_check(args) -> int:
@@ -580,6 +611,15 @@ def cmd_diagnose(args) -> int:
     )
     _say_ranking(args, summary)
     _say(args, f"report: {Path(args.out) / 'report.md'}")
+    return _nuts_fits_code(summary.nuts_fits_ok, args.out)
+
+
+def _nuts_fits_code(ok: bool | None, out) -> int:
+    """3, said on the console, where a NUTS fit the loop made to confirm a leader failed its checks."""
+    if ok is False:
+        print(f"quadshank: a NUTS fit made to confirm failed its checks (see {Path(out) / 'report.md'}): its verdict "
+              "rests on chains that should not be trusted; fit longer (--target-ess, --time-limit)", file=sys.stderr)
+        return 3
     return 0
 
 
@@ -635,7 +675,7 @@ def cmd_discover(args) -> int:
     if summary.confirm is not None:
         _say(args, summary.confirm["sentence"])
     _say(args, f"final model: {summary.final_model}; report: {Path(args.out) / 'report.md'}")
-    return 0
+    return _nuts_fits_code(summary.nuts_fits_ok, args.out)
 
 
 def cmd_compare(args) -> int:
@@ -1031,6 +1071,14 @@ def _one_line_warnings(previous):
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one command; returns its exit code (0, 2 for an error, 3 for a fit that failed its
+    checks, 130 when interrupted).  Ctrl-C and SIGTERM are honoured at the latest when the step
+    running then ends (:mod:`quadshank.common._interrupt`)."""
+    with handling_interrupts():
+        return _main(argv)
+
+
+def _main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -1061,10 +1109,13 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 code = int(args.func(args) or 0)
                 failed = False
-                return code
             finally:
                 if mark is not None:
                     mark(failed)
+            if interrupt_requested():  # asked for while the last step ran, and only seen now that it is done
+                print("quadshank: interrupted as the command ended; what it wrote is complete", file=sys.stderr)
+                return 130
+            return code
     except KeyboardInterrupt:
         print("quadshank: interrupted; files already written are complete, nothing half-written", file=sys.stderr)
         return 130

@@ -191,6 +191,8 @@ def run_diagnose(
     if confirm_from is not None:
         result.screen_verdict = screen_verdict
         result.confirmed_from = str(confirm_from)
+        made = [r["nuts"] for r in result.ranking if r.get("nuts")]
+        result.nuts_fits_ok = all(n["diagnostics"].get("ok", False) for n in made) if made else None
         said = nuts_sentence(result.ranking)
         if ranking.verdict == "none" and screen_verdict != "none":
             result.sentence = f"The screen's leader, {screen_verdict}, is not confirmed by NUTS. {said}"

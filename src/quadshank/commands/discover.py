@@ -82,7 +82,7 @@ def run_discover(
         nuts_folder = out / "confirm" / "fit-start"
         s = run_fit(cohort, nuts_folder, base_name, adds, confirm, legs=legs, progress=progress, data_source=data_source)
         fits["start"] = fits["final"] = _fit_entry("confirm/fit-start", s.model, s.banner, s.diagnostics)
-    rounds, base, s = [], None, None
+    rounds, base, s, nuts_ok = [], None, None, []
     for k in range(1, max_rounds + 1):
         s = run_diagnose(
             cohort, current, out / f"round-{k}", trials=trials, legs=legs, effects=effects, base=base, progress=progress,
@@ -90,6 +90,8 @@ def run_discover(
             n_starts=n_starts,
         )
         rounds.append({"model": current.name, "verdict": s.verdict, "sentence": s.sentence, "J_ms": s.J_ms, "elpd": s.elpd})
+        if s.nuts_fits_ok is not None:
+            nuts_ok.append(s.nuts_fits_ok)
         if s.screen_verdict is not None:
             rounds[-1]["screen_verdict"] = s.screen_verdict
         if s.verdict == "none":
@@ -104,6 +106,7 @@ def run_discover(
                         added=[r["verdict"] for r in rounds if r["verdict"] != "none"])
     if confirm is not None:
         summary.confirm = dict(fits)
+        summary.nuts_fits_ok = bool(fits["start"]["diagnostics"].get("ok", False)) and all(ok for ok in nuts_ok)
         if summary.added:
             summary.confirm.update(_compare_start_final(cohort, out, fits, n_draws=compare_draws,
                                                         start_stride=compare_stride, progress=progress))

@@ -56,7 +56,14 @@ from ..outputs._figures import (
 )
 from ..outputs._loop import residual_figures
 from ..outputs._residual_figures import plot_structure
-from ..outputs._tables import markdown_table, recordings_sentence, sign_test_rows, table_v_rows, write_table
+from ..outputs._tables import (
+    SIGN_TEST_COLUMNS,
+    markdown_table,
+    recordings_sentence,
+    sign_test_rows,
+    table_v_rows,
+    write_table,
+)
 from .identify import _pick
 
 
@@ -98,6 +105,10 @@ def _per_leg_rows(J_legs: dict, fits: list[LoadedFit]) -> list[dict]:
     ]
 
 
+#: The columns of the PSIS-LOO comparison table.
+LOO_COMPARE_COLUMNS = ("legs", "trials", "model", "rank", "elpd_diff", "dse", "weight")
+
+
 def _loo_rows(loo: dict) -> tuple[list[dict], list[dict]]:
     key = f"pareto_k_over_{PARETO_K_BAD}"
     fits = [
@@ -106,8 +117,8 @@ def _loo_rows(loo: dict) -> tuple[list[dict], list[dict]]:
         for label, v in loo["fits"].items()
     ]
     compare = [
-        {"legs": ", ".join(group["legs"]), "trials": ", ".join(map(str, group["trials"])), "model": label,
-         "rank": row["rank"], "elpd_diff": row["elpd_diff"], "dse": row["dse"], "weight": row["weight"]}
+        dict(zip(LOO_COMPARE_COLUMNS, (", ".join(group["legs"]), ", ".join(map(str, group["trials"])), label,
+                                       row["rank"], row["elpd_diff"], row["dse"], row["weight"])))
         for group in loo["compare"]
         for label, row in sorted(group["table"].items(), key=lambda kv: kv[1]["rank"])
     ]
@@ -274,10 +285,11 @@ def run_posterior_evaluate(
     md.append(write_table(_per_leg_rows(J_legs, fits), out / "tables", "j_per_leg_posterior",
                           "J_φ,p per leg and trial, median and 90 % band over draws [deg]"))
     md.append(write_table(sign_test_rows(tests), out / "tables", "sign_tests_posterior",
-                          "Sign tests on the posterior-median J (trials 2 and 3)"))
+                          "Sign tests on the posterior-median J (trials 2 and 3)", SIGN_TEST_COLUMNS))
     loo_fits, loo_compare = _loo_rows(loo)
     md.append(write_table(loo_fits, out / "tables", "loo", "PSIS-LOO per fit (1-s segments)"))
-    md.append(write_table(loo_compare, out / "tables", "loo_compare", "PSIS-LOO comparison (same data)"))
+    md.append(write_table(loo_compare, out / "tables", "loo_compare", "PSIS-LOO comparison (same data)",
+                          LOO_COMPARE_COLUMNS))
     if loo["not_compared"]:
         md.append(markdown_table(loo["not_compared"], "Fits not compared by LOO"))
 
@@ -351,7 +363,8 @@ def run_evaluate(
     tests = sign_tests(J)
     md = ["# Evaluation: k-step-ahead angle prediction (eq. 12)", "", _recordings_line(cohort), ""]
     md.append(write_table(table_v_rows(T), out / "tables", "table5", "Table V: mean (s.d.) of J_φ,p over legs [deg]"))
-    md.append(write_table(sign_test_rows(tests), out / "tables", "sign_tests", "Sign tests between models (trials 2 and 3)"))
+    md.append(write_table(sign_test_rows(tests), out / "tables", "sign_tests", "Sign tests between models (trials 2 and 3)",
+                          SIGN_TEST_COLUMNS))
     per_leg = [
         {"model": m, "leg": leg, "trial": tr, **{f"J {h} ms": v for h, v in hv.items()}}
         for m, legs in J.items()

@@ -7,13 +7,31 @@ from collections.abc import Iterable
 
 from tqdm.auto import tqdm
 
+from ._interrupt import check_interrupt
+
+
+class _Bar(tqdm):
+    """A bar whose every step first acts on an interrupt that was requested (:func:`check_interrupt`)."""
+
+    def __iter__(self):
+        for item in super().__iter__():
+            check_interrupt()
+            yield item
+
+
+def _checked(iterable: Iterable):
+    for item in iterable:
+        check_interrupt()
+        yield item
+
 
 def progress_bar(iterable: Iterable, *, desc: str, enabled: bool = True, total: int | None = None):
-    """Wrap ``iterable`` in a progress bar when ``enabled``; otherwise return it unchanged."""
+    """Wrap ``iterable`` in a progress bar when ``enabled``; either way each step first acts on an
+    interrupt that was requested and lost inside JAX (:mod:`quadshank.common._interrupt`)."""
     if not enabled:
-        return iterable
+        return _checked(iterable)
 
-    return tqdm(iterable, desc=desc, total=total, file=sys.stderr, leave=False, dynamic_ncols=True)
+    return _Bar(iterable, desc=desc, total=total, file=sys.stderr, leave=False, dynamic_ncols=True)
 
 
 def write_above_bars(text: str, file=None) -> None:

@@ -33,6 +33,7 @@ from scipy import optimize
 
 from ..common._random import numpy_rng
 from ..common._arrays import is_whole_number
+from ..common._interrupt import check_interrupt
 from ..data._cohort import Cohort
 from ..model._likelihood import (
     N_DELAYS,
@@ -626,6 +627,7 @@ def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen, start
         started = time.perf_counter() if started is None else started
         return _draw_to_target(mcmc, key, arrays, init_params, model, data, settings, started, progress), data
     mcmc.run(key, arrays, extra_fields=_fields(mcmc), init_params=init_params)
+    check_interrupt()  # a Ctrl-C while XLA sampled is seen here, before the draws are summarised
     return mcmc, data
 
 
@@ -744,6 +746,7 @@ def _draw_to_target(mcmc, key, arrays, init_params, model, data, settings, start
         t = time.perf_counter()
         with quiet():
             mcmc.run(key if not samples else mcmc.post_warmup_state.rng_key, arrays, extra_fields=_fields(mcmc), **kw)
+            check_interrupt()  # between blocks: a Ctrl-C during one ends the fit when it ends
         samples.append({k: np.asarray(v) for k, v in mcmc.get_samples(group_by_chain=True).items()})
         extra.append({k: np.asarray(v) for k, v in mcmc.get_extra_fields(group_by_chain=True).items()})
         return time.perf_counter() - t

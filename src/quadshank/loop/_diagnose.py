@@ -231,6 +231,8 @@ class Diagnosis(Result):
     not_applicable: list = dataclasses.field(default_factory=list)  # candidates not screened, and why
     screen_verdict: str | None = None  # the screen's own verdict, where NUTS confirmed it
     confirmed_from: str | None = None
+    #: whether every NUTS fit made to confirm a leader passed its checks (None: none was made)
+    nuts_fits_ok: bool | None = None
     predictive_checks: dict | None = None
     residual_findings: dict | None = None
     residual_findings_after: dict | None = None
@@ -255,6 +257,8 @@ class Discovery(Result):
     rounds: list  # per round: model, verdict, sentence, J_ms, elpd (and screen_verdict)
     added: list
     confirm: dict | None = None  # the NUTS fits of the loop's start and end, compared
+    #: whether every NUTS fit the loop made (its start's, each round's leaders') passed its checks (None: none made)
+    nuts_fits_ok: bool | None = None
 
 
 def rank_effects(
@@ -513,11 +517,13 @@ def nuts_sentence(rows: list) -> str:
         if n is None:
             continue
         j10 = n["J_1000ms"]
+        said = ("confirms" if n["clears_bar"] else "does not confirm") if not n.get("banner") else \
+            ("would confirm" if n["clears_bar"] else "would not confirm")  # a fit that failed its checks confirms nothing
         parts.append(
-            f"NUTS {'confirms' if n['clears_bar'] else 'does not confirm'} {r['effect']}: ΔELPD "
+            f"NUTS {said} {r['effect']}: ΔELPD "
             f"{n['delta_elpd']:.0f} ± {n['delta_elpd_se']:.0f}, J at 1 s {j10['before']['median']:.2f}° → "
             f"{j10['after']['median']:.2f}° [{j10['after']['lo']:.2f}, {j10['after']['hi']:.2f}]"
-            + (f" (caution: {n['banner']})" if n.get("banner") else "") + "."
+            + (f" (but its fit failed its checks: {n['banner']})" if n.get("banner") else "") + "."
         )
     return " ".join(parts)
 

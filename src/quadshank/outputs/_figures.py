@@ -17,7 +17,10 @@ _MODEL_COLOURS = {"model1": "tab:blue", "model2": "tab:orange", "model3": "tab:g
 
 
 def _window(trial, start_s: float, length_s: float):
+    """The samples of a figure's window from ``start_s`` [s], ``length_s`` long; on a trial too short
+    for it the start moves earlier (as :func:`quadshank.evaluation.figure_window` moves it)."""
     dt = trial.sampling_period_s
+    start_s = min(start_s, max(0.0, trial.n_samples * dt - length_s))
     i0 = int(round(start_s / dt))
     i1 = min(trial.n_samples, i0 + int(round(length_s / dt)))
     return slice(i0, i1)
@@ -105,7 +108,7 @@ def plot_predictions(trial, predicted: dict, p: int, *, start_s: float = 30.0, l
         keep = (target >= sl.start) & (target < sl.stop)
         ax.plot(trial.time_s[sl], trial.angle_deg[sl], "k-", lw=1.2, label="measured")
         _shade_excluded(ax, trial, sl)
-        shown = np.full(sl.stop - sl.start, np.nan)  # NaN where no prediction is scored: a gap, not a bridge
+        shown = np.full(len(trial.time_s[sl]), np.nan)  # NaN where no prediction is scored: a gap, not a bridge
         shown[target[keep] - sl.start] = pred[keep, p - 1]
         ax.plot(trial.time_s[sl], shown, "--", color=_MODEL_COLOURS.get(name), lw=1.2,
                 label=f"{name}, {p * trial.sampling_period_s * 1000:.0f} ms ahead")

@@ -33,6 +33,7 @@ __all__ = [
     "table_iv",
     "table_v_rows",
     "sign_test_rows",
+    "SIGN_TEST_COLUMNS",
     "recordings_sentence",
 ]
 
@@ -66,12 +67,14 @@ def markdown_table(rows: list[dict], title: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_table(rows: list[dict], folder: str | Path, stem: str, title: str) -> str:
-    """Write ``stem.csv`` and ``stem.md`` in ``folder``; returns the Markdown."""
+def write_table(rows: list[dict], folder: str | Path, stem: str, title: str, columns=None) -> str:
+    """Write ``stem.csv`` and ``stem.md`` in ``folder``; returns the Markdown.  ``columns``: the
+    header of a table that may have no rows, so that its CSV still reads as an empty table (a
+    file of no bytes is no CSV to pandas or a spreadsheet)."""
     folder = Path(folder)
     buf = io.StringIO()
-    if rows:
-        w = csv.DictWriter(buf, fieldnames=_columns(rows), lineterminator="\n")
+    if rows or columns:
+        w = csv.DictWriter(buf, fieldnames=_columns(rows) if rows else list(columns), lineterminator="\n")
         w.writeheader()
         w.writerows(rows)
     atomic_write_text(folder / f"{stem}.csv", buf.getvalue())
@@ -220,18 +223,15 @@ def table_v_rows(table: dict) -> list[dict]:
     return rows
 
 
+#: The columns of :func:`sign_test_rows`.
+SIGN_TEST_COLUMNS = ("horizon [ms]", "pair", "pairs", "A better", "B better", "p", "significant (α=0.05)")
+
+
 def sign_test_rows(tests: list[dict]) -> list[dict]:
-    """Sign tests between models as table rows."""
+    """Sign tests between models as table rows (columns :data:`SIGN_TEST_COLUMNS`)."""
     return [
-        {
-            "horizon [ms]": t["horizon_ms"],
-            "pair": f"{t['model_a']} vs {t['model_b']}",
-            "pairs": t["n_pairs"],
-            f"{'A'} better": t["a_better"],
-            f"{'B'} better": t["b_better"],
-            "p": t["p_value"],
-            "significant (α=0.05)": "yes: " + t["better"] if t["significant"] else "no",
-        }
+        dict(zip(SIGN_TEST_COLUMNS, (t["horizon_ms"], f"{t['model_a']} vs {t['model_b']}", t["n_pairs"], t["a_better"],
+                                     t["b_better"], t["p_value"], "yes: " + t["better"] if t["significant"] else "no")))
         for t in sorted(tests, key=lambda t: (t["horizon_ms"], t["model_a"], t["model_b"]))
     ]
 
