@@ -476,3 +476,14 @@ def test_parameters_the_data_barely_inform_are_a_row_of_the_checks_and_marked_in
     marked = {r[0]: r[2] for r in report._param_rows(rows, prior_only=("gain",), barely={"k1": 1.8, "a[2]": 0.7})}
     assert [k for k, v in marked.items() if "barely informed" in v] == ["<code>k1</code>", "<code>a[2]</code>"]
     assert "prior only" in marked["<code>gain</code>"] and "barely" not in marked["<code>gain</code>"]
+
+
+def test_a_band_beyond_the_fitted_angles_is_named_where_its_median_is_not():
+    """The extrapolation warning names the start, else the median prediction, else its band, each
+    by the angle furthest out; within the range (and its 10° margin) nothing is named."""
+    from quadshank.commands.predict import _beyond
+
+    band = {"median": np.array([0.0, 5.0]), "lo": np.array([-1.0, 2.0]), "hi": np.array([1.0, 40.0])}
+    assert _beyond(0.0, band, (-20.0, 20.0)) == {"band": 40.0}
+    assert _beyond(50.0, {**band, "median": np.array([0.0, 35.0])}, (-20.0, 20.0)) == {"start": 50.0, "prediction": 35.0}
+    assert _beyond(0.0, {**band, "hi": np.array([1.0, 29.0])}, (-20.0, 20.0)) is None

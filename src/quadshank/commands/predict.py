@@ -67,13 +67,16 @@ def fitted_angle_range(idata, leg: str) -> tuple[float, float] | None:
     return (float(angle.min()), float(angle.max())) if angle.size else None
 
 
-def _beyond(angle0: float, median: np.ndarray, seen: tuple[float, float]) -> dict | None:
-    """Where the start or the median prediction leaves ``seen`` by more than the margin."""
+def _beyond(angle0: float, band: dict, seen: tuple[float, float]) -> dict | None:
+    """Where the start, the median prediction or, the median within, its 90 % band (``band``:
+    ``median``, ``lo``, ``hi``) leaves ``seen`` by more than the margin: the angle furthest out."""
     lo, hi = seen[0] - EXTRAPOLATION_MARGIN_DEG, seen[1] + EXTRAPOLATION_MARGIN_DEG
     far = [("start", angle0)] if not lo <= angle0 <= hi else []
-    out = median[(median < lo) | (median > hi)]
-    if out.size:
-        far.append(("prediction", float(out[np.argmax(np.abs(out - 0.5 * (lo + hi)))])))
+    for what, values in (("prediction", band["median"]), ("band", np.concatenate([band["lo"], band["hi"]]))):
+        out = values[(values < lo) | (values > hi)]
+        if out.size:
+            far.append((what, float(out[np.argmax(np.abs(out - 0.5 * (lo + hi)))])))
+            break  # the band leaves the range wherever its median does
     return {what: round(v, 2) for what, v in far} or None
 
 
@@ -115,11 +118,13 @@ def run_predict(
     seen = {leg: fitted_angle_range(fit.idata, leg) for leg in legs}
     beyond = {}
     for leg, r in seen.items():
-        far = _beyond(angle0, bands[leg]["median"], r) if r is not None else None
+        far = _beyond(angle0, bands[leg], r) if r is not None else None
         if far:
             beyond[leg] = far
-            what = " and ".join(f"the {k} at {v:.1f}°" for k, v in far.items())
-            warnings.warn(f"{leg}: {what} lie(s) beyond the angles the fit saw ({r[0]:.1f}° to {r[1]:.1f}°): "
+            names = {"start": "the start", "prediction": "the median prediction", "band": "the 90 % band"}
+            what = " and ".join(f"{names[k]} at {v:.1f}°" for k, v in far.items())
+            warnings.warn(f"{leg}: {what} {'lies' if len(far) == 1 else 'lie'} beyond the angles the fit saw "
+                          f"({r[0]:.1f}° to {r[1]:.1f}°): "
                           "the model is extrapolated there and its bands do not say how far to trust it",
                           DataWarning, stacklevel=2)
     # the plan's columns as given and, for a stimulator's, each leg's levels (its charge over the leg's largest)
