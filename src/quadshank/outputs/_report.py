@@ -253,7 +253,8 @@ def _warning_box(diag: dict) -> str:
     advice = "".join(f"<li>{_e(a)}</li>" for a in diag.get("advice", []))
     return (
         '<div class="warning" id="fit-warning"><strong>This fit failed its convergence checks: '
-        "do not trust these intervals.</strong><ul>" + items + "</ul>"
+        "do not trust these intervals.</strong> The checks judge the fit as a whole, every leg and subject, so "
+        "a problem named here may lie in another subject's leg.<ul>" + items + "</ul>"
         + (f"<p>Advice:</p><ul>{advice}</ul>" if advice else "") + "</div>"
     )
 
