@@ -488,7 +488,8 @@ def _rest_plausibility(trial: Trial) -> list[str]:
     reaches (none in the :data:`~quadshank.data._paper.TWITCH_REACH_S` after a pulse), not
     excluded, at least a second of them, whose median lies beyond :data:`REST_MEDIAN_DEG` say that
     the angle's zero or convention is off, and beyond :data:`REST_OFFSET_DEG` (over at least
-    :data:`REST_OFFSET_QUIET_S`) that its zero may be offset.  A trial stimulated throughout has no such samples and is not judged."""
+    :data:`REST_OFFSET_QUIET_S`) that its zero may be offset.  A trial stimulated throughout has
+    no such samples and is not judged."""
     reach = max(1, int(round(TWITCH_REACH_S / trial.sampling_period_s)))
     quiet = quiet_mask(trial.stimulation, reach) & ~trial.exclude
     if np.count_nonzero(quiet) * trial.sampling_period_s < 1.0:

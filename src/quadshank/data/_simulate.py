@@ -214,8 +214,8 @@ from jax import lax
 from scipy.optimize import brentq
 from tqdm.auto import tqdm
 
-from ..common._io import write_json
 from ..common._arrays import is_whole_number
+from ..common._io import write_json
 from ._cohort import Cohort, Trial, mark_checked
 from ._paper import (
     DELAY_STEP_ANGLE,

@@ -30,6 +30,7 @@ from ..common._results import Result
 from ..data._cohort import Cohort, Trial
 from ..data._interchange import DataWarning, check_cohort
 from ..data._paper import HORIZONS_MS
+from ..model._effects import user_effects
 from ..model._model import Model, measured_angle, predict_ahead, simulate_angles, true_angle
 
 __all__ = [
@@ -103,12 +104,12 @@ def prediction_errors(model: Model, trial: Trial, horizons=None) -> dict[int, fl
     lost = [p for p in horizons if not np.isfinite(out[p])]
     if lost:
         first = int(starts[np.flatnonzero(~np.isfinite(pred).all(axis=1))[0]])
-        own = [e.name for e in model.effects if type(e).__module__.split(".")[0] != "quadshank"]
-        warnings.warn(f"{model.name} on {trial.key} trial {trial.trial}: its predictions are not finite (J at "
-                      f"{', '.join(f'{p * trial.sampling_period_s * 1000:g} ms' for p in lost)}), first from sample {first}: the identified model is "
-                      "unstable or diverges on this trial" + (f", or an effect ({', '.join(own)}) returns a value "
-                      "that is not finite" if own else "") + "; a mean that includes it is not finite either",
-                      DivergedPredictionWarning, stacklevel=2)
+        own = user_effects(model.effects)
+        at = ", ".join(f"{p * trial.sampling_period_s * 1000:g} ms" for p in lost)
+        warnings.warn(f"{model.name} on {trial.key} trial {trial.trial}: its predictions are not finite (J at {at}), "
+                      f"first from sample {first}: the identified model is unstable or diverges on this trial"
+                      + (f", or an effect ({', '.join(own)}) returns a value that is not finite" if own else "")
+                      + "; a mean that includes it is not finite either", DivergedPredictionWarning, stacklevel=2)
     return out
 
 

@@ -42,7 +42,7 @@ from scipy import optimize, special
 
 from ..common._random import jax_key
 from ..data._cohort import Cohort
-from ..model._effects import Param
+from ..model._effects import Param, user_effects
 from ..model._likelihood import (
     N_DELAYS,
     LikelihoodData,
@@ -407,7 +407,7 @@ def _laplace_fit(
             if np.isfinite(res.fun) and (best is None or res.fun < best[0].fun):
                 best = (res, v)
         if best is None:
-            own = [e.name for e in model.effects if type(e).__module__.split(".")[0] != "quadshank"]
+            own = user_effects(model.effects)
             raise FloatingPointError(
                 f"{leg}: the screen of {model.name} found no finite posterior density from any start: the model "
                 "diverges on these data from every start" + (f", or an effect ({', '.join(own)}) returns a value that "

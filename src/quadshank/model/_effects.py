@@ -107,6 +107,7 @@ __all__ = [
     "registered_effects",
     "check_contribution",
     "CONTRIBUTIONS",
+    "user_effects",
     "get_effect",
     "ZeroOrderActivation",
     "Darma",
@@ -354,6 +355,12 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
     register_pytree(cls, param_names + discrete, meta)
     _REGISTRY[cls.name] = cls
     return cls
+
+
+def user_effects(effects) -> list[str]:
+    """The names of those of ``effects`` (instances) that are not quadshank's own: where a model's
+    numbers are not finite, the first place a user's effect would be looked for."""
+    return [e.name for e in effects if type(e).__module__.split(".")[0] != "quadshank"]
 
 
 #: The method through which each kind of effect contributes, given the state at a sample (or a pulse).

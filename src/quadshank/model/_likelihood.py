@@ -408,7 +408,8 @@ def chosen_legs(cohort: Cohort, legs=None, trials=(1,)) -> tuple[tuple[str, ...]
     refused where a leg is unknown or given twice, or lacks a trial: checked before any work."""
     legs = (legs,) if isinstance(legs, str) else tuple(legs) if legs is not None else cohort.legs
     if not legs:
-        raise ValueError(f"legs: give at least one leg ({'the data has ' + ', '.join(cohort.legs) if len(cohort) else 'the data hold no trials'})")
+        have = f"the data has {', '.join(cohort.legs)}" if len(cohort) else "the data hold no trials"
+        raise ValueError(f"legs: give at least one leg ({have})")
     twice = sorted({leg for leg in legs if legs.count(leg) > 1})
     if twice:  # its data would enter the likelihood twice, as two legs of the hierarchy
         raise ValueError(f"legs: {', '.join(twice)} given twice")
