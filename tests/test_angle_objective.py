@@ -130,6 +130,28 @@ def test_models_the_angle_cannot_fit_are_refused_with_the_reason():
             resolve_objective(paper_model(3).add(effect), "angle")
 
 
+def test_a_fit_on_the_angle_says_what_it_costs_before_it_starts(two_trials, tmp_path, monkeypatch, capsys):
+    """A muscle's fit on the angle is about 15 times the acceleration's per gradient: the command
+    says so, and how to bound the wait, before any work; a fit on the acceleration does not."""
+    import quadshank.commands.fit as fit_command
+    from quadshank.inference import FitSettings
+
+    class Started(Exception):
+        pass
+
+    def started(*args, **kwargs):
+        raise Started
+
+    monkeypatch.setattr(fit_command, "run_nuts", started)
+    for likelihood, said in (("angle", True), ("acceleration", False)):
+        capsys.readouterr()
+        with pytest.raises(Started):
+            fit_command.run_fit(two_trials, tmp_path / likelihood, "model3s",
+                                settings=FitSettings(likelihood=likelihood, trials=(1,)), progress=True)
+        err = capsys.readouterr().err
+        assert ("about 15 times the acceleration's cost" in err and "--time-limit" in err) == said, err
+
+
 def test_the_loop_lists_what_the_angle_cannot_screen_with_the_reason(two_trials):
     legs, trials = ("JM-left",), (1,)
     out = not_applicable(paper_model(3), two_trials, ["angle_delay", "twitch_variability", "fatigue"], legs, trials,
