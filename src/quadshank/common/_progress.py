@@ -10,6 +10,10 @@ from tqdm.auto import tqdm
 from ._interrupt import check_interrupt
 
 
+#: Seconds between a bar's frames where stderr is not a terminal (a log file, a batch job's output).
+LOG_INTERVAL_S = 30.0
+
+
 class _Bar(tqdm):
     """A bar whose every step first acts on an interrupt that was requested (:func:`check_interrupt`)."""
 
@@ -31,7 +35,10 @@ def progress_bar(iterable: Iterable, *, desc: str, enabled: bool = True, total: 
     if not enabled:
         return _checked(iterable)
 
-    return _Bar(iterable, desc=desc, total=total, file=sys.stderr, leave=False, dynamic_ncols=True)
+    # where stderr is a log file, not a terminal, a frame every half minute, not ten a second
+    quiet = not (hasattr(sys.stderr, "isatty") and sys.stderr.isatty())
+    return _Bar(iterable, desc=desc, total=total, file=sys.stderr, leave=False, dynamic_ncols=True,
+                mininterval=LOG_INTERVAL_S if quiet else 0.1)
 
 
 def write_above_bars(text: str, file=None) -> None:
