@@ -1126,5 +1126,18 @@ def _main(argv: list[str] | None = None) -> int:
         return 2
 
 
+def run() -> None:
+    """The ``quadshank`` console script: :func:`main`, then exit with its code.  An interrupted run
+    leaves at once (``os._exit``) once its output is settled and its lines flushed: tearing the
+    interpreter down while XLA's threads still run the interrupted work can crash it (a
+    segmentation fault, exit 139, after the "interrupted" line)."""
+    code = main()
+    if code == 130:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    run()
