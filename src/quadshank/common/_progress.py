@@ -35,8 +35,8 @@ def progress_bar(iterable: Iterable, *, desc: str, enabled: bool = True, total: 
     if not enabled:
         return _checked(iterable)
 
-    # where stderr is a log file, not a terminal, a frame every half minute, not ten a second
-    quiet = not (hasattr(sys.stderr, "isatty") and sys.stderr.isatty())
+    # where stderr is a log file (not a terminal, nor a notebook's bar), a frame every half minute, not ten a second
+    quiet = not (hasattr(sys.stderr, "isatty") and sys.stderr.isatty()) and "ipykernel" not in sys.modules
     return _Bar(iterable, desc=desc, total=total, file=sys.stderr, leave=False, dynamic_ncols=True,
                 mininterval=LOG_INTERVAL_S if quiet else 0.1)
 
