@@ -228,3 +228,25 @@ def test_a_warning_under_a_progress_bar_gets_a_line_of_its_own():
     bar.close()
     lines = [line.strip() for line in out.getvalue().replace("\r", "\n").split("\n")]
     assert "quadshank: warning: TN-left: something" in lines
+
+
+def test_an_interrupt_dropped_in_a_callback_is_recorded_without_a_traceback(capsys):
+    """Python reports an exception raised where it cannot propagate (a finaliser, JAX's
+    garbage-collection hook) as "Exception ignored" and drops it: a Ctrl-C that lands there is
+    recorded for the command to act on, and no traceback is printed for it."""
+    import signal
+
+    from quadshank.common._interrupt import check_interrupt, handling_interrupts, interrupt_requested
+
+    class Finalised:
+        def __del__(self):
+            signal.raise_signal(signal.SIGINT)
+
+    with handling_interrupts():
+        thing = Finalised()
+        del thing  # the handler raises inside __del__, where Python drops it
+        assert interrupt_requested()
+        with pytest.raises(KeyboardInterrupt):
+            check_interrupt()
+    assert not interrupt_requested() and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert "Exception ignored" not in capsys.readouterr().err

@@ -12,6 +12,7 @@ an interrupt is honoured at the latest when the step running at that moment ends
 from __future__ import annotations
 
 import signal
+import sys
 import threading
 from collections.abc import Callable
 
@@ -47,9 +48,18 @@ class handling_interrupts:
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 self._before[sig] = signal.signal(sig, _on_signal)
+        self._hook = sys.unraisablehook
+
+        def quiet(unraisable, previous=self._hook) -> None:
+            # an interrupt dropped inside a callback is recorded, and acted on: no traceback for it
+            if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+                previous(unraisable)
+
+        sys.unraisablehook = quiet
         return self
 
     def __exit__(self, *exc) -> None:
         for sig, handler in self._before.items():
             signal.signal(sig, handler)
+        sys.unraisablehook = self._hook
         _REQUESTED.clear()
