@@ -112,8 +112,9 @@ def test_same_seed_same_posterior():
 
 def test_a_ctrl_c_that_jax_swallows_still_stops_the_fit(data_dir, monkeypatch, capsys):
     """A Ctrl-C while XLA samples reaches Python inside a callback of JAX's, which drops the
-    exception: the command line's handler records it, and the fit stops when sampling returns,
-    exits 130 and leaves no complete-looking folder, where it had run on to a full result."""
+    exception: the command line's handler records it; the draws, complete when sampling returns,
+    are saved, and the command says it was interrupted and exits 130 (it had exited 0 without a
+    word); a fit to a target ESS draws no further block."""
     import signal
 
     from numpyro.infer import MCMC
@@ -132,9 +133,14 @@ def test_a_ctrl_c_that_jax_swallows_still_stops_the_fit(data_dir, monkeypatch, c
     capsys.readouterr()
     assert main(["-q", "fit", str(data_dir / "data"), "--model", "model1", "--legs", "TN-left", "--chains", "1",
                  "--warmup", "5", "--draws", "5", "--out", str(out)]) == 130
-    assert "quadshank: interrupted" in capsys.readouterr().err
-    assert not out.exists()  # the folder the run made is removed: no summary.json claims a fit
+    assert "quadshank: interrupted; the step running then was finished" in capsys.readouterr().err
+    assert load_fit(out)[0].posterior.sizes["draw"] == 5  # the complete draws, saved with their summary
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler before is back
+    target = data_dir / "swallowed-target"
+    assert main(["-q", "fit", str(data_dir / "data"), "--model", "model1", "--legs", "TN-left", "--chains", "1",
+                 "--target-ess", "100000", "--warmup", "5", "--draws", "5", "--out", str(target)]) == 130
+    s = json.loads((target / "summary.json").read_text())
+    assert s["target"]["stopped"] == "interrupted: no further block was drawn" and s["target"]["blocks"] == 1
 
 
 def test_unknown_effect_and_missing_trial_are_plain_errors(data_dir, capsys):

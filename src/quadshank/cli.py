@@ -1112,8 +1112,9 @@ def _main(argv: list[str] | None = None) -> int:
             finally:
                 if mark is not None:
                     mark(failed)
-            if interrupt_requested():  # asked for while the last step ran, and only seen now that it is done
-                print("quadshank: interrupted as the command ended; what it wrote is complete", file=sys.stderr)
+            if interrupt_requested():  # asked for while a compiled step ran (NUTS's sampling), seen when it was done
+                print("quadshank: interrupted; the step running then was finished (a fit's draws are complete and "
+                      "saved), and what the command wrote is complete", file=sys.stderr)
                 return 130
             return code
     except KeyboardInterrupt:

@@ -33,7 +33,7 @@ from scipy import optimize
 
 from ..common._random import numpy_rng
 from ..common._arrays import is_whole_number
-from ..common._interrupt import check_interrupt
+from ..common._interrupt import check_interrupt, interrupt_requested
 from ..data._cohort import Cohort
 from ..model._likelihood import (
     N_DELAYS,
@@ -517,6 +517,7 @@ def run_nuts(
     if not isinstance(settings, FitSettings):
         raise TypeError(f"settings: give a FitSettings, not {type(settings).__name__}")
     chosen_legs(cohort, legs, settings.trials)  # before the first progress line
+    check_interrupt()  # no fit starts after an interrupt (recovery's next seed, say)
     t0 = time.perf_counter()
     screen = fit_screen(cohort, model, settings, legs=legs, progress=progress)
     evidence, moved, evidence_seconds, modes = None, {}, None, None
@@ -626,8 +627,9 @@ def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen, start
     if settings.target_ess is not None:
         started = time.perf_counter() if started is None else started
         return _draw_to_target(mcmc, key, arrays, init_params, model, data, settings, started, progress), data
+    # a Ctrl-C while XLA sampled (warm-up and draws are one compiled loop) is seen only now, when the
+    # draws are complete: they are summarised and saved, and the command line says it was interrupted
     mcmc.run(key, arrays, extra_fields=_fields(mcmc), init_params=init_params)
-    check_interrupt()  # a Ctrl-C while XLA sampled is seen here, before the draws are summarised
     return mcmc, data
 
 
@@ -746,7 +748,6 @@ def _draw_to_target(mcmc, key, arrays, init_params, model, data, settings, start
         t = time.perf_counter()
         with quiet():
             mcmc.run(key if not samples else mcmc.post_warmup_state.rng_key, arrays, extra_fields=_fields(mcmc), **kw)
-            check_interrupt()  # between blocks: a Ctrl-C during one ends the fit when it ends
         samples.append({k: np.asarray(v) for k, v in mcmc.get_samples(group_by_chain=True).items()})
         extra.append({k: np.asarray(v) for k, v in mcmc.get_extra_fields(group_by_chain=True).items()})
         return time.perf_counter() - t
@@ -762,6 +763,8 @@ def _draw_to_target(mcmc, key, arrays, init_params, model, data, settings, start
         elapsed = time.perf_counter() - started
         if status["met"] and not divergences:
             stopped = "target met"
+        elif interrupt_requested():  # a Ctrl-C during a block: the draws so far are kept, none added
+            stopped = "interrupted: no further block was drawn"
         elif divergences:
             stopped = f"{divergences} divergent transitions (more draws do not mend them)"
         elif elapsed + seconds > settings.time_limit_s:
