@@ -242,11 +242,18 @@ def test_an_interrupt_dropped_in_a_callback_is_recorded_without_a_traceback(caps
         def __del__(self):
             signal.raise_signal(signal.SIGINT)
 
-    with handling_interrupts():
-        thing = Finalised()
-        del thing  # the handler raises inside __del__, where Python drops it
-        assert interrupt_requested()
-        with pytest.raises(KeyboardInterrupt):
-            check_interrupt()
-    assert not interrupt_requested() and signal.getsignal(signal.SIGINT) is signal.default_int_handler
-    assert "Exception ignored" not in capsys.readouterr().err
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal
+    try:
+        with handling_interrupts():
+            thing = Finalised()
+            del thing  # the handler raises inside __del__, where Python drops it
+            assert interrupt_requested()
+            with pytest.raises(KeyboardInterrupt):
+                check_interrupt()
+        assert not interrupt_requested() and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        assert "Exception ignored" not in capsys.readouterr().err
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a background job's: ignored it stays
+        with handling_interrupts():
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, before)

@@ -129,18 +129,22 @@ def test_a_ctrl_c_that_jax_swallows_still_stops_the_fit(data_dir, monkeypatch, c
         return run(self, *args, **kwargs)
 
     monkeypatch.setattr(MCMC, "run", run_and_swallow_a_ctrl_c)
-    out = data_dir / "swallowed"
-    capsys.readouterr()
-    assert main(["-q", "fit", str(data_dir / "data"), "--model", "model1", "--legs", "TN-left", "--chains", "1",
-                 "--warmup", "5", "--draws", "5", "--out", str(out)]) == 130
-    assert "quadshank: interrupted; the step running then was finished" in capsys.readouterr().err
-    assert load_fit(out)[0].posterior.sizes["draw"] == 5  # the complete draws, saved with their summary
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler before is back
-    target = data_dir / "swallowed-target"
-    assert main(["-q", "fit", str(data_dir / "data"), "--model", "model1", "--legs", "TN-left", "--chains", "1",
-                 "--target-ess", "100000", "--warmup", "5", "--draws", "5", "--out", str(target)]) == 130
-    s = json.loads((target / "summary.json").read_text())
-    assert s["target"]["stopped"] == "interrupted: no further block was drawn" and s["target"]["blocks"] == 1
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal (a background job ignores it)
+    try:
+        out = data_dir / "swallowed"
+        capsys.readouterr()
+        assert main(["-q", "fit", str(data_dir / "data"), "--model", "model1", "--legs", "TN-left", "--chains", "1",
+                     "--warmup", "5", "--draws", "5", "--out", str(out)]) == 130
+        assert "quadshank: interrupted; the step running then was finished" in capsys.readouterr().err
+        assert load_fit(out)[0].posterior.sizes["draw"] == 5  # the complete draws, saved with their summary
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler before is back
+        target = data_dir / "swallowed-target"
+        assert main(["-q", "fit", str(data_dir / "data"), "--model", "model1", "--legs", "TN-left", "--chains", "1",
+                     "--target-ess", "100000", "--warmup", "5", "--draws", "5", "--out", str(target)]) == 130
+        s = json.loads((target / "summary.json").read_text())
+        assert s["target"]["stopped"] == "interrupted: no further block was drawn" and s["target"]["blocks"] == 1
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def test_unknown_effect_and_missing_trial_are_plain_errors(data_dir, capsys):

@@ -39,15 +39,17 @@ def _on_signal(signum, frame):  # noqa: ARG001 - the signal module's signature
 
 class handling_interrupts:
     """Within this context, SIGINT and SIGTERM are recorded (:func:`check_interrupt`) and raised as
-    ``KeyboardInterrupt``; the handlers before it are restored on leaving.  Only the main thread
-    can install handlers: elsewhere this does nothing."""
+    ``KeyboardInterrupt``; the handlers before it are restored on leaving.  A signal the process
+    ignores stays ignored (a shell starts its background jobs ignoring SIGINT, as Python itself
+    respects), and only the main thread can install handlers: elsewhere this does nothing."""
 
     def __enter__(self) -> handling_interrupts:
         _REQUESTED.clear()
         self._before: dict[int, Callable | int | None] = {}
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
-                self._before[sig] = signal.signal(sig, _on_signal)
+                if signal.getsignal(sig) is not signal.SIG_IGN:
+                    self._before[sig] = signal.signal(sig, _on_signal)
         self._hook = sys.unraisablehook
 
         def quiet(unraisable, previous=self._hook) -> None:
