@@ -73,6 +73,7 @@ def test_discover_on_the_command_line_with_a_user_effect(discovered):
     assert np.isfinite(cubic["delta_elpd"]) and not cubic["clears_bar"]
     assert "Adding potentiation improves ELPD" in (out / "round-1" / "report.md").read_text()
     assert len(s["rounds"]) == 2 and s["rounds"][1]["verdict"] == "none"
+    assert s["stopped"] == "no candidate cleared the bar" and "round limit" not in (out / "report.md").read_text()
     for name in r1["figures"]:
         assert (out / "round-1" / name).stat().st_size > 5000
     for name in ("predictions_one_step_baseline_JM-left.png", "predictions_1s_baseline_JM-left.png", "loo_pit_baseline.png",

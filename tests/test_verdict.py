@@ -216,3 +216,21 @@ def test_a_nuts_fit_that_failed_its_checks_confirms_nothing(capsys):
     capsys.readouterr()
     assert _nuts_fits_code(False, "out") == 3
     assert "a NUTS fit made to confirm failed its checks" in capsys.readouterr().err
+
+
+def test_a_loop_that_ends_at_its_round_limit_says_more_rounds_may_find_more():
+    """Where the last round still added an effect the loop ended at its limit, not because nothing
+    cleared the bar: the page says so (and the summary's ``stopped``); where the last verdict was
+    none it does not."""
+    from quadshank.loop._diagnose import STOPPED_AT_LIMIT, STOPPED_NOTHING, Discovery
+    from quadshank.outputs._loop import LIMIT_SENTENCE, discovery_markdown
+
+    band = {"median": 2.0, "lo": 1.8, "hi": 2.2}
+    one = {"model": "model3s", "verdict": "twitch_variability", "sentence": "Adding it helps.",
+           "J_ms": {"500": band, "1000": band}, "elpd": {"value": -100.0, "se": 5.0}}
+    at_limit = Discovery(model="model3s", final_model="model3s+twitch_variability", rounds=[one],
+                         added=["twitch_variability"], stopped=STOPPED_AT_LIMIT)
+    assert LIMIT_SENTENCE in discovery_markdown(at_limit)
+    done = Discovery(model="model3s", final_model="model3s", rounds=[{**one, "verdict": "none"}], added=[],
+                     stopped=STOPPED_NOTHING)
+    assert LIMIT_SENTENCE not in discovery_markdown(done)

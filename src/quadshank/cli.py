@@ -38,7 +38,7 @@ from .evaluation._prediction import Evaluation
 from .inference._fitio import FitResult, read_summary
 from .inference._identify import Identification, load_identification
 from .inference._nuts import PRECISIONS, SEQUENTIAL_FROM_SAMPLES, STARTS, FitSettings
-from .loop._diagnose import SCREEN_STARTS, Diagnosis, Discovery
+from .loop._diagnose import SCREEN_STARTS, STOPPED_AT_LIMIT, Diagnosis, Discovery
 from .model._model import FIT_MODELS
 from .model._plugins import load_effects_file, load_entry_point_effects
 
@@ -675,6 +675,9 @@ def cmd_discover(args) -> int:
     if summary.confirm is not None:
         _say(args, summary.confirm["sentence"])
     _say(args, f"final model: {summary.final_model}; report: {Path(args.out) / 'report.md'}")
+    if summary.stopped == STOPPED_AT_LIMIT:
+        _say(args, f"stopped at --max-rounds {args.max_rounds}: the last round still added an effect; a further "
+                   "round may find more")
     return _nuts_fits_code(summary.nuts_fits_ok, args.out)
 
 

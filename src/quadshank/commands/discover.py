@@ -8,7 +8,7 @@ from ..common._io import atomic_write_text
 from ..data._cohort import Cohort
 from ..inference._identify import check_delay_range
 from ..inference._priors import build_model
-from ..loop._diagnose import SCREEN_STARTS, Discovery
+from ..loop._diagnose import SCREEN_STARTS, STOPPED_AT_LIMIT, STOPPED_NOTHING, Discovery
 from ..model._model import Model
 from ..outputs._loop import discovery_markdown
 from .diagnose import run_diagnose
@@ -103,7 +103,8 @@ def run_discover(
             nuts_folder = Path(nuts["folder"])
             fits["final"] = _fit_entry(nuts_folder.relative_to(out).as_posix(), nuts["model"], nuts["banner"], nuts["diagnostics"])
     summary = Discovery(model=rounds[0]["model"], final_model=current.name, rounds=rounds,
-                        added=[r["verdict"] for r in rounds if r["verdict"] != "none"])
+                        added=[r["verdict"] for r in rounds if r["verdict"] != "none"],
+                        stopped=STOPPED_NOTHING if rounds[-1]["verdict"] == "none" else STOPPED_AT_LIMIT)
     if confirm is not None:
         summary.confirm = dict(fits)
         summary.nuts_fits_ok = bool(fits["start"]["diagnostics"].get("ok", False)) and all(ok for ok in nuts_ok)

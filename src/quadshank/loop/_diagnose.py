@@ -259,6 +259,14 @@ class Discovery(Result):
     confirm: dict | None = None  # the NUTS fits of the loop's start and end, compared
     #: whether every NUTS fit the loop made (its start's, each round's leaders') passed its checks (None: none made)
     nuts_fits_ok: bool | None = None
+    #: why the loop ended: no candidate cleared the bar, or the round limit came first (:data:`STOPPED_AT_LIMIT`)
+    stopped: str | None = None
+
+
+#: ``Discovery.stopped`` where the last round still added an effect: further rounds may find more.
+STOPPED_AT_LIMIT = "round limit"
+#: ``Discovery.stopped`` where the last round's verdict was none.
+STOPPED_NOTHING = "no candidate cleared the bar"
 
 
 def rank_effects(

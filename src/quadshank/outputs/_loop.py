@@ -14,7 +14,7 @@ from ..evaluation._posterior import FIGURE_WINDOW_S, figure_window, window_predi
 from ..evaluation._prediction import horizon_samples
 from ..evaluation._residuals import leg_residuals
 from ..inference._screen import LaplaceFit, leg_draw_models
-from ..loop._diagnose import ELPD_SE_BAR, J_DRAWS, J_HORIZONS_MS, Diagnosis, Discovery
+from ..loop._diagnose import ELPD_SE_BAR, J_DRAWS, J_HORIZONS_MS, STOPPED_AT_LIMIT, Diagnosis, Discovery
 from . import _residual_figures as F
 from ._figures import plot_posterior_predictions
 from ._tables import markdown_table
@@ -201,6 +201,11 @@ def findings_markdown(findings: dict[str, list[str]]) -> list[str]:
     return [f"- {leg}: " + (" ".join(map(sentence, lines)) if lines else "nothing stands out.") for leg, lines in findings.items()]
 
 
+#: What a loop that ended at its round limit says: its last round still added an effect.
+LIMIT_SENTENCE = ("The loop stopped at its round limit while its last round still added an effect: a further round "
+                  "(`--max-rounds`) may find more.")
+
+
 def discovery_markdown(summary: Discovery, command: str | None = None) -> str:
     """The modelling loop's page: each round's model, J, ELPD and verdict, the final model, the NUTS check."""
     md = ["# The modelling loop (`quadshank discover`)", ""]
@@ -213,7 +218,7 @@ def discovery_markdown(summary: Discovery, command: str | None = None) -> str:
             f"at 1 s {J['1000']['median']:.3f}°; ELPD {r['elpd']['value']:.0f} ± {r['elpd']['se']:.0f}. "
             f"Verdict: {r['verdict']}. {r['sentence']} (details: [round-{k}/report.md](round-{k}/report.md))"
         )
-    md += ["", f"Final model: **{summary.final_model}**."]
+    md += ["", f"Final model: **{summary.final_model}**." + (f" {LIMIT_SENTENCE}" if summary.stopped == STOPPED_AT_LIMIT else "")]
     if summary.confirm is not None:
         c = summary.confirm
         md += ["", "## Confirmed with hierarchical NUTS", "", c["sentence"], "",
