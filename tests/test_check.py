@@ -266,3 +266,27 @@ def test_a_subject_named_like_a_path_keeps_its_figures_in_the_output_folder(fold
     assert "recording_x_.._.._escaped-left_trial1.png" in result.files
     assert all((out / f).is_file() for f in result.files)
     assert not list(tmp_path.glob("*.png")) and not list((tmp_path / "deep").glob("*.png"))
+
+
+def test_a_long_trials_figure_adds_a_view_of_its_first_pulses():
+    """Minutes of pulses merge into a band: a trial over a minute gets a second view of 20 s from
+    its first pulse, holding only that span's pulses; a short trial keeps one view."""
+    import matplotlib.pyplot as plt
+
+    from quadshank.outputs import plot_recording
+
+    cohort, _ = simulate_cohort(legs=["JM-left"], minutes=1.5, seed=2, trials=(1,))
+    trial = cohort.trials[0]
+    first = trial.pulse_indices[0]
+    fig = plot_recording(trial, isolated=trial.pulse_indices)
+    assert len(fig.axes) == 4
+    zoom = fig.axes[3]
+    drawn = np.concatenate([np.asarray(c.get_segments())[:, 0, 0] for c in zoom.collections])
+    assert drawn.min() == pytest.approx(trial.time_s[first])
+    assert drawn.max() <= trial.time_s[first] + 20.0
+    assert drawn.size < 2 * trial.pulse_indices.size / 3  # pulses and isolated ones of 20 s of 90
+    plt.close(fig)
+    short, _ = simulate_cohort(legs=["JM-left"], minutes=0.5, seed=2, trials=(1,))
+    fig = plot_recording(short.trials[0])
+    assert len(fig.axes) == 2
+    plt.close(fig)

@@ -305,31 +305,62 @@ def plot_plan_predictions(time_s, stimulation, bands: dict, label: str = "", yla
     return fig
 
 
+#: A trial longer than this [s] gets a second view of :data:`RECORDING_ZOOM_S` in its figure
+#: (:func:`plot_recording`): at minutes per panel the pulses merge into a band.
+RECORDING_ZOOM_AFTER_S = 60.0
+#: The length [s] of that second view, from the first pulse (or the first sample without any).
+RECORDING_ZOOM_S = 20.0
+
+
+def _recording_panels(ax_angle, ax_stim, trial, sl: slice, isolated) -> None:
+    """The angle (excluded stretches shaded) and the pulses (isolated twitches in red) of
+    ``trial`` within ``sl`` on two axes."""
+    t = trial.time_s[sl]
+    ax_angle.plot(t, trial.angle_deg[sl], lw=0.7, color="tab:blue")
+    _shade_excluded(ax_angle, trial, sl)
+    ax_angle.set_ylabel("knee angle [deg]")
+    u = trial.stimulation[sl]
+    k = u > 0
+    ax_stim.vlines(t[k], 0, u[k], color="k", lw=0.6, label="pulse")
+    if isolated is not None and len(isolated):
+        i = np.asarray(isolated, int)
+        i = i[(i >= sl.start) & (i < sl.stop)]
+        ax_stim.vlines(trial.time_s[i], 0, trial.stimulation[i], color="tab:red", lw=0.9, label="isolated twitch")
+    if k.any():
+        ax_stim.legend(fontsize=7, loc="upper right", ncol=2)
+    if trial.exclude[sl].any():
+        ax_angle.legend(fontsize=8, loc="upper right")
+    ax_stim.set_ylim(0, 1.3)
+    ax_stim.set_ylabel("stimulation u")
+    ax_stim.set_xlabel("time [s]")
+
+
 def plot_recording(trial, isolated=None, summary: str = ""):
     """A whole trial as read: the angle (the excluded stretches shaded) over the stimulation's
     pulses at their levels, the isolated twitches the classical identification uses (``isolated``:
-    their sample indices) in red; ``summary`` and the signals the reader derived in the title."""
-    t = trial.time_s
-    fig, axes = plt.subplots(2, 1, figsize=(10, 5), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
-    axes[0].plot(t, trial.angle_deg, lw=0.7, color="tab:blue")
-    _shade_excluded(axes[0], trial, slice(0, trial.n_samples))
-    axes[0].set_ylabel("knee angle [deg]")
+    their sample indices) in red; ``summary`` and the signals the reader derived in the title.
+    A trial longer than :data:`RECORDING_ZOOM_AFTER_S` gets a second view below of its first
+    :data:`RECORDING_ZOOM_S` seconds from the first pulse, where single twitches can be seen
+    (its span shaded in the whole view)."""
+    n = trial.n_samples
+    zoom = n * trial.sampling_period_s > RECORDING_ZOOM_AFTER_S
+    rows = 4 if zoom else 2
+    fig, axes = plt.subplots(rows, 1, figsize=(10, 9 if zoom else 5),
+                             gridspec_kw={"height_ratios": [3, 1] * (rows // 2)})
+    axes[1].sharex(axes[0])
+    _recording_panels(axes[0], axes[1], trial, slice(0, n), isolated)
     derived = [name for name, measured in (("velocity", trial.velocity_measured),
                                            ("acceleration", trial.acceleration_measured)) if not measured]
     note = "; ".join(x for x in (summary, f"{' and '.join(derived)} derived from the angle" if derived else "") if x)
     axes[0].set_title(f"{trial.key}, trial {trial.trial}" + (f": {note}" if note else ""), fontsize=10)
-    u = trial.stimulation
-    k = u > 0
-    axes[1].vlines(t[k], 0, u[k], color="k", lw=0.6, label="pulse")
-    if isolated is not None and len(isolated):
-        i = np.asarray(isolated, int)
-        axes[1].vlines(t[i], 0, u[i], color="tab:red", lw=0.9, label="isolated twitch")
-    if k.any():
-        axes[1].legend(fontsize=7, loc="upper right", ncol=2)
-    if trial.exclude.any():
-        axes[0].legend(fontsize=8, loc="upper right")
-    axes[1].set_ylim(0, 1.3)
-    axes[1].set_ylabel("stimulation u")
-    axes[1].set_xlabel("time [s]")
+    if zoom:
+        pulses = np.flatnonzero(trial.stimulation > 0)
+        a = int(pulses[0]) if pulses.size else 0
+        b = min(n, a + int(round(RECORDING_ZOOM_S / trial.sampling_period_s)))
+        a = max(0, min(a, b - int(round(RECORDING_ZOOM_S / trial.sampling_period_s))))
+        axes[3].sharex(axes[2])
+        _recording_panels(axes[2], axes[3], trial, slice(a, b), isolated)
+        axes[0].axvspan(trial.time_s[a], trial.time_s[b - 1], color="tab:orange", alpha=0.15, lw=0, zorder=0)
+        axes[2].set_title(f"{trial.time_s[a]:.1f}-{trial.time_s[b - 1]:.1f} s (shaded above)", fontsize=9)
     fig.tight_layout()
     return fig
