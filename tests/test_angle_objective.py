@@ -150,6 +150,10 @@ def test_a_fit_on_the_angle_says_what_it_costs_before_it_starts(two_trials, tmp_
                                 settings=FitSettings(likelihood=likelihood, trials=(1,)), progress=True)
         err = capsys.readouterr().err
         assert ("about 15 times the acceleration's cost" in err and "--time-limit" in err) == said, err
+    with pytest.raises(KeyError, match="no trial 7"):  # a trial the data lack: refused before the notice
+        fit_command.run_fit(two_trials, tmp_path / "missing", "model3s",
+                            settings=FitSettings(likelihood="angle", trials=(7,)), progress=True)
+    assert capsys.readouterr().err == ""
 
 
 def test_the_loop_lists_what_the_angle_cannot_screen_with_the_reason(two_trials):

@@ -91,11 +91,11 @@ def run_fit(
     m = build_model(model, add_effects, sampling_period_s=cohort.sampling_period_s)
     check_delay_range(cohort.sampling_period_s, muscle=m.activation.name != "no_muscle")
     objective = resolve_objective(m, settings.likelihood)  # refuse the angle for a muscle before anything is written
+    chosen_legs(cohort, legs, settings.trials)  # and legs or trials the data lack
     if progress and objective == "angle" and m.activation.name != "no_muscle":
         print("fit: the likelihood on the angle runs a free run per delay through every sample for each gradient, "
               "about 15 times the acceleration's cost (docs/fit.md); bound the wait with --target-ess and --time-limit",
               file=sys.stderr, flush=True)
-    chosen_legs(cohort, legs, settings.trials)  # and legs or trials the data lack
     _warn_sensor_effects_without_sensor(m, cohort, legs, settings.trials)
     log_prior = None
     if delay_from is not None:
