@@ -1,6 +1,6 @@
 """Benchmark: the hierarchical NUTS fit and the posterior bands on J_φ,p.
 
-The issue's configuration is the default: model 3 with the angle-dependent
+The default configuration is the full size: model 3 with the angle-dependent
 delay on the simulated cohort (5 legs, trial 1 of 5 minutes, data simulated
 with the delay step), 4 chains × 1000 draws after 1000 warm-up; then J_φ,p
 for 200 posterior draws on all 15 trials, every start, four horizons.
@@ -224,7 +224,7 @@ def render(record: dict, section: str) -> str:
         f"{r['model']} + {', '.join(effects) or 'nothing'} on the simulated cohort ({len(legs)} legs, trial 1 of "
         f"{r['minutes']:g} min, data simulated with {', '.join(effects) or 'no hidden effect'}), "
         f"{r['chains']} chains ({r['chain_method']}) × {r['draws']} draws after {r['warmup']} warm-up, "
-        f"chains started from the {r['start']} (`--start {r['start']}`)"
+        f"chains started from the {r['start']} (`--start {r['start']}`), the density at {r['precision']} precision"
         + ("" if full else " — **smaller than the full configuration (5 legs × 5 min, 4 × 1000 + 1000)**")
         + ".",
         "",
@@ -314,6 +314,8 @@ def main(argv=None) -> int:
     ap.add_argument("--start", default="screen", choices=STARTS,
                     help="where the chains start (quadshank fit --start); each start has its own section")
     ap.add_argument("--chain-method", default=FitSettings.chain_method, choices=CHAIN_METHODS)
+    ap.add_argument("--precision", default=FitSettings.precision, choices=("mixed", "double"),
+                    help="the precision of the sampled density's terms (quadshank fit --precision)")
     ap.add_argument("--out", default="results/benchmarks.md")
     ap.add_argument("--section", default=None,
                     help="name of the section (and JSON record) written; default bench_fit[_backend][_start]")
@@ -333,7 +335,7 @@ def main(argv=None) -> int:
     cohort, _ = simulate_cohort(legs=legs, minutes=args.minutes, seed=args.seed, effects=effects, trials=(1, 2, 3))
     settings = FitSettings(
         chains=args.chains, warmup=args.warmup, draws=args.draws, seed=args.seed, chain_method=args.chain_method,
-        start=args.start,
+        start=args.start, precision=args.precision,
     )
     if args.peer_start == "fit" and not args.no_peer and not uses_screen(build_model(args.model, effects), settings):
         ap.error("--peer-start fit needs the fit's chains to start from the screen (--start screen, and every "
@@ -386,6 +388,7 @@ def main(argv=None) -> int:
         "minutes": args.minutes,
         "chains": args.chains,
         "chain_method": summary.chain_method,
+        "precision": args.precision,
         "start": args.start,
         "warmup": args.warmup,
         "draws": args.draws,
