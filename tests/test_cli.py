@@ -230,6 +230,28 @@ def test_a_warning_under_a_progress_bar_gets_a_line_of_its_own():
     assert "quadshank: warning: TN-left: something" in lines
 
 
+def test_a_bar_that_names_its_step_in_a_log_shows_the_steps_done(monkeypatch):
+    """In a log file (frames half a minute apart) a bar that names each step as it starts shows how
+    many steps are done beside the name, not the count of its last timed frame (0/5 throughout)."""
+    import io
+    import re
+
+    from quadshank.common._progress import progress_bar
+
+    out = io.StringIO()  # not a terminal: the log file's interval between timed frames
+    monkeypatch.setattr("sys.stderr", out)
+    seen = []
+    bar = progress_bar(["a", "b", "c", "d", "e"], desc="screening effects")
+    for name in bar:
+        bar.set_postfix_str(f"model + {name}")
+        seen.append(name)
+    assert seen == ["a", "b", "c", "d", "e"]
+    frames = out.getvalue().replace("\r", "\n")
+    assert re.search(r"\b4/5 \[[^\]]*model \+ e\]", frames), frames
+    assert re.search(r"\b2/5 \[[^\]]*model \+ c\]", frames), frames
+    assert list(progress_bar(range(3), desc="x", enabled=False)) == [0, 1, 2]
+
+
 def test_an_interrupt_dropped_in_a_callback_is_recorded_without_a_traceback(capsys):
     """Python reports an exception raised where it cannot propagate (a finaliser, JAX's
     garbage-collection hook) as "Exception ignored" and drops it: a Ctrl-C that lands there is

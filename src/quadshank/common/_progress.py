@@ -15,12 +15,24 @@ LOG_INTERVAL_S = 30.0
 
 
 class _Bar(tqdm):
-    """A bar whose every step first acts on an interrupt that was requested (:func:`check_interrupt`)."""
+    """A bar whose every step first acts on an interrupt that was requested (:func:`check_interrupt`).
+
+    Its count is brought up to date after every step, not only when a frame is drawn (tqdm's own
+    iteration keeps it aside until then): a frame drawn by ``set_postfix_str`` at the start of a
+    step, which names the step, would otherwise show the count of the last frame (``0/5`` on the
+    fifth of five in a log file, where frames are half a minute apart)."""
 
     def __iter__(self):
-        for item in super().__iter__():
-            check_interrupt()
-            yield item
+        if self.disable:
+            yield from _checked(self.iterable)
+            return
+        try:
+            for item in self.iterable:
+                check_interrupt()
+                yield item
+                self.update(1)  # draws a frame only when mininterval has passed
+        finally:
+            self.close()
 
 
 def _checked(iterable: Iterable):
