@@ -270,6 +270,12 @@ CSV_CASES = {
     "decimal comma": decimal_comma,
     "semicolons": semicolons,
     "missing column": drop_column(T1, "stimulation"),
+    "no stimulation column in a pendulum test": lambda folder: drop_column(T1, "stimulation")(folder)
+    + ["add the column stimulation with 0 on every row"],
+    "a word for false": lambda folder: cell(T1, "stimulation", 7, "FALSE")(folder) + ["write 1 or 0"],
+    "a clock time": lambda folder: cell(T2, "time_s", 9, "14:22:01.00")(folder) + ["a clock time"],
+    "angle in tenths of a degree": column_map(J1, "angle_deg", lambda v: round(10 * v),
+                                              ["the angle spans", "tenths or hundredths of a degree"]),
     "unknown column": extra_column,
     "time repeated": time_step(21, "0.18", "not strictly increasing"),
     "time decreasing": time_step(40, "0.01", "not strictly increasing"),
@@ -884,6 +890,12 @@ def test_a_gate_or_a_logged_setting_is_not_taken_silently_for_pulses(base, tmp_p
     assert any(f"nonzero on every one of its {N} samples" in w for w in warned), warned
     _, _, warned = stimulated("train", lambda i: 0.5 if 100 <= i < 200 and i % 2 == 0 else 0.0)
     assert not [w for w in warned if "consecutive" in w or "every one" in w], warned
+    # a trigger high over two samples a pulse: each run read as two pulses at 100 Hz
+    _, error, warned = stimulated("trigger", lambda i: 1.0 if i % 60 in (10, 11) else 0.0)
+    assert error == "" and any("runs of 2 consecutive samples" in w and "Keep each run's first sample" in w
+                               for w in warned), warned
+    _, _, warned = stimulated("a pulse beside another", lambda i: 1.0 if i in (10, 11, 70, 130, 190) else 0.0)
+    assert not [w for w in warned if "consecutive" in w], warned
 
 
 def _map_column_indexed(path: Path, column: str, f) -> None:

@@ -272,6 +272,11 @@ def test_an_angle_zeroed_elsewhere_is_named_by_its_missing_gravity():
     assert said(t) == []
     (found,) = said(t.replace(angle_deg=t.angle_deg + 30.0))
     assert found.startswith("TN-left: the identified pendulum has next to no gravity (G' = ")
+    assert "radians" not in found
+    # the angle and the accelerometer both in radians: the small span is named as well
+    (found,) = said(t.replace(angle_deg=np.deg2rad(t.angle_deg), acceleration_deg_s2=np.deg2rad(t.acceleration_deg_s2),
+                              velocity_deg_s=np.deg2rad(t.velocity_deg_s)))
+    assert "in radians: the angle spans only" in found, found
 
 
 def test_a_marker_on_excluded_samples_leaves_the_identification_as_it_was():

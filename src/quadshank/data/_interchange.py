@@ -388,6 +388,10 @@ def _markers(trial: Trial) -> list[str]:
     return found
 
 
+#: The bulk of a trial's angles (:data:`RADIAN_QUANTILE` to 1 − it) spanning more than this [deg] is
+#: no knee's in degrees, whose range of motion is under 180°: the column is in another unit.
+ANGLE_SPAN_LIMIT_DEG = 360.0
+
 #: A pulse level below this is no recruitment a stimulator delivers: float noise where it delivered none.
 FAINT_PULSE = 1e-6
 
@@ -418,6 +422,17 @@ def _pulse_runs(trial: Trial) -> list[str]:
         return []
     runs = [(a, b) for a, b in stretches(on) if b - a >= PULSE_RUN]
     rate = 1.0 / trial.sampling_period_s
+    short = [(a, b) for a, b in stretches(on) if 2 <= b - a < PULSE_RUN]
+    in_short = sum(b - a for a, b in short)
+    if not on.all() and not runs and rate >= PULSE_RUN_RATE_HZ and len(short) >= 3 \
+            and in_short >= 0.5 * np.count_nonzero(on):
+        widths = sorted({b - a for a, b in short})
+        a = short[0][0]
+        return [f"stimulation is nonzero on {len(short)} runs of {' or '.join(map(str, widths))} consecutive samples "
+                f"({in_short} of its {np.count_nonzero(on)} pulses), the first from time_s = {float(trial.time_s[a])!r}: "
+                f"each nonzero sample is one pulse delivered at that sample, so each run reads as pulses at "
+                f"{rate:g} Hz. Is it a trigger recorded over the pulse's width? Keep each run's first sample (the "
+                "rising edge) and write 0 on the others"]
     if on.all():
         what = f"every one of its {on.size} samples"
     elif runs and rate >= PULSE_RUN_RATE_HZ:
@@ -608,12 +623,13 @@ class _Table:
 
 def _read_table(
     path: Path, file: str, required: Sequence[str], optional: Sequence[str], problems: list[Problem],
-    alternatives: dict[str, tuple[str, ...]] | None = None,
+    alternatives: dict[str, tuple[str, ...]] | None = None, missing_hints: dict[str, str] | None = None,
 ) -> _Table | None:
     """Read a CSV file, reporting structural problems; ``None`` when it is unusable.
 
     ``alternatives``: a required column that other (optional) columns may stand in for; a
-    file must hold the column or its stand-ins, not both."""
+    file must hold the column or its stand-ins, not both.  ``missing_hints``: what to say, besides,
+    of a required column that is missing."""
     spanning = False
     header: list[str] | None = None
     header_line = 1
@@ -716,6 +732,7 @@ def _read_table(
             break  # the one problem above says why every column is missing
         if name not in columns and not given:
             also = f"; or give {' and/or '.join(instead)}" if instead else ""
+            also += f"; {(missing_hints or {})[name]}" if name in (missing_hints or {}) else ""
             problems.append(Problem(file, name, header_line, f"missing column (header is: {','.join(header)}){also}"))
         elif name in columns and given:
             problems.append(Problem(file, given[0], header_line, f"give either {name} or {' and/or '.join(instead)}, "
@@ -849,7 +866,15 @@ def _number_hint(text: str) -> str:
                 "decimal mark and without grouping)")
     if not text.isascii():
         return f" (written {ascii(text)}: a number is ASCII digits with '-', '+', '.' and 'e'; no other character)"
+    if text.lower() in _TRUTH_WORDS:
+        return " (a word for true or false: write 1 or 0)"
+    if re.fullmatch(r"[0-9]{1,2}:[0-9]{2}(?::[0-9]{2}(?:\.[0-9]*)?)?", text):
+        return " (a clock time: write the seconds since the recording's start, or since any fixed time)"
     return ""
+
+
+#: Words a spreadsheet or a logger writes for true and false, where the format takes 1 and 0.
+_TRUTH_WORDS = ("true", "false", "yes", "no", "y", "n", "on", "off", "wahr", "falsch")
 
 
 def parse_number(text: str) -> float | None:
@@ -983,8 +1008,8 @@ def _check_signals(
         if out.size and (pulses > 0).all() and np.mean(pulses > 1) >= 0.5 and np.count_nonzero(pulses > 1) >= 3:
             if np.all(pulses == pulses[0]):  # one value on every pulse, above 1: a trigger's level
                 hint = (f"every pulse is {float(pulses[0]):g}, outside [0, 1]: a trigger channel (in volts, say)"
-                        + (", or a level in percent" if float(pulses[0]) == 100 else "") + "? Write 1 for a pulse, "
-                        "or the level it recruits")
+                        + (", or a level in percent" if float(pulses[0]) == 100 else "") + "? Write 1 for a pulse (at its first "
+                        "sample where the trigger is high over several), or the level it recruits")
             else:
                 hint = ("pulses of several sizes above 1, outside [0, 1]: " + ("levels in percent (divide by 100), or "
                         if pulses.max() <= 100 else "") + "a stimulator's setting (a current in mA, a pulse width in "
@@ -1008,6 +1033,14 @@ def _check_signals(
                                     "samples not excluded; at least 2 are needed"))
 
     kept = np.ones(lines.size, bool) if exclude is None else exclude != 1
+    angle = signals.get("angle_deg")
+    if angle is not None and angle.size == kept.size and np.count_nonzero(kept) >= RADIAN_MIN_SAMPLES:
+        lo, hi = np.quantile(angle[kept], [RADIAN_QUANTILE, 1 - RADIAN_QUANTILE])  # a glitch or two left aside
+        if hi - lo > ANGLE_SPAN_LIMIT_DEG:
+            problems.append(Problem(file, "angle_deg", None, (
+                f"the angle spans {hi - lo:.4g} (from {lo:.4g} to {hi:.4g} over the bulk of the samples), where a knee "
+                f"moves through less than {ANGLE_SPAN_LIMIT_DEG:g}°: the whole column in another unit (tenths or "
+                "hundredths of a degree, a sensor's counts)? Convert it to degrees")))
     beyond = False
     for column, limit in MAGNITUDE_LIMITS.items():
         values = signals.get(column)
@@ -1398,7 +1431,9 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
             continue
         seen_files.add(e.key)
         table = _read_table(e.path, e.file, _TRIAL_REQUIRED, _TRIAL_OPTIONAL, problems,
-                            alternatives={"stimulation": _STIMULATOR})
+                            alternatives={"stimulation": _STIMULATOR}, missing_hints={
+                                "stimulation": "a pendulum test without pulses: add the column stimulation with 0 on "
+                                               "every row"})
         if table is None:
             continue
         exclude = _parse_float_column(table, "exclude", e.file, problems) if "exclude" in table.columns else None

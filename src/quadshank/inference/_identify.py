@@ -729,7 +729,8 @@ def identify_cohort(
                     f"{leg}: the passive objective 'angle' fits free swings, and the leg has no trial without "
                     "pulses (a pendulum test); use the objective 'auto' or 'acceleration'")
             out[leg] = identify_leg(chosen)
-            _warn_passive_unseparated(leg, out[leg].passive, out[leg].passive_se, f"the quiet samples of trial {trial}")
+            _warn_passive_unseparated(leg, out[leg].passive, out[leg].passive_se, f"the quiet samples of trial {trial}",
+                                      _angle_span((chosen,)))
             continue
         objective = "acceleration" if passive_objective == "acceleration" else "angle"
         numbers = tuple(t.trial for t in passive_trials)
@@ -762,7 +763,7 @@ def identify_cohort(
                                            passive_se=p_se)
         if not poor:
             _warn_passive_unseparated(leg, passive, p_se, f"the swings of trial{'s' if len(numbers) > 1 else ''} "
-                                      f"{', '.join(map(str, numbers))} (no pulses)")
+                                      f"{', '.join(map(str, numbers))} (no pulses)", _angle_span(passive_trials))
     return out
 
 
@@ -780,7 +781,19 @@ def passive_separated(passive: dict, se: dict) -> bool:
     return bool(passive["gravity"] > 0 and se["gravity"] <= PASSIVE_GRAVITY_REL_SE * passive["gravity"])
 
 
-def _warn_passive_unseparated(leg: str, passive: dict, se: dict, source: str) -> None:
+#: A range [deg] of the angle (the central 98 % of the samples kept) narrower than this, with next to
+#: no gravity identified, reads as radians: a shank's swings span tens of degrees, 2π rad is 6.3.
+RADIAN_SPAN_DEG = 2 * np.pi
+
+
+def _angle_span(trials) -> float:
+    """The range of the angle over the samples of ``trials`` not excluded, its central 98 %."""
+    a = np.concatenate([t.angle_deg[~t.exclude] for t in trials])
+    lo, hi = np.quantile(a, [0.01, 0.99]) if a.size else (0.0, 0.0)
+    return float(hi - lo)
+
+
+def _warn_passive_unseparated(leg: str, passive: dict, se: dict, source: str, angle_span: float | None = None) -> None:
     """Warn where the identified G' is next to 0 (an angle zeroed away from the rest) or where
     the data did not tell gravity from elasticity (:func:`passive_separated`), in one warning
     where both hold: a G' near 0 from small swings can be either."""
@@ -805,6 +818,9 @@ def _warn_passive_unseparated(leg: str, passive: dict, se: dict, source: str) ->
                 "shank's is about 1500-2500): eq. (8) could not hold the swings with gravity about angle 0. Is angle_deg "
                 "zero with the shank at rest? A constant added to every angle does this; the other passive and active "
                 "values then come out wrong too")
+        if angle_span is not None and angle_span < RADIAN_SPAN_DEG:
+            text += (f". Or angle_deg (and the acceleration with it) in radians: the angle spans only "
+                     f"{angle_span:.3g} over its samples, where a knee's swings span tens of degrees; convert to degrees")
         text += f". Or: {trade}" if trade else ""
     else:
         text = trade
