@@ -80,6 +80,26 @@ def column_map(file, column, f, expect):
     return mutate
 
 
+def _with_column(path: Path, name: str, value: str | None, first: bool = False) -> list[str]:
+    """A column ``name`` added (first, or last) holding ``value`` on every row (None: the row's index)."""
+    rows = _rows(path)
+    new = [[name] + [str(i) if value is None else value for i in range(len(rows) - 1)]][0]
+    _write_rows(path, [[c, *r] if first else [*r, c] for c, r in zip(new, rows)])
+    return []
+
+
+def _rename_column(path: Path, old: str, new: str) -> list[str]:
+    rows = _rows(path)
+    rows[0] = [new if c == old else c for c in rows[0]]
+    _write_rows(path, rows)
+    return []
+
+
+def _above_header(path: Path, lines: list[str]) -> list[str]:
+    path.write_text("\n".join(lines) + "\n" + path.read_text())
+    return []
+
+
 def radians_passive(folder: Path):
     _map_column(folder / J1, "angle_deg", np.deg2rad)
     _map_column(folder / J1, "acceleration_deg_s2", np.deg2rad)
@@ -270,6 +290,18 @@ CSV_CASES = {
     "decimal comma": decimal_comma,
     "semicolons": semicolons,
     "missing column": drop_column(T1, "stimulation"),
+    "another joint's angle": lambda folder: _with_column(folder / T1, "hip_angle_deg", "3.0")
+    + [T1, "'hip_angle_deg'", "a channel quadshank does not read"],
+    "a row index": lambda folder: _with_column(folder / T1, "", None, first=True) + [T1, "a row index"],
+    "time in milliseconds": column_map(T2, "time_s", lambda v: 1000 * v, ["is time_s in milliseconds"]),
+    "time_ms for time_s": lambda folder: _rename_column(folder / T1, "time_s", "time_ms")
+    + [T1, "did you mean 'time_s'? (in seconds: the values divided by 1000)"],
+    "a rate for the period": manifest_cell(2, "sampling_period_s", "100", "or a rate in Hz"),
+    "a file name in another case": manifest_cell(2, "file", T1.lower(), "differs from it only in case"),
+    "a logger's settings above the header": lambda folder: _above_header(folder / J1, ["Logger,DataQ 4108",
+                                                                                       "Date,2026-11-30", ""])
+    + [J1, "are on line 4", "remove the 3 lines above them"],
+    "a manifest's notes": lambda folder: _with_column(folder / MAN, "notes", "ok") + [MAN, "notes or bookkeeping"],
     "no stimulation column in a pendulum test": lambda folder: drop_column(T1, "stimulation")(folder)
     + ["add the column stimulation with 0 on every row"],
     "a word for false": lambda folder: cell(T1, "stimulation", 7, "FALSE")(folder) + ["write 1 or 0"],
@@ -1208,3 +1240,19 @@ def test_the_demos_options_are_checked_before_its_first_step(tmp_path, capsys, o
     rc, lines = _run(["demo", "--out", str(tmp_path / "demo"), *option], capsys)
     _assert_refused(rc, lines, [said], tmp_path / "demo")
     assert not (tmp_path / "demo").exists()
+
+
+def test_a_comment_line_among_the_data_is_read_past(base, tmp_path):
+    """A logger's closing line ("# end of file") or a comment between rows is no row of data: the
+    trial reads as without it."""
+    data = _copy(base, tmp_path, "comment")
+    rows = (data / T1).read_text().splitlines()
+    rows.insert(50, "# marker: stimulation paused")
+    (data / T1).write_text("\n".join(rows + ["# end of file"]) + "\n")
+    cohort, error, _ = _read(data)
+    clean, _, _ = _read(base / "data")
+    assert error == ""
+    (got,) = [t for t in cohort.trials if t.source == T1]
+    (want,) = [t for t in clean.trials if t.source == T1]
+    assert got.n_samples == want.n_samples == N
+    np.testing.assert_array_equal(got.angle_deg, want.angle_deg)

@@ -624,12 +624,13 @@ class _Table:
 def _read_table(
     path: Path, file: str, required: Sequence[str], optional: Sequence[str], problems: list[Problem],
     alternatives: dict[str, tuple[str, ...]] | None = None, missing_hints: dict[str, str] | None = None,
+    unknown_hint: str = "Remove the column",
 ) -> _Table | None:
     """Read a CSV file, reporting structural problems; ``None`` when it is unusable.
 
     ``alternatives``: a required column that other (optional) columns may stand in for; a
     file must hold the column or its stand-ins, not both.  ``missing_hints``: what to say, besides,
-    of a required column that is missing."""
+    of a required column that is missing; ``unknown_hint``: of a column the file may not hold."""
     spanning = False
     header: list[str] | None = None
     header_line = 1
@@ -662,6 +663,8 @@ def _read_table(
                 if header is None:
                     header = [c.strip() for c in row]
                     header_line = reader.line_num
+                elif row[0].lstrip().startswith("#"):
+                    continue  # a comment line among or after the data ("# end of file"): no number starts so
                 else:
                     rows.append(row)
                     lines.append(reader.line_num)
@@ -709,6 +712,15 @@ def _read_table(
         problems.append(Problem(file, None, header_line, f"the header is one field, {shown!r}: is the file separated "
                                 f"by {label} rather than commas? The format is comma-separated, with '.' as the "
                                 "decimal mark (a spreadsheet's 'CSV (comma delimited)' export)"))
+    if separator is None and not set(header) & set(known):
+        # a logger's block of settings above the column names: say where the names are
+        at = next((line for line, row in zip(lines[:50], rows[:50])
+                   if len({c.strip() for c in row} & set(required)) >= 2), None)
+        if at is not None:
+            problems.append(Problem(file, None, header_line, f"the column names ({', '.join(required)} ...) are on line "
+                                    f"{at}, not on the first: remove the {at - 1} line{'s' if at > 2 else ''} above "
+                                    "them (a logger's settings or a title)"))
+            return None
     columns: dict[str, int] = {}
     by_case = {name.lower(): name for name in known}
     for i, name in enumerate(header):
@@ -719,8 +731,16 @@ def _read_table(
                 by_case[m] for m in difflib.get_close_matches(name.lower(), list(by_case), n=1)]
             label = "unnamed column" if not name else "unknown column"
             msg = f"{label} (position {i + 1}); expected {', '.join(known)}"
+            if hint and hint[0] in header:  # the column it resembles is there: another channel
+                hint = []
             if hint:
                 msg += f"; did you mean {hint[0]!r}?"
+                if name.lower().endswith("_ms") and hint[0].endswith("_s"):
+                    msg += " (in seconds: the values divided by 1000)"
+            elif not name and i == 0:
+                msg += "; a row index (as pandas' to_csv writes unless index=False)? Remove the column"
+            else:
+                msg += f"; {unknown_hint}"
             if separator is None:
                 problems.append(Problem(file, name, header_line, msg))
         else:
@@ -989,7 +1009,10 @@ def _check_signals(
                     problems.append(
                         Problem(file, "time_s", int(lines[0]),
                                 f"sampling period {median:.6g} s (median time step) disagrees with "
-                                f"sampling_period_s = {float(sampling_period_s)!r} s {period_origin}")
+                                f"sampling_period_s = {float(sampling_period_s)!r} s {period_origin}"
+                                + ("; is time_s in milliseconds? (give seconds: the values divided by 1000)"
+                                   if math.isclose(median, 1000 * sampling_period_s, rel_tol=PERIOD_TOLERANCE)
+                                   else ""))
                     )
 
     for column in _STIMULATOR:
@@ -1158,7 +1181,8 @@ def _period_problem(text: str, period: float) -> str | None:
         return f"{text!r} is not a positive finite number of seconds"
     if period > MAX_SAMPLING_PERIOD_S:
         return (f"{text} s is longer than {MAX_SAMPLING_PERIOD_S:g} s: too slow to follow a knee's swing or a "
-                "twitch; is it in milliseconds? (give seconds, and time_s in seconds)")
+                "twitch; is it in milliseconds, or a rate in Hz? (give the period in seconds: milliseconds divided "
+                "by 1000, or 1 over the rate; and time_s in seconds)")
     return None
 
 
@@ -1218,7 +1242,8 @@ def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry],
                     f"[,{','.join(_MANIFEST_OPTIONAL)}])")
         )
         return None
-    table = _read_table(path, MANIFEST_NAME, _MANIFEST_REQUIRED, _MANIFEST_OPTIONAL, problems)
+    table = _read_table(path, MANIFEST_NAME, _MANIFEST_REQUIRED, _MANIFEST_OPTIONAL, problems,
+                        unknown_hint="notes or bookkeeping? Remove the column (keep them in a file of their own)")
     if table is None or any(name not in table.columns for name in _MANIFEST_REQUIRED):
         return None
     has_period = "sampling_period_s" in table.columns
@@ -1296,7 +1321,12 @@ def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry],
                 elif candidate.exists():
                     bad("file", f"{file!r} is not a regular file")
                 else:
-                    bad("file", f"{file!r} does not exist")
+                    parent = candidate.parent
+                    alike = sorted(p.name for p in parent.iterdir() if p.name.lower() == candidate.name.lower()) \
+                        if parent.is_dir() else []
+                    bad("file", f"{file!r} does not exist" + (
+                        f"; {alike[0]!r} differs from it only in case (names are compared exactly): list that name"
+                        if alike else ""))
         entries.append(_Entry(line, subject, leg, trial, file, key, file_path, period, span["start_s"], span["end_s"],
                               span_ok))
     named = {_normalise_relative(c.strip()) for row in table.dropped for c in row if c.strip()}
@@ -1433,7 +1463,9 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
         table = _read_table(e.path, e.file, _TRIAL_REQUIRED, _TRIAL_OPTIONAL, problems,
                             alternatives={"stimulation": _STIMULATOR}, missing_hints={
                                 "stimulation": "a pendulum test without pulses: add the column stimulation with 0 on "
-                                               "every row"})
+                                               "every row"},
+                            unknown_hint="a channel quadshank does not read (EMG, a torque, another joint's angle)? "
+                                         "Remove the column")
         if table is None:
             continue
         exclude = _parse_float_column(table, "exclude", e.file, problems) if "exclude" in table.columns else None
