@@ -283,6 +283,8 @@ CSV_CASES = {
     "stimulation in percent": column_map(T2, "stimulation", lambda v: 100 * v, ["outside [0, 1]", "levels in percent"]),
     "stimulation in mA": column_map(T2, "stimulation", lambda v: 150 * v, ["outside [0, 1]", "as the column current_mA"]),
     "a trigger in volts": column_map(T2, "stimulation", lambda v: 5.0 * (v > 0), ["every pulse is 5, outside [0, 1]: a trigger channel"]),
+    "a trigger recorded as an analog signal": column_map(T2, "stimulation", lambda v: 5.0 if v > 0 else 0.004,
+                                                         ["small nonzero", "a trigger channel recorded as an analog"]),
     "radians": column_map(J1, "angle_deg", np.deg2rad, ["radians"]),
     "radians with a glitch": radians_glitch,
     "radians without pulses": radians_passive,

@@ -290,3 +290,25 @@ def test_a_long_trials_figure_adds_a_view_of_its_first_pulses():
     fig = plot_recording(short.trials[0])
     assert len(fig.axes) == 2
     plt.close(fig)
+
+
+def test_an_angle_zeroed_elsewhere_qualifies_what_identify_can_do(tmp_path):
+    """An angle zeroed away from the shank hanging at rest is warned of by the reader; the verdict on
+    the leg says so too, rather than "models 1-3" alone.  A pendulum test zeroed at the flexion
+    angle (90° hanging) is doubted by its median."""
+    from quadshank.data import simulate_pendulum_test
+    from quadshank.data._interchange import angle_doubts
+    from quadshank.data._simulate import PASSIVE_TRUTH
+
+    cohort, _ = simulate_cohort(legs=["JM-left"], minutes=0.5, seed=1, trials=(1,))
+    stimulated = cohort.trials[0]
+    assert "looks zeroed" not in run_check(cohort).legs["JM-left"]["identify"]
+    with pytest.warns(DataWarning, match="is the goniometer's zero offset"):
+        uses = run_check(Cohort((stimulated.replace(angle_deg=stimulated.angle_deg + 30.0),))).legs["JM-left"]
+    assert uses["identify"].startswith("models 1-3 (")
+    assert "but the angle of trial 1 looks zeroed elsewhere" in uses["identify"]
+
+    pendulum = simulate_pendulum_test(PASSIVE_TRUTH["TN-left"], subject="TN", seed=0, seconds=3.0)  # still swinging
+    assert angle_doubts(pendulum) == []
+    (doubt,) = angle_doubts(pendulum.replace(angle_deg=pendulum.angle_deg + 90.0))
+    assert doubt.startswith("the swing's median angle is") and "a flexion angle reads 90° at rest" in doubt

@@ -20,7 +20,8 @@ import numpy as np
 from ..common._io import file_stems, save_figure
 from ..common._results import Result
 from ..data._cohort import Cohort, Trial
-from ..data._interchange import DataWarning, charge_scales, check_cohort, kept_warnings, load_cohort, twitch_direction
+from ..data._interchange import (DataWarning, angle_doubts, charge_scales, check_cohort, kept_warnings, load_cohort,
+                                 twitch_direction)
 from ..data._paper import MAX_DELAY
 from ..inference._identify import (
     DelayRangeError,
@@ -176,6 +177,16 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
             uses["identify"] = uses["identify"].replace(
                 "models 1-3", "no: its twitches flex the knee (is angle_deg positive in flexion?), and identify "
                 "refuses twitches that do not extend it; with the sign turned, models 1-3", 1)
+    for leg, uses in legs.items():  # an angle zeroed elsewhere: identify runs, and its values come out wrong
+        trials = [t for t in cohort if t.key == leg]
+        passive = [t for t in trials if not np.any(t.stimulation > 0)]
+        used = [t for t in trials if t.trial == identification_trial] + [t for t in passive
+                                                                           if t.trial != identification_trial]
+        doubted = [t.trial for t in used if angle_doubts(t)]
+        if doubted and not uses["identify"].startswith("no"):
+            uses["identify"] += (f"; but the angle of trial{'s' if len(doubted) > 1 else ''} "
+                                 f"{', '.join(map(str, doubted))} looks zeroed elsewhere or signed otherwise (the "
+                                 "warning above): as recorded, its passive and active values come out wrong")
     if period is not None and any(r["pulses"] for r in rows):
         try:  # a period too short for a muscle's delays: identify and a muscle's fit refuse it
             check_delay_range(period, muscle=True, warn=False)

@@ -484,7 +484,22 @@ def _pendulum_plausibility(trial: Trial) -> list[str]:
     if angle[0] < -RELEASE_FLEXION_DEG:
         found.append(f"the swing starts at {float(angle[0]):.1f}°, deep in flexion; a pendulum test is released "
                      "from extension (positive angle_deg): is the sign of angle_deg flipped?")
+    median = float(np.median(angle))
+    if abs(median) > REST_MEDIAN_DEG and not found:
+        found.append(f"the swing's median angle is {median:.1f}°, where a pendulum test swings about 0, the shank "
+                     "hanging at rest: is angle_deg zeroed with the shank hanging, positive in extension? (a flexion "
+                     "angle reads 90° at rest)")
     return found
+
+
+def angle_doubts(trial: Trial) -> list[str]:
+    """What the plausibility warnings say of the zero or the sign of ``trial``'s angle (a rest
+    away from 0 between twitches, a pendulum test that rests elsewhere or starts in flexion), in
+    words; empty where nothing is in doubt.  ``check`` qualifies what identify can do with such a
+    trial by them."""
+    if trial.n_samples < 3 * _smoothing_window(trial.sampling_period_s):
+        return []
+    return _rest_plausibility(trial) if np.any(trial.stimulation > 0) else _pendulum_plausibility(trial)
 
 
 #: A stimulated trial whose angle, where no twitch acts, has its median further than this [deg] from
@@ -1027,8 +1042,18 @@ def _check_signals(
     elif stim is not None:
         out = np.flatnonzero((stim < 0) | (stim > 1))
         pulses = stim[stim != 0]
+        high = stim[stim > 1]
+        low = stim[(stim != 0) & (stim <= 1)]
+        if out.size and high.size >= 3 and low.size > high.size and np.ptp(high) <= 0.1 * np.median(high) \
+                and np.max(np.abs(low)) <= 0.05 * np.median(high):
+            # pulses of one height over a baseline that is small but not 0: an analog trigger's noise
+            problems.append(Problem(file, "stimulation", None, (
+                f"{high.size} values near {float(np.median(high)):.3g} over a baseline of {low.size} small nonzero "
+                f"ones (up to {float(np.max(np.abs(low))):.2g}): a trigger channel recorded as an analog signal? "
+                "Every nonzero sample is a pulse: write 1 (or the level it recruits) at the first sample of each "
+                "pulse and 0 everywhere else, the baseline's noise included")))
         # most pulses above 1, three or more: not a typo on a pulse or two
-        if out.size and (pulses > 0).all() and np.mean(pulses > 1) >= 0.5 and np.count_nonzero(pulses > 1) >= 3:
+        elif out.size and (pulses > 0).all() and np.mean(pulses > 1) >= 0.5 and np.count_nonzero(pulses > 1) >= 3:
             if np.all(pulses == pulses[0]):  # one value on every pulse, above 1: a trigger's level
                 hint = (f"every pulse is {float(pulses[0]):g}, outside [0, 1]: a trigger channel (in volts, say)"
                         + (", or a level in percent" if float(pulses[0]) == 100 else "") + "? Write 1 for a pulse (at its first "
