@@ -308,6 +308,11 @@ def test_an_angle_zeroed_elsewhere_qualifies_what_identify_can_do(tmp_path):
     assert uses["identify"].startswith("models 1-3 (")
     assert "but the angle of trial 1 looks zeroed elsewhere" in uses["identify"]
 
+    # two degrees off: below the reader's rest warning, found by the quiet samples' fit as identify finds it
+    with pytest.warns(DataWarning, match=r"JM-left: the quiet samples of trial 1 swing about \+[12]\.\d°"):
+        uses = run_check(Cohort((stimulated.replace(angle_deg=stimulated.angle_deg + 2.0),))).legs["JM-left"]
+    assert "but the angle of trial 1 looks zeroed elsewhere" in uses["identify"]
+
     pendulum = simulate_pendulum_test(PASSIVE_TRUTH["TN-left"], subject="TN", seed=0, seconds=3.0)  # still swinging
     assert angle_doubts(pendulum) == []
     (doubt,) = angle_doubts(pendulum.replace(angle_deg=pendulum.angle_deg + 90.0))

@@ -254,7 +254,8 @@ def test_a_free_run_that_diverges_from_its_start_is_named_with_what_to_do():
 
 def test_an_angle_zeroed_elsewhere_is_named_by_its_missing_gravity():
     """A constant added to every angle (a goniometer zeroed 30° away from the rest) leaves the
-    passive fit no gravity about angle 0: named with the leg and G'; the recording as it is draws nothing."""
+    passive fit no gravity about angle 0: named with the leg, the angle the quiet samples swing about
+    and G'; angles in radians, with the span that gives them away; the recording as it is draws nothing."""
     import warnings
 
     from quadshank.data import Cohort, DataWarning, simulate_cohort
@@ -270,13 +271,40 @@ def test_an_angle_zeroed_elsewhere_is_named_by_its_missing_gravity():
         return [str(w.message) for w in caught if issubclass(w.category, DataWarning) and "next to no gravity" in str(w.message)]
 
     assert said(t) == []
-    (found,) = said(t.replace(angle_deg=t.angle_deg + 30.0))
-    assert found.startswith("TN-left: the identified pendulum has next to no gravity (G' = ")
-    assert "radians" not in found
+    # 30° off: the quiet samples name the angle they swing about, and G' near 0 with it
+    with pytest.warns(DataWarning, match=r"TN-left: the quiet samples of trial 1 swing about \+[34]\d\.\d° .*G' [0-9.]+e-\d\d"):
+        identify_cohort(Cohort((t.replace(angle_deg=t.angle_deg + 30.0),)))
     # the angle and the accelerometer both in radians: the small span is named as well
     (found,) = said(t.replace(angle_deg=np.deg2rad(t.angle_deg), acceleration_deg_s2=np.deg2rad(t.acceleration_deg_s2),
                               velocity_deg_s=np.deg2rad(t.velocity_deg_s)))
     assert "in radians: the angle spans only" in found, found
+
+
+def test_an_angle_zeroed_a_degree_or_more_off_the_rest_is_named_by_the_quiet_samples():
+    """Between pulses eq. (8) about an angle a degree or more from 0 fits the quiet samples far better
+    than about 0 (an angle zeroed off the hanging shank, which biases every value): a warning names
+    the leg, the angle and the biased G' and k1'; the recording as it is, and half a degree off, draw none."""
+    import warnings
+
+    from quadshank.data import Cohort, DataWarning, simulate_cohort
+    from quadshank.inference._identify import identify_cohort
+
+    cohort, _ = simulate_cohort(legs=["JM-left"], minutes=2, seed=3, trials=[1])
+    t = cohort.trials[0]
+
+    def said(offset):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            identify_cohort(Cohort((t.replace(angle_deg=t.angle_deg + offset),)))
+        return [str(w.message) for w in caught if issubclass(w.category, DataWarning)
+                and "rather than about the angle's zero" in str(w.message)]
+
+    assert said(0.0) == [] and said(0.3) == []
+    for offset in (-5.0, 1.5):
+        (found,) = said(offset)
+        about = float(re.match(r"JM-left: the quiet samples of trial 1 swing about ([-+0-9.]+)°", found).group(1))
+        assert abs(about - offset) < 0.4, found
+        assert "goniometer_offset" in found and "k1'" in found
 
 
 def test_a_marker_on_excluded_samples_leaves_the_identification_as_it_was():

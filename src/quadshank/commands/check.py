@@ -31,6 +31,7 @@ from ..inference._identify import (
     check_delay_range,
     isolated_twitches,
     passive_mask,
+    rest_offset,
     twitch_epoch,
 )
 from ..outputs._figures import plot_recording
@@ -167,6 +168,13 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
         else:
             mixed = None
             check_delay_range(period)  # what fit and identify would warn of at this period
+        offset = set()  # (leg, trial) whose quiet samples swing about an angle away from 0, as identify warns
+        for t in cohort:
+            if t.trial == identification_trial and np.any(t.stimulation > 0) and not angle_doubts(t):
+                found = rest_offset(t)
+                if found:
+                    offset.add((t.key, t.trial))
+                    warnings.warn(f"{t.key}: {found}", DataWarning, stacklevel=2)
     scales = charge_scales(cohort)
     isolated = [_isolated(t) for t in cohort]
     rows = [trial_row(t, scales.get(t.key), i) for t, i in zip(cohort, isolated)]
@@ -182,7 +190,7 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
         passive = [t for t in trials if not np.any(t.stimulation > 0)]
         used = [t for t in trials if t.trial == identification_trial] + [t for t in passive
                                                                            if t.trial != identification_trial]
-        doubted = [t.trial for t in used if angle_doubts(t)]
+        doubted = [t.trial for t in used if (leg, t.trial) in offset or angle_doubts(t)]
         if doubted and not uses["identify"].startswith("no"):
             uses["identify"] += (f"; but the angle of trial{'s' if len(doubted) > 1 else ''} "
                                  f"{', '.join(map(str, doubted))} looks zeroed elsewhere or signed otherwise (the "

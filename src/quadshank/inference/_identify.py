@@ -729,8 +729,9 @@ def identify_cohort(
                     f"{leg}: the passive objective 'angle' fits free swings, and the leg has no trial without "
                     "pulses (a pendulum test); use the objective 'auto' or 'acceleration'")
             out[leg] = identify_leg(chosen)
-            _warn_passive_unseparated(leg, out[leg].passive, out[leg].passive_se, f"the quiet samples of trial {trial}",
-                                      _angle_span((chosen,)))
+            if not _warn_rest_offset(leg, chosen, out[leg].passive, out[leg].passive_rms_residual):
+                _warn_passive_unseparated(leg, out[leg].passive, out[leg].passive_se,
+                                          f"the quiet samples of trial {trial}", _angle_span((chosen,)))
             continue
         objective = "acceleration" if passive_objective == "acceleration" else "angle"
         numbers = tuple(t.trial for t in passive_trials)
@@ -779,6 +780,53 @@ def passive_separated(passive: dict, se: dict) -> bool:
     if "gravity" not in se:
         return True
     return bool(passive["gravity"] > 0 and se["gravity"] <= PASSIVE_GRAVITY_REL_SE * passive["gravity"])
+
+
+#: The quiet samples' passive fit with gravity about another angle (``gravity_offset``) whose RMS
+#: residual is this much smaller than eq. (8)'s about angle 0 ...
+REST_OFFSET_RMS_RATIO = 1.05
+#: ... at an angle at least this far from 0 [deg] says the angle's zero is off the hanging shank: on
+#: the simulated cohort (rest at 0) the ratio is 1.000 and the angle within 0.05° of 0, and an
+#: offset of 1° raises eq. (8)'s RMS by 10-17 %, while it takes G' to about half and k1' 40-100 fold.
+REST_OFFSET_MIN_DEG = 0.5
+#: Where that fit's RMS residual is more than this share of the quiet samples' spread, eq. (8) does not
+#: describe them either way (on the simulated cohort the share is 0.06-0.08), and the warning says
+#: that activity between the twitches can move the angle gravity seems to act about as well.
+REST_OFFSET_POOR_FIT = 0.25
+
+
+def rest_offset(trial: Trial, about_zero: tuple[dict, float] | None = None) -> str | None:
+    """Where the quiet samples of a stimulated ``trial`` are fitted much better with gravity about an
+    angle away from 0 (:data:`REST_OFFSET_RMS_RATIO`, :data:`REST_OFFSET_MIN_DEG`): what that says, in
+    words; else None.  Such an angle is zeroed off the shank hanging at rest, which biases every
+    passive and active value identified about angle 0 (a few degrees halve G'2).  ``about_zero``:
+    the passive system identified about angle 0 and its RMS residual, where already found."""
+    try:
+        passive, rms = about_zero or _passive_equation_error([trial])[:2]
+        free, rms_free, _, _ = _passive_equation_error([trial], gravity_offset=True)
+    except IdentificationError:
+        return None
+    angle = float(free["gravity_angle"])
+    if rms <= REST_OFFSET_RMS_RATIO * rms_free or abs(angle) < REST_OFFSET_MIN_DEG:
+        return None
+    spread = float(np.std(_passive_samples([trial])[2]))
+    poor = (f" Eq. (8) fits them poorly either way (RMS {rms_free:.3g} against their spread of {spread:.3g} deg/s²): "
+            "activity between the twitches (pulses missing from the stimulation column, a spasm, tone) can do this "
+            "too." if rms_free > REST_OFFSET_POOR_FIT * spread else "")
+    return (f"the quiet samples of trial {trial.trial} swing about {angle:+.1f}° rather than about the angle's zero: "
+            f"eq. (8) with gravity about {angle:+.1f}° fits them with {rms_free:.3g} deg/s² RMS against {rms:.3g} "
+            f"about 0.{poor} Is angle_deg zeroed away from the shank hanging at rest (a goniometer's zero)? As "
+            f"recorded, the identified values are biased (G' {passive['gravity']:.3g} and k1' {passive['k1']:.3g} deg/s² against "
+            f"{free['gravity']:.3g} and {free['k1']:.3g} with the offset, and the gains with them): zero angle_deg "
+            "with the shank hanging, or fit the offset (`quadshank fit --add-effect goniometer_offset`)")
+
+
+def _warn_rest_offset(leg: str, trial: Trial, passive: dict, rms: float) -> bool:
+    """Warn (and return True) where :func:`rest_offset` finds the quiet samples' angle zeroed elsewhere."""
+    said = rest_offset(trial, (passive, rms))
+    if said:
+        warnings.warn(f"{leg}: {said}", DataWarning, stacklevel=3)
+    return bool(said)
 
 
 #: A range [deg] of the angle (the central 98 % of the samples kept) narrower than this, with next to
