@@ -88,6 +88,17 @@ def _with_column(path: Path, name: str, value: str | None, first: bool = False) 
     return []
 
 
+def _blank_between(path: Path, column: str, stride: int) -> list[str]:
+    """The column's cells left empty except on every ``stride``-th row."""
+    rows = _rows(path)
+    j = rows[0].index(column)
+    for i, r in enumerate(rows[1:]):
+        if i % stride:
+            r[j] = ""
+    _write_rows(path, rows)
+    return []
+
+
 def _rename_column(path: Path, old: str, new: str) -> list[str]:
     rows = _rows(path)
     rows[0] = [new if c == old else c for c in rows[0]]
@@ -303,6 +314,8 @@ CSV_CASES = {
     "a logger's settings above the header": lambda folder: _above_header(folder / J1, ["Logger,DataQ 4108",
                                                                                        "Date,2026-11-30", ""])
     + [J1, "are on line 4", "remove the 3 lines above them"],
+    "the angle on every 4th row only": lambda folder: _blank_between(folder / T1, "angle_deg", 4)
+    + [T1, "'angle_deg'", "a value on every 4th row only"],
     "a manifest's notes": lambda folder: _with_column(folder / MAN, "notes", "ok") + [MAN, "notes or bookkeeping"],
     "no stimulation column in a pendulum test": lambda folder: drop_column(T1, "stimulation")(folder)
     + ["add the column stimulation with 0 on every row"],

@@ -926,6 +926,17 @@ _MAY_BE_MISSING = ("angle_deg", "acceleration_deg_s2", "velocity_deg_s")
 _MISSING = re.compile(r"(?:nan)?", re.IGNORECASE)
 
 
+def _sparse_stride(cells: list[str]) -> int | None:
+    """The stride k (2 or more) where a column holds a value on every k-th row only and is empty on
+    the rows between (a slower channel written into a faster file), else None."""
+    filled = np.flatnonzero([bool(c.strip()) for c in cells])
+    if filled.size < 3 or filled.size > len(cells) / 2:
+        return None
+    steps = np.diff(filled)
+    k = int(np.median(steps))
+    return k if k >= 2 and np.mean(steps == k) >= 0.9 else None
+
+
 def _parse_float_column(table: _Table, name: str, file: str, problems: list[Problem],
                         excluded: np.ndarray | None = None) -> np.ndarray | None:
     """The column as floats, or ``None`` (after reporting) when a cell is not a finite number.
@@ -956,6 +967,13 @@ def _parse_float_column(table: _Table, name: str, file: str, problems: list[Prob
             non_finite.append((line, text))
     leave_out = ("; a sample to leave out may be empty or NaN where its exclude is 1" if name in _MAY_BE_MISSING
                  else "")
+    stride = _sparse_stride(cells)
+    if stride:
+        problems.append(Problem(file, name, None, (
+            f"a value on every {stride}th row only, empty between: a channel recorded {stride} times slower than the "
+            "file's rows (the angle at 100 Hz in a file of 1-kHz stimulation, say)? Give every signal at one rate: "
+            "keep the rows that hold the values, each pulse moved to the nearest of them, or fill the values in "
+            "between (linear interpolation) and resample (`quadshank convert --resample`)")))
     _report_cells(problems, file, name, non_numeric, "non-numeric value {}" + leave_out)
     _report_cells(problems, file, name, non_finite,
                   "non-finite value {!r} (NaN and infinity are not allowed" + leave_out + ")")
