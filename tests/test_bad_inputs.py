@@ -319,6 +319,8 @@ CSV_CASES = {
     "a manifest's notes": lambda folder: _with_column(folder / MAN, "notes", "ok") + [MAN, "notes or bookkeeping"],
     "no stimulation column in a pendulum test": lambda folder: drop_column(T1, "stimulation")(folder)
     + ["add the column stimulation with 0 on every row"],
+    "a stimulation left empty where no pulse": lambda folder: cell(T1, "stimulation", 3, "")(folder)
+    + ["write 0 where no pulse was delivered"],
     "a word for false": lambda folder: cell(T1, "stimulation", 7, "FALSE")(folder) + ["write 1 or 0"],
     "a clock time": lambda folder: cell(T2, "time_s", 9, "14:22:01.00")(folder) + ["a clock time"],
     "angle in tenths of a degree": column_map(J1, "angle_deg", lambda v: round(10 * v),

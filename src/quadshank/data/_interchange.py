@@ -966,8 +966,8 @@ def _parse_float_column(table: _Table, name: str, file: str, problems: list[Prob
         elif v is None or not math.isfinite(v):
             non_finite.append((line, text))
     leave_out = ("; a sample to leave out may be empty or NaN where its exclude is 1" if name in _MAY_BE_MISSING
-                 else "")
-    stride = _sparse_stride(cells)
+                 else "; write 0 where no pulse was delivered" if name in ("stimulation", *_STIMULATOR) else "")
+    stride = _sparse_stride(cells) if name in _MAY_BE_MISSING else None
     if stride:
         problems.append(Problem(file, name, None, (
             f"a value on every {stride}th row only, empty between: a channel recorded {stride} times slower than the "
