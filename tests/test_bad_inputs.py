@@ -296,6 +296,9 @@ CSV_CASES = {
     "a trigger in volts": column_map(T2, "stimulation", lambda v: 5.0 * (v > 0), ["every pulse is 5, outside [0, 1]: a trigger channel"]),
     "a trigger recorded as an analog signal": column_map(T2, "stimulation", lambda v: 5.0 if v > 0 else 0.004,
                                                          ["small nonzero", "a trigger channel recorded as an analog"]),
+    "an analog trigger with edges, its baseline mostly 0": lambda folder: _map_column_indexed(
+        folder / T2, "stimulation", lambda i: 5.0 if i in (30, 120, 210, 300) else 2.5 if i in (31, 121) else
+        0.003 if i % 7 == 0 else 0.0) or [T2, "a trigger channel recorded as an analog"],
     "radians": column_map(J1, "angle_deg", np.deg2rad, ["radians"]),
     "radians with a glitch": radians_glitch,
     "radians without pulses": radians_passive,
@@ -321,6 +324,10 @@ CSV_CASES = {
     + ["add the column stimulation with 0 on every row"],
     "a stimulation left empty where no pulse": lambda folder: cell(T1, "stimulation", 3, "")(folder)
     + ["write 0 where no pulse was delivered"],
+    "the stimulation column under another name": lambda folder: _rename_column(folder / T1, "stimulation", "stim")
+    + [T1, "'stim'", "if it holds stimulation, name it so"],
+    "a spreadsheet's #N/A": lambda folder: cell(T1, "angle_deg", 5, "#N/A")(folder) + ["'#N/A'"],
+    "a spreadsheet's #N/A first in its row": lambda folder: cell(T1, "time_s", 5, "#N/A")(folder) + ["'#N/A'"],
     "a word for false": lambda folder: cell(T1, "stimulation", 7, "FALSE")(folder) + ["write 1 or 0"],
     "a clock time": lambda folder: cell(T2, "time_s", 9, "14:22:01.00")(folder) + ["a clock time"],
     "angle in tenths of a degree": column_map(J1, "angle_deg", lambda v: round(10 * v),
@@ -941,7 +948,7 @@ def test_a_gate_or_a_logged_setting_is_not_taken_silently_for_pulses(base, tmp_p
     assert not [w for w in warned if "consecutive" in w or "every one" in w], warned
     # a trigger high over two samples a pulse: each run read as two pulses at 100 Hz
     _, error, warned = stimulated("trigger", lambda i: 1.0 if i % 60 in (10, 11) else 0.0)
-    assert error == "" and any("runs of 2 consecutive samples" in w and "Keep each run's first sample" in w
+    assert error == "" and any("runs of 2 consecutive samples" in w and "keep each run's first sample" in w
                                for w in warned), warned
     _, _, warned = stimulated("a pulse beside another", lambda i: 1.0 if i in (10, 11, 70, 130, 190) else 0.0)
     assert not [w for w in warned if "consecutive" in w], warned

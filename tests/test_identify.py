@@ -274,10 +274,12 @@ def test_an_angle_zeroed_elsewhere_is_named_by_its_missing_gravity():
     # 30° off: the quiet samples name the angle they swing about, and G' near 0 with it
     with pytest.warns(DataWarning, match=r"TN-left: the quiet samples of trial 1 swing about \+[34]\d\.\d° .*G' [0-9.]+e-\d\d"):
         identify_cohort(Cohort((t.replace(angle_deg=t.angle_deg + 30.0),)))
-    # the angle and the accelerometer both in radians: the small span is named as well
-    (found,) = said(t.replace(angle_deg=np.deg2rad(t.angle_deg), acceleration_deg_s2=np.deg2rad(t.acceleration_deg_s2),
-                              velocity_deg_s=np.deg2rad(t.velocity_deg_s)))
-    assert "in radians: the angle spans only" in found, found
+    # the angle and the accelerometer both in radians: the small span is named as well, on every leg and length
+    for leg, minutes, seed in (("TN-left", 0.5, 0), ("JM-left", 2.0, 1), ("OT-left", 2.0, 2), ("TN-right", 0.5, 3)):
+        (r,) = simulate_cohort(legs=[leg], minutes=minutes, seed=seed, trials=[1])[0].trials
+        (found,) = said(r.replace(angle_deg=np.deg2rad(r.angle_deg), acceleration_deg_s2=np.deg2rad(r.acceleration_deg_s2),
+                                  velocity_deg_s=np.deg2rad(r.velocity_deg_s)))
+        assert "in radians: the angle spans only" in found, (leg, found)
 
 
 def test_an_angle_zeroed_a_degree_or_more_off_the_rest_is_named_by_the_quiet_samples():
@@ -305,6 +307,13 @@ def test_an_angle_zeroed_a_degree_or_more_off_the_rest_is_named_by_the_quiet_sam
         about = float(re.match(r"JM-left: the quiet samples of trial 1 swing about ([-+0-9.]+)°", found).group(1))
         assert abs(about - offset) < 0.4, found
         assert "goniometer_offset" in found and "k1'" in found
+        assert "does the accelerometer read a constant offset" in found  # measured: a sensor's offset looks alike
+    derived = Trial.from_signals("JM", "left", 1, t.sampling_period_s, t.angle_deg + 3.0, None, t.stimulation)
+    with warnings.catch_warnings(record=True) as caught:  # no accelerometer to doubt
+        warnings.simplefilter("always")
+        identify_cohort(Cohort((derived,)))
+    (found,) = [str(w.message) for w in caught if "rather than about the angle's zero" in str(w.message)]
+    assert "accelerometer" not in found
 
 
 def test_a_marker_on_excluded_samples_leaves_the_identification_as_it_was():

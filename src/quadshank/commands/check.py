@@ -168,9 +168,17 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
         else:
             mixed = None
             check_delay_range(period)  # what fit and identify would warn of at this period
-        offset = set()  # (leg, trial) whose quiet samples swing about an angle away from 0, as identify warns
+        # (leg, trial) whose quiet samples swing about an angle away from 0, as identify warns where it takes
+        # the passive system from them (a leg without pendulum tests, at a period it identifies)
+        offset = set()
+        pendulum = {t.key for t in cohort if not np.any(t.stimulation > 0)}
+        try:
+            identifies = period is not None and check_delay_range(period, muscle=True, warn=False) is None
+        except DelayRangeError:
+            identifies = False
         for t in cohort:
-            if t.trial == identification_trial and np.any(t.stimulation > 0) and not angle_doubts(t):
+            if identifies and t.trial == identification_trial and t.key not in pendulum \
+                    and np.any(t.stimulation > 0) and not angle_doubts(t):
                 found = rest_offset(t)
                 if found:
                     offset.add((t.key, t.trial))

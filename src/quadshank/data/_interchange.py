@@ -431,8 +431,9 @@ def _pulse_runs(trial: Trial) -> list[str]:
         return [f"stimulation is nonzero on {len(short)} runs of {' or '.join(map(str, widths))} consecutive samples "
                 f"({in_short} of its {np.count_nonzero(on)} pulses), the first from time_s = {float(trial.time_s[a])!r}: "
                 f"each nonzero sample is one pulse delivered at that sample, so each run reads as pulses at "
-                f"{rate:g} Hz. Is it a trigger recorded over the pulse's width? Keep each run's first sample (the "
-                "rising edge) and write 0 on the others"]
+                f"{rate:g} Hz. Is it a trigger recorded over the pulse's width? Then keep each run's first sample (the "
+                "rising edge) and write 0 on the others. Pulses delivered that close (doublets) are told apart only "
+                "at a shorter sampling period"]
     if on.all():
         what = f"every one of its {on.size} samples"
     elif runs and rate >= PULSE_RUN_RATE_HZ:
@@ -678,8 +679,8 @@ def _read_table(
                 if header is None:
                     header = [c.strip() for c in row]
                     header_line = reader.line_num
-                elif row[0].lstrip().startswith("#"):
-                    continue  # a comment line among or after the data ("# end of file"): no number starts so
+                elif row[0].lstrip().startswith("#") and not any(c.strip() for c in row[1:]):
+                    continue  # a comment line among or after the data ("# end of file"); not a spreadsheet's #N/A
                 else:
                     rows.append(row)
                     lines.append(reader.line_num)
@@ -736,6 +737,9 @@ def _read_table(
                                     f"{at}, not on the first: remove the {at - 1} line{'s' if at > 2 else ''} above "
                                     "them (a logger's settings or a title)"))
             return None
+    # a required column that is absent, and a column that is not the format's: perhaps the same
+    absent = [r for r in required if r not in header and not set((alternatives or {}).get(r, ())) & set(header)]
+    unknown = [c for c in header if c and c not in known]
     columns: dict[str, int] = {}
     by_case = {name.lower(): name for name in known}
     for i, name in enumerate(header):
@@ -754,6 +758,8 @@ def _read_table(
                     msg += " (in seconds: the values divided by 1000)"
             elif not name and i == 0:
                 msg += "; a row index (as pandas' to_csv writes unless index=False)? Remove the column"
+            elif absent:
+                msg += f"; if it holds {' or '.join(absent)}, name it so; else: {unknown_hint}"
             else:
                 msg += f"; {unknown_hint}"
             if separator is None:
@@ -767,7 +773,10 @@ def _read_table(
             break  # the one problem above says why every column is missing
         if name not in columns and not given:
             also = f"; or give {' and/or '.join(instead)}" if instead else ""
-            also += f"; {(missing_hints or {})[name]}" if name in (missing_hints or {}) else ""
+            if unknown:
+                also += f"; if {' or '.join(repr(c) for c in unknown[:3])} holds it, name that column {name}"
+            if name in (missing_hints or {}):
+                also += f"; {'else: ' if unknown else ''}{(missing_hints or {})[name]}"
             problems.append(Problem(file, name, header_line, f"missing column (header is: {','.join(header)}){also}"))
         elif name in columns and given:
             problems.append(Problem(file, given[0], header_line, f"give either {name} or {' and/or '.join(instead)}, "
@@ -1045,7 +1054,7 @@ def _check_signals(
                                 f"sampling_period_s = {float(sampling_period_s)!r} s {period_origin}"
                                 + ("; is time_s in milliseconds? (give seconds: the values divided by 1000)"
                                    if math.isclose(median, 1000 * sampling_period_s, rel_tol=PERIOD_TOLERANCE)
-                                   else ""))
+                                   or median > MAX_SAMPLING_PERIOD_S else ""))
                     )
 
     for column in _STIMULATOR:
@@ -1062,12 +1071,12 @@ def _check_signals(
         pulses = stim[stim != 0]
         high = stim[stim > 1]
         low = stim[(stim != 0) & (stim <= 1)]
-        if out.size and high.size >= 3 and low.size > high.size and np.ptp(high) <= 0.1 * np.median(high) \
-                and np.max(np.abs(low)) <= 0.05 * np.median(high):
+        plateau = high.size >= 3 and np.mean(np.abs(high - np.median(high)) <= 0.1 * np.median(high)) >= 0.6
+        if out.size and plateau and low.size and np.median(np.abs(low)) <= 0.05 * np.median(high):
             # pulses of one height over a baseline that is small but not 0: an analog trigger's noise
             problems.append(Problem(file, "stimulation", None, (
-                f"{high.size} values near {float(np.median(high)):.3g} over a baseline of {low.size} small nonzero "
-                f"ones (up to {float(np.max(np.abs(low))):.2g}): a trigger channel recorded as an analog signal? "
+                f"{high.size} values near {float(np.median(high)):.3g} over {low.size} small nonzero ones (median "
+                f"{float(np.median(np.abs(low))):.2g}): a trigger channel recorded as an analog signal? "
                 "Every nonzero sample is a pulse: write 1 (or the level it recruits) at the first sample of each "
                 "pulse and 0 everywhere else, the baseline's noise included")))
         # most pulses above 1, three or more: not a typo on a pulse or two
@@ -1364,11 +1373,14 @@ def _read_manifest(folder: Path, problems: list[Problem]) -> tuple[list[_Entry],
                 elif candidate.exists():
                     bad("file", f"{file!r} is not a regular file")
                 else:
-                    parent = candidate.parent
-                    alike = sorted(p.name for p in parent.iterdir() if p.name.lower() == candidate.name.lower()) \
-                        if parent.is_dir() else []
+                    try:
+                        alike = sorted(p.name for p in candidate.parent.iterdir()
+                                       if p.name.lower() == candidate.name.lower())
+                    except OSError:  # no such folder, or not readable: nothing to compare
+                        alike = []
+                    listed = str(PurePosixPath(key).parent / alike[0]) if alike else ""
                     bad("file", f"{file!r} does not exist" + (
-                        f"; {alike[0]!r} differs from it only in case (names are compared exactly): list that name"
+                        f"; {listed!r} differs from it only in case (names are compared exactly): list that name"
                         if alike else ""))
         entries.append(_Entry(line, subject, leg, trial, file, key, file_path, period, span["start_s"], span["end_s"],
                               span_ok))

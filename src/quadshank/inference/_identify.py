@@ -797,28 +797,35 @@ REST_OFFSET_POOR_FIT = 0.25
 
 def rest_offset(trial: Trial, about_zero: tuple[dict, float] | None = None) -> str | None:
     """Where the quiet samples of a stimulated ``trial`` are fitted much better with gravity about an
-    angle away from 0 (:data:`REST_OFFSET_RMS_RATIO`, :data:`REST_OFFSET_MIN_DEG`): what that says, in
-    words; else None.  Such an angle is zeroed off the shank hanging at rest, which biases every
-    passive and active value identified about angle 0 (a few degrees halve G'2).  ``about_zero``:
-    the passive system identified about angle 0 and its RMS residual, where already found."""
+    angle away from 0 (:data:`REST_OFFSET_RMS_RATIO`, :data:`REST_OFFSET_MIN_DEG`, at most
+    :data:`PLAUSIBLE_GRAVITY_ANGLE_DEG`): what that says, in words; else None.  Such an angle is
+    zeroed off the shank hanging at rest, which biases every passive and active value identified
+    about angle 0 (a few degrees halve G'2); between small swings a constant offset of a measured
+    acceleration looks the same.  ``about_zero``: the passive system identified about angle 0 and
+    its RMS residual, where already found."""
+    if _angle_span((trial,)) < RADIAN_SPAN_DEG:
+        return None  # a span of a few units: radians, which the warning of next to no gravity names
     try:
         passive, rms = about_zero or _passive_equation_error([trial])[:2]
         free, rms_free, _, _ = _passive_equation_error([trial], gravity_offset=True)
     except IdentificationError:
         return None
     angle = float(free["gravity_angle"])
-    if rms <= REST_OFFSET_RMS_RATIO * rms_free or abs(angle) < REST_OFFSET_MIN_DEG:
-        return None
+    if rms <= REST_OFFSET_RMS_RATIO * rms_free or not REST_OFFSET_MIN_DEG <= abs(angle) <= PLAUSIBLE_GRAVITY_ANGLE_DEG:
+        return None  # beyond ±45° the fit is degenerate (gravity at its bound), not a measured angle
     spread = float(np.std(_passive_samples([trial])[2]))
     poor = (f" Eq. (8) fits them poorly either way (RMS {rms_free:.3g} against their spread of {spread:.3g} deg/s²): "
             "activity between the twitches (pulses missing from the stimulation column, a spasm, tone) can do this "
             "too." if rms_free > REST_OFFSET_POOR_FIT * spread else "")
+    sensor = (f" Or does the accelerometer read a constant offset? About {abs(free['gravity'] * np.sin(np.radians(angle))):.2g} "
+              "deg/s² looks the same between small swings." if trial.acceleration_measured else "")
     return (f"the quiet samples of trial {trial.trial} swing about {angle:+.1f}° rather than about the angle's zero: "
             f"eq. (8) with gravity about {angle:+.1f}° fits them with {rms_free:.3g} deg/s² RMS against {rms:.3g} "
-            f"about 0.{poor} Is angle_deg zeroed away from the shank hanging at rest (a goniometer's zero)? As "
-            f"recorded, the identified values are biased (G' {passive['gravity']:.3g} and k1' {passive['k1']:.3g} deg/s² against "
-            f"{free['gravity']:.3g} and {free['k1']:.3g} with the offset, and the gains with them): zero angle_deg "
-            "with the shank hanging, or fit the offset (`quadshank fit --add-effect goniometer_offset`)")
+            f"about 0.{poor} Is angle_deg zeroed away from the shank hanging at rest (a goniometer's zero)?{sensor} "
+            f"As recorded, the identified values are biased (G' {passive['gravity']:.3g} and k1' {passive['k1']:.3g} "
+            f"deg/s² against {free['gravity']:.3g} and {free['k1']:.3g} with the offset, and the gains with them): "
+            "zero angle_deg with the shank hanging, or fit the offset (`quadshank fit --add-effect "
+            "goniometer_offset`, or `gravity_offset` for a rest the tissues hold)")
 
 
 def _warn_rest_offset(leg: str, trial: Trial, passive: dict, rms: float) -> bool:
