@@ -319,6 +319,8 @@ CSV_CASES = {
     + [J1, "are on line 4", "remove the 3 lines above them"],
     "the angle on every 4th row only": lambda folder: _blank_between(folder / T1, "angle_deg", 4)
     + [T1, "'angle_deg'", "a value on every 4th row only"],
+    "a title with a semicolon above the header": lambda folder: _above_header(folder / J1, ["Knee pendulum; JM right"])
+    + [J1, "are on line 2", "remove the 1 line above them"],
     "a manifest's notes": lambda folder: _with_column(folder / MAN, "notes", "ok") + [MAN, "notes or bookkeeping"],
     "no stimulation column in a pendulum test": lambda folder: drop_column(T1, "stimulation")(folder)
     + ["add the column stimulation with 0 on every row"],

@@ -721,15 +721,8 @@ def _read_table(
                                 f"first line holds the column names ({', '.join(required)} ...); remove the lines "
                                 "above them"))
         return None
-    separator = next((sep for sep, label in _OTHER_SEPARATORS if len(header) == 1 and sep in header[0]), None)
-    if separator is not None:
-        label = dict(_OTHER_SEPARATORS)[separator]
-        shown = header[0] if len(header[0]) <= 60 else header[0][:57] + "..."
-        problems.append(Problem(file, None, header_line, f"the header is one field, {shown!r}: is the file separated "
-                                f"by {label} rather than commas? The format is comma-separated, with '.' as the "
-                                "decimal mark (a spreadsheet's 'CSV (comma delimited)' export)"))
-    if separator is None and not set(header) & set(known):
-        # a logger's block of settings above the column names: say where the names are
+    if not set(header) & set(known):
+        # a logger's block of settings (or a title) above the column names: say where the names are
         at = next((line for line, row in zip(lines[:50], rows[:50])
                    if len({c.strip() for c in row} & set(required)) >= 2), None)
         if at is not None:
@@ -737,6 +730,13 @@ def _read_table(
                                     f"{at}, not on the first: remove the {at - 1} line{'s' if at > 2 else ''} above "
                                     "them (a logger's settings or a title)"))
             return None
+    separator = next((sep for sep, label in _OTHER_SEPARATORS if len(header) == 1 and sep in header[0]), None)
+    if separator is not None:
+        label = dict(_OTHER_SEPARATORS)[separator]
+        shown = header[0] if len(header[0]) <= 60 else header[0][:57] + "..."
+        problems.append(Problem(file, None, header_line, f"the header is one field, {shown!r}: is the file separated "
+                                f"by {label} rather than commas? The format is comma-separated, with '.' as the "
+                                "decimal mark (a spreadsheet's 'CSV (comma delimited)' export)"))
     # a required column that is absent, and a column that is not the format's: perhaps the same
     absent = [r for r in required if r not in header and not set((alternatives or {}).get(r, ())) & set(header)]
     unknown = [c for c in header if c and c not in known]
