@@ -202,7 +202,7 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
         if doubted and not uses["identify"].startswith("no"):
             uses["identify"] += (f"; but the angle of trial{'s' if len(doubted) > 1 else ''} "
                                  f"{', '.join(map(str, doubted))} looks zeroed elsewhere or signed otherwise (the "
-                                 "warning above): as recorded, its passive and active values come out wrong")
+                                 "warnings say how): as recorded, its passive and active values come out wrong")
     if period is not None and any(r["pulses"] for r in rows):
         try:  # a period too short for a muscle's delays: identify and a muscle's fit refuse it
             check_delay_range(period, muscle=True, warn=False)
