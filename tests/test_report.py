@@ -487,3 +487,45 @@ def test_a_band_beyond_the_fitted_angles_is_named_where_its_median_is_not():
     assert _beyond(0.0, band, (-20.0, 20.0)) == {"band": 40.0}
     assert _beyond(50.0, {**band, "median": np.array([0.0, 35.0])}, (-20.0, 20.0)) == {"start": 50.0, "prediction": 35.0}
     assert _beyond(0.0, {**band, "hi": np.array([1.0, 29.0])}, (-20.0, 20.0)) is None
+
+
+def test_draws_that_run_off_and_a_shank_over_the_top_are_named_not_averaged_into_nan(made, monkeypatch, capsys):
+    """A plan that drives some draws' runs to overflow leaves those draws out of the band from where
+    they overflow (the band is of the draws still finite, none where none is), and a median beyond
+    ±180° (the shank over the top) is named: both warned of, kept in summary.json, and the figure's
+    axis is cut at ±200° so that the rest stays readable."""
+    import quadshank.commands.predict as predict
+    from quadshank.commands.predict import _band
+
+    runs = np.tile(np.linspace(0.0, 10.0, 6), (10, 1))
+    runs[2, 3:] = np.nan
+    runs[5, 4:] = np.inf
+    band, gone = _band(runs)
+    assert list(np.flatnonzero(gone)) == [2, 5]
+    assert np.allclose(band["median"], np.linspace(0.0, 10.0, 6)) and np.all(np.isfinite(band["lo"]))
+    band, _ = _band(np.full((4, 3), np.nan))
+    assert np.all(np.isnan(band["median"]))
+
+    def rollouts(models, levels, angle0, velocity0):  # half the draws climb past the top, two overflow
+        n, t = 20, np.arange(len(levels), dtype=float)  # --draws 20
+        out = np.tile(angle0 + t, (n, 1)) + np.arange(n)[:, None] * 1e-3
+        out[::2] += 2.0 * t  # the median's draws climb too
+        out[:2, 250:] = np.nan
+        return out
+
+    monkeypatch.setattr(predict, "plan_predictions", rollouts)
+    plan = made["root"] / "plan-over.csv"
+    plan.write_text("time_s,stimulation\n" + "".join(f"{i * 0.01!r},{1.0 if i % 5 == 0 else 0.0}\n" for i in range(300)))
+    out = made["root"] / "predict-over"
+    capsys.readouterr()
+    assert main(["predict", str(made["fit"]), "--stimulation", str(plan), "--draws", "20", "--legs", "TN-left",
+                 "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "TN-left: 2 of 20 draws ran off to no finite angle under the plan, the first at 2.50 s" in err
+    assert "TN-left: the median prediction passes ±180° at" in err and "over the top" in err
+    s = json.loads((out / "summary.json").read_text())
+    assert s["diverged_draws"] == {"TN-left": {"draws": 2, "first_s": 2.5}}
+    assert s["beyond_reach"]["TN-left"]["angle_deg"] >= 180.0
+    assert all(v is None or np.isfinite(v) for v in (s["extremes"]["TN-left"]["max_deg"], s["extremes"]["TN-left"]["min_deg"]))
+    rows = list(csv.reader((out / "predictions.csv").open()))
+    assert all(r[rows[0].index("TN-left median [deg]")] != "nan" for r in rows[1:])

@@ -319,7 +319,7 @@ def prepare_output(out: Path, command: str, inputs, overwrite: bool = False):
 
 
 def cmd_simulate(args) -> int:
-    legs = _csv_list(args.legs, "--legs") if args.legs else list(LEGS)
+    legs = _csv_list(args.legs, "--legs") if args.legs is not None else list(LEGS)
     effects = _csv_list(args.effects, "--effects") if args.effects else []
     trials = _int_list(args.trials, "--trials")
     lacking = sorted(set(range(1, max(trials, default=0) + 1)) - set(trials))
@@ -463,7 +463,7 @@ def cmd_fit(args) -> int:
         likelihood=args.likelihood,
         precision=args.precision,
     )
-    legs = _csv_list(args.legs, "--legs") if args.legs else None
+    legs = _csv_list(args.legs, "--legs") if args.legs is not None else None
     summary = run_fit(
         cohort,
         args.out,
@@ -517,7 +517,7 @@ def cmd_recovery(args) -> int:
         args.out,
         models=_csv_list(args.models, "--models"),
         seeds=_int_list(args.seeds, "--seeds"),
-        legs=_csv_list(args.legs, "--legs") if args.legs else None,
+        legs=_csv_list(args.legs, "--legs") if args.legs is not None else None,
         minutes=args.minutes,
         settings=settings,
         progress=not args.quiet,
@@ -556,7 +556,7 @@ def cmd_likelihood_check(args) -> int:
         args.out,
         models=_csv_list(args.models, "--models"),
         seeds=_int_list(args.seeds, "--seeds"),
-        legs=_csv_list(args.legs, "--legs") if args.legs else None,
+        legs=_csv_list(args.legs, "--legs") if args.legs is not None else None,
         minutes=args.minutes,
         replicates=args.replicates,
         progress=not args.quiet,
@@ -665,7 +665,7 @@ def cmd_discover(args) -> int:
     confirm = confirm_settings(args, trials)
     summary = run_discover(
         cohort, args.out, model=args.model, trials=trials,
-        legs=_csv_list(args.legs, "--legs") if args.legs else None,
+        legs=_csv_list(args.legs, "--legs") if args.legs is not None else None,
         effects=_csv_list(args.effects, "--effects") if args.effects else None,
         max_rounds=args.max_rounds, command=command, progress=not args.quiet, confirm=confirm,
         data_source=str(Path(data).resolve()), n_starts=n_starts,
@@ -708,14 +708,18 @@ def cmd_report(args) -> int:
 
 
 def cmd_predict(args) -> int:
-    legs = _csv_list(args.legs, "--legs") if args.legs else None
+    legs = _csv_list(args.legs, "--legs") if args.legs is not None else None
     summary = run_predict(args.fitdir, args.plan, args.out, legs=legs,
                           angle0=args.angle0, velocity0=args.velocity0, n_draws=args.draws, seed=args.seed)
     if summary.banner:
         print(f"quadshank: warning: {args.fitdir}: {summary.banner}", file=sys.stderr)
+    def deg(x):  # None where no draw stayed finite
+        return "none finite" if x is None else f"{x:.4g}"
+
+    start = f"{args.angle0:g}°" + (f" at {args.velocity0:g} deg/s" if args.velocity0 else "")
     for leg, e in summary.extremes.items():
-        _say(args, f"{leg}: from {args.angle0:g}° the angle ranges over [{e['min_deg']:.1f}, {e['max_deg']:.1f}]° "
-                   f"(90 % band) and ends at {e['end']['median']:.1f}° [{e['end']['lo']:.1f}, {e['end']['hi']:.1f}]")
+        _say(args, f"{leg}: from {start} the angle ranges over [{deg(e['min_deg'])}, {deg(e['max_deg'])}]° "
+                   f"(90 % band) and ends at {deg(e['end']['median'])}° [{deg(e['end']['lo'])}, {deg(e['end']['hi'])}]")
     _say(args, f"predictions.csv and predictions.png in {args.out}")
     return 0
 
@@ -729,7 +733,7 @@ def cmd_reproduce(args, default_out: str | None = None) -> int:
         minutes=args.minutes,
         seed=args.seed,
         effects=_csv_list(args.effects, "--effects") if args.effects else (),
-        legs=_csv_list(args.legs, "--legs") if args.legs else None,
+        legs=_csv_list(args.legs, "--legs") if args.legs is not None else None,
         progress=not args.quiet,
         command=command,
     )
@@ -752,7 +756,7 @@ def cmd_demo(args) -> int:
         args.out, minutes=args.minutes, seed=args.seed,
         effects=_csv_list(args.effects, "--effects") if args.effects else (),
         hidden=() if args.hide == "none" else _csv_list(args.hide, "--hide"),
-        legs=_csv_list(args.legs, "--legs") if args.legs else None,
+        legs=_csv_list(args.legs, "--legs") if args.legs is not None else None,
         chains=args.chains, warmup=args.warmup, draws=args.draws,
         max_tree_depth=args.max_tree_depth, target_ess=args.target_ess or None, time_limit_s=args.time_limit,
         progress=not args.quiet, command=command,
@@ -796,7 +800,7 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--minutes", type=float, default=minutes_default, help="length of each trial [min]")
         sp.add_argument("--seed", type=int, default=0)
         sp.add_argument("--effects", default="", help="hidden effects to switch on, comma-separated")
-        sp.add_argument("--legs", default="", help="legs, comma-separated (default: the paper's five)")
+        sp.add_argument("--legs", default=None, help="legs, comma-separated (default: the paper's five)")
 
     s = sub.add_parser("simulate", help="simulate the paper's cohort into the interchange format")
     s.add_argument("--out", required=True)
@@ -862,7 +866,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the sampled density's precision: mixed (default: each sample's terms at the data's single "
                         "precision, their sums in double) or double throughout; the angle likelihood is always double")
     f.add_argument("--trials", default="1", help="identification trials, comma-separated (default 1, as the paper)")
-    f.add_argument("--legs", default="", help="legs, comma-separated (default: all in the data)")
+    f.add_argument("--legs", default=None, help="legs, comma-separated (default: all in the data)")
     f.add_argument("--chains", type=int, default=4)
     f.add_argument("--warmup", type=int, default=None,
                    help=f"warm-up draws per chain (default {FIXED_LENGTHS[0]}; {TARGET_LENGTHS[0]} with --target-ess)")
@@ -900,7 +904,7 @@ def build_parser() -> argparse.ArgumentParser:
     rc = sub.add_parser("recovery", help="coverage of the posterior intervals on data simulated from the fitted model")
     rc.add_argument("--models", default="model1,model2,model3", help="models, comma-separated")
     rc.add_argument("--seeds", default="0,1,2", help="simulation and sampling seeds, comma-separated")
-    rc.add_argument("--legs", default="", help="legs, comma-separated (default: the paper's five)")
+    rc.add_argument("--legs", default=None, help="legs, comma-separated (default: the paper's five)")
     rc.add_argument("--add-effect", action="append", metavar="NAME", help="extend every fitted model by an effect")
     rc.add_argument("--truth-effects", default=None, metavar="A,B",
                     help="effects in the simulated truth (default: the added ones; '' for none)")
@@ -918,7 +922,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     lc.add_argument("--models", default="model1,model2,model3", help="models, comma-separated")
     lc.add_argument("--seeds", default="0", help="simulation seeds (one trajectory per leg each), comma-separated")
-    lc.add_argument("--legs", default="", help="legs, comma-separated (default: the paper's five)")
+    lc.add_argument("--legs", default=None, help="legs, comma-separated (default: the paper's five)")
     lc.add_argument("--minutes", type=float, default=1.0, help="length of trial 1 [min]")
     lc.add_argument("--replicates", type=int, default=100, help="noise replicates per trajectory")
     lc.add_argument("--out", required=True)
@@ -945,7 +949,7 @@ def build_parser() -> argparse.ArgumentParser:
     dc.add_argument("--model", choices=list(FIT_MODELS), default="model3s",
                     help="the model the loop starts from (default model3s; passive for pendulum tests)")
     dc.add_argument("--trials", default="1", help="identification trials, comma-separated (default 1)")
-    dc.add_argument("--legs", default="", help="legs, comma-separated (default: all in the data)")
+    dc.add_argument("--legs", default=None, help="legs, comma-separated (default: all in the data)")
     dc.add_argument("--effects", default="", help="candidate effects, comma-separated (default: every registered candidate)")
     dc.add_argument("--max-rounds", type=int, default=3)
     dc.add_argument("--confirm", action="store_true",
@@ -1001,7 +1005,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "fitted on them")
     pr.add_argument("--angle0", type=float, default=0.0, help="start angle [deg] as the goniometer reads it (default 0: rest)")
     pr.add_argument("--velocity0", type=float, default=0.0, help="start velocity [deg/s] (default 0)")
-    pr.add_argument("--legs", default="", help="legs, comma-separated (default: every fitted leg)")
+    pr.add_argument("--legs", default=None, help="legs, comma-separated (default: every fitted leg)")
     pr.add_argument("--draws", type=int, default=200, help="posterior draws (default 200)")
     pr.add_argument("--seed", type=int, default=0)
     pr.add_argument("--out", required=True)

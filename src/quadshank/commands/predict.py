@@ -46,11 +46,37 @@ class PlanPrediction(Result):
     fitted_angle_range_deg: dict | None = None  # leg -> [lowest, highest] angle of the samples the fit saw
     beyond_fitted_range: dict | None = None  # leg -> the start or predicted angle beyond that range by more than the margin
     banner: str | None = None  # the fit's, where it failed its checks: its bands come from draws not to be trusted
+    diverged_draws: dict | None = None  # leg -> {"draws", "first_s"}: draws whose run left the numbers, left out from there
+    beyond_reach: dict | None = None  # leg -> {"time_s", "angle_deg"}: where the median first passes ±KNEE_REACH_DEG
+    seed: int = 0  # which posterior draws were rolled out
 
 
 #: How far [deg] a start or a predicted median may leave the angles the fit saw before a warning
 #: says the model is extrapolated there.
 EXTRAPOLATION_MARGIN_DEG = 10.0
+#: A predicted angle beyond ± this [deg] has the shank over the top, where no knee goes: the
+#: models have no end of range, and a plan that drives them there is told so.
+KNEE_REACH_DEG = 180.0
+
+
+def _band(predictions: np.ndarray) -> tuple[dict, np.ndarray]:
+    """Median and 90 % band over the draws (rows) at each sample, of the draws whose run is still
+    finite there, and the draws whose run left the numbers (a boolean per draw)."""
+    finite = np.isfinite(predictions)
+    if finite.all():
+        return {k: np.asarray(v) for k, v in interval(predictions, axis=0).items()}, np.zeros(len(predictions), bool)
+    # a draw that overflows is left out from where it does; at a sample no draw reaches, the band is NaN
+    values = np.where(finite, predictions, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN samples: NaN, said below
+        lo, hi = np.nanquantile(values, INTERVAL, axis=0)
+        median = np.nanmedian(values, axis=0)
+    return {"median": median, "lo": lo, "hi": hi}, ~finite.all(axis=1)
+
+
+def _finite_or_none(x) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None
 
 
 def fitted_angle_range(idata, leg: str) -> tuple[float, float] | None:
@@ -91,6 +117,8 @@ def run_predict(
     ``predictions.png`` and, last, ``summary.json``."""
     if n_draws < 1:
         raise ValueError(f"--draws must be at least 1, not {n_draws}")
+    if isinstance(seed, bool) or not float(seed).is_integer() or not 0 <= int(seed) < 2**32:
+        raise ValueError(f"--seed must be a whole number from 0 to {2**32 - 1}, not {seed}")
     # a knee's angle lies within a turn of its rest, its speed within a few thousand deg/s
     if not (math.isfinite(angle0) and abs(angle0) <= 360.0):
         raise ValueError(f"--angle0 must be a knee angle in degrees, within ±360, not {angle0}")
@@ -110,11 +138,34 @@ def run_predict(
         levels = {leg: planned.levels(leg, scales) for leg in legs}
     except ValueError as err:
         raise ValueError(f"{plan}: {err}") from None
-    bands = {}
+    available = fit.idata.posterior.sizes["chain"] * fit.idata.posterior.sizes["draw"]
+    if n_draws > available:
+        warnings.warn(f"{fit_dir}: --draws {n_draws}, and the fit holds {available} draws: all {available} are rolled "
+                      "out", DataWarning, stacklevel=2)
+    elif n_draws < 20:
+        warnings.warn(f"--draws {n_draws}: a 90 % band of so few draws says little of the posterior's spread",
+                      DataWarning, stacklevel=2)
+    bands, diverged, reach = {}, {}, {}
     for leg in legs:
         models, _ = posterior_models(fit.idata, fit.model, leg, n_draws, seed)
-        band = interval(plan_predictions(models, levels[leg], angle0, velocity0), axis=0)
-        bands[leg] = {k: np.asarray(v) for k, v in band.items()}
+        predictions = np.asarray(plan_predictions(models, levels[leg], angle0, velocity0), dtype=float)
+        bands[leg], gone = _band(predictions)
+        if gone.any():
+            first = int(np.argmax(~np.isfinite(predictions[gone]).any(axis=0)))
+            diverged[leg] = {"draws": int(gone.sum()), "first_s": round(float(time_s[first]), 6)}
+            warnings.warn(f"{leg}: {int(gone.sum())} of {len(predictions)} draws ran off to no finite angle under the "
+                          f"plan, the first at {time_s[first]:.2f} s; the band is of the draws still finite at each "
+                          "sample (and none where none is). The plan drives the model far beyond what the fit saw",
+                          DataWarning, stacklevel=2)
+        over = np.flatnonzero(np.abs(np.nan_to_num(bands[leg]["median"], nan=np.inf)) > KNEE_REACH_DEG)
+        if over.size:
+            i = int(over[0])
+            angle = _finite_or_none(bands[leg]["median"][i])
+            reach[leg] = {"time_s": round(float(time_s[i]), 6), "angle_deg": None if angle is None else round(angle, 1)}
+            warnings.warn(f"{leg}: the median prediction passes ±{KNEE_REACH_DEG:g}° at {time_s[i]:.2f} s"
+                          + (f" ({angle:.0f}°)" if angle is not None else "") + ": the shank over the top, where no "
+                          "knee goes. The model has no end of range; its angles from there say only that the plan "
+                          "would drive the knee to the end of its range", DataWarning, stacklevel=2)
     seen = {leg: fitted_angle_range(fit.idata, leg) for leg in legs}
     beyond = {}
     for leg, r in seen.items():
@@ -122,7 +173,7 @@ def run_predict(
         if far:
             beyond[leg] = far
             names = {"start": "the start", "prediction": "the median prediction", "band": "the 90 % band"}
-            what = " and ".join(f"{names[k]} at {v:.1f}°" for k, v in far.items())
+            what = " and ".join(f"{names[k]} at {v:.4g}°" for k, v in far.items())
             warnings.warn(f"{leg}: {what} {'lies' if len(far) == 1 else 'lie'} beyond the angles the fit saw "
                           f"({r[0]:.1f}° to {r[1]:.1f}°): "
                           "the model is extrapolated there and its bands do not say how far to trust it",
@@ -146,16 +197,21 @@ def run_predict(
     save_figure(plot_plan_predictions(time_s, shown, bands, label, ylabel=ylabel,
                                       fitted_range={leg: r for leg, r in seen.items() if r is not None}),
                 out / "predictions.png")
-    used = min(n_draws, fit.idata.posterior.sizes["chain"] * fit.idata.posterior.sizes["draw"])
+    used = min(n_draws, available)
     result = PlanPrediction(
         fit=str(fit_dir), model=fit.label, plan=str(plan), legs=legs, angle0_deg=float(angle0),
         velocity0_deg_s=float(velocity0), n_draws=used, interval=list(INTERVAL), samples=int(time_s.size),
         files=["predictions.csv", "predictions.png"], plan_columns=list(planned.columns) or None,
-        extremes={leg: {"end": {k: float(b[k][-1]) for k in ("median", "lo", "hi")},
-                       "max_deg": float(b["hi"].max()), "min_deg": float(b["lo"].min())} for leg, b in bands.items()},
+        extremes={leg: {"end": {k: _finite_or_none(b[k][-1]) for k in ("median", "lo", "hi")},
+                       "max_deg": _finite_or_none(np.nanmax(b["hi"]) if np.isfinite(b["hi"]).any() else np.nan),
+                       "min_deg": _finite_or_none(np.nanmin(b["lo"]) if np.isfinite(b["lo"]).any() else np.nan)}
+                  for leg, b in bands.items()},
         fitted_angle_range_deg={leg: [round(r[0], 3), round(r[1], 3)] for leg, r in seen.items() if r is not None},
         beyond_fitted_range=beyond,
         banner=fit.summary.banner,
+        diverged_draws=diverged or None,
+        beyond_reach=reach or None,
+        seed=int(seed),
     )
     result.write(out)
     return result

@@ -277,21 +277,39 @@ def plot_delay_angle(legs: dict, label: str = "", population: dict | None = None
     return fig
 
 
+#: The plan figure shows angles within ± this [deg]: beyond, a diverging draw would flatten the rest.
+PLAN_FIGURE_REACH_DEG = 200.0
+
+
 def plot_plan_predictions(time_s, stimulation, bands: dict, label: str = "", ylabel: str | None = None,
                           fitted_range: dict | None = None):
     """A planned stimulation sequence and, per leg, the angle it would produce: the posterior
-    median with its 90 % band (``bands``: leg -> {"median", "lo", "hi"} arrays over samples).
-    ``ylabel``: None for recruitment levels u, else what the stimulator's values are (pulse width [µs], …).
-    ``fitted_range``: leg -> (lowest, highest) angle the fit saw, drawn as dotted lines in the leg's colour."""
+    median with its 90 % band (``bands``: leg -> {"median", "lo", "hi"} arrays over samples; NaN
+    where no draw stayed finite).  ``ylabel``: None for recruitment levels u, else what the
+    stimulator's values are (pulse width [µs], …).  ``fitted_range``: leg -> (lowest, highest)
+    angle the fit saw, drawn as dotted lines in the leg's colour.  Angles beyond
+    ±:data:`PLAN_FIGURE_REACH_DEG` are cut off, and the figure says so."""
     fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
+    shown = []
     for leg, b in bands.items():
         line, = axes[0].plot(time_s, b["median"], lw=1.2, label=f"{leg} (median)")
         axes[0].fill_between(time_s, b["lo"], b["hi"], color=line.get_color(), alpha=0.25, lw=0)
+        shown += [np.asarray(b[k], float) for k in ("lo", "hi", "median")]
         if fitted_range and leg in fitted_range:
             for y in fitted_range[leg]:
                 axes[0].axhline(y, color=line.get_color(), ls=":", lw=0.8)
+    axes[0].fill_between([], [], [], color="0.6", alpha=0.4, lw=0, label="90 % band")
     if fitted_range:
-        axes[0].plot([], [], color="0.4", ls=":", lw=0.8, label="angles the fit saw")
+        axes[0].plot([], [], color="0.4", ls=":", lw=0.8, label="angles the fit saw (each leg's colour)")
+    values = np.concatenate(shown) if shown else np.zeros(1)
+    values = values[np.isfinite(values)]
+    if values.size and np.abs(values).max() > PLAN_FIGURE_REACH_DEG:
+        low = max(float(values.min()), -PLAN_FIGURE_REACH_DEG)
+        high = min(float(values.max()), PLAN_FIGURE_REACH_DEG)
+        pad = 0.05 * (high - low) + 1.0
+        axes[0].set_ylim(low - pad, high + pad)
+        axes[0].text(0.01, 0.02, f"angles beyond ±{PLAN_FIGURE_REACH_DEG:g}° cut off (the shank over the top: "
+                     "no knee goes there)", transform=axes[0].transAxes, fontsize=8, color="tab:red")
     axes[0].set_ylabel("knee angle [deg]")
     axes[0].set_title(f"Predicted response to the plan{' (' + label + ')' if label else ''}: median and 90 % band")
     axes[0].legend(fontsize=8, loc="best")
