@@ -1203,6 +1203,9 @@ def _fit_summary_at(folder: Path, period_s: float) -> Path:
 @pytest.mark.parametrize(("argv", "said"), [
     (["fit", "DATA", "--legs", "TN-left,JM-right,TN-left"], "--legs: 'TN-left' given twice"),
     (["fit", "DATA", "--legs", ","], "--legs: ',' names nothing"),
+    (["fit", "DATA", "--legs", ""], "--legs: '' names nothing"),
+    (["predict", "FIT", "--stimulation", "DATA", "--legs", ""], "--legs: '' names nothing"),
+    (["predict", "FIT", "--stimulation", "DATA", "--seed", "-1"], "--seed must be a whole number from 0"),
     (["fit", "DATA", "--trials", "1,1"], "--trials: '1' given twice"),
     (["discover", "DATA", "--effects", " , "], "--effects: ' , ' names nothing"),
     (["discover", "DATA", "--max-rounds", "0"], "--max-rounds must be at least 1, not 0"),
