@@ -992,6 +992,19 @@ def test_irregular_time_stamps_point_to_resampling(base, tmp_path):
     assert f"{T1}, column 'time_s', row 30: non-uniform sampling" in error and "--resample" in error
 
 
+def test_an_irregular_plan_is_told_to_be_written_on_the_fits_grid(tmp_path):
+    """A stimulation plan is written, not recorded: its irregular time stamps point to the fit's
+    grid, not to `convert --resample`, which reads recordings."""
+    from quadshank.data import read_plan
+
+    plan = tmp_path / "plan.csv"
+    plan.write_text("time_s,stimulation\n" + "".join(f"{t!r},0\n" for t in (0.0, 0.01, 0.02, 0.0305, 0.04, 0.05)))
+    with pytest.raises(ValueError) as err:
+        read_plan(plan, 0.01)
+    assert "non-uniform sampling" in str(err.value) and "time_s every 0.01 s" in str(err.value)
+    assert "--resample" not in str(err.value)
+
+
 def test_a_stimulated_trial_resting_far_from_zero_is_named(base, tmp_path):
     """Between its twitches a stimulated knee hangs near 0: a flexion angle (90° at rest) is named
     with the file, the trial and the median; the same trial zeroed at rest draws nothing."""

@@ -1936,6 +1936,11 @@ def read_plan(path: str | os.PathLike, sampling_period_s: float) -> StimulationP
     signals = {c: _parse_float_column(table, c, path.name, problems) if c in table.columns else None for c in names}
     if table.well_formed:
         _check_signals(path.name, table.lines, signals, sampling_period_s, "(the fitted model's period)", problems)
+    # a plan is written, not recorded: it is put on the fit's grid by whoever writes it, not by convert
+    problems = [dataclasses.replace(p, message=p.message.replace(
+        "(irregular time stamps? `quadshank convert FOLDER OUT --resample PERIOD_S` puts them on a uniform grid)",
+        f"(a plan gives each pulse at a sample of the fit's grid: time_s every {sampling_period_s:g} s)"))
+        for p in problems]
     if problems:
         raise InterchangeError(problems, context)
     stimulator = {c: signals[c] for c in _STIMULATOR if signals[c] is not None}
