@@ -529,3 +529,23 @@ def test_draws_that_run_off_and_a_shank_over_the_top_are_named_not_averaged_into
     assert all(v is None or np.isfinite(v) for v in (s["extremes"]["TN-left"]["max_deg"], s["extremes"]["TN-left"]["min_deg"]))
     rows = list(csv.reader((out / "predictions.csv").open()))
     assert all(r[rows[0].index("TN-left median [deg]")] != "nan" for r in rows[1:])
+
+
+def test_a_long_plans_figure_adds_a_view_of_its_first_pulses():
+    """A plan over a minute gets a second view of 20 s from its first pulse, its pulses alone; a short
+    plan keeps one view."""
+    import matplotlib.pyplot as plt
+
+    from quadshank.outputs import plot_plan_predictions
+
+    t = np.arange(0, 120, 0.01)
+    u = np.where(np.arange(t.size) % 300 == 250, 0.8, 0.0)
+    m = 10 * np.sin(t)
+    fig = plot_plan_predictions(t, u, {"TN-left": {"median": m, "lo": m - 2, "hi": m + 2}})
+    assert len(fig.axes) == 4
+    drawn = np.concatenate([np.asarray(c.get_segments())[:, 0, 0] for c in fig.axes[3].collections])
+    assert drawn.min() == pytest.approx(2.5) and drawn.max() <= 22.5 and drawn.size == 7
+    plt.close(fig)
+    fig = plot_plan_predictions(t[:3000], u[:3000], {"TN-left": {"median": m[:3000], "lo": m[:3000], "hi": m[:3000]}})
+    assert len(fig.axes) == 2
+    plt.close(fig)

@@ -281,6 +281,37 @@ def plot_delay_angle(legs: dict, label: str = "", population: dict | None = None
 PLAN_FIGURE_REACH_DEG = 200.0
 
 
+def _plan_panels(ax_angle, ax_stim, time_s, stimulation, bands: dict, sl: slice, ylabel, fitted_range) -> None:
+    """The medians and bands of ``bands`` and the plan's pulses within ``sl`` on two axes, the
+    angles cut at ±:data:`PLAN_FIGURE_REACH_DEG` where they go beyond (said on the axes)."""
+    t = np.asarray(time_s)[sl]
+    shown = []
+    for leg, b in bands.items():
+        line, = ax_angle.plot(t, np.asarray(b["median"])[sl], lw=1.2, label=f"{leg} (median)")
+        ax_angle.fill_between(t, np.asarray(b["lo"])[sl], np.asarray(b["hi"])[sl], color=line.get_color(), alpha=0.25,
+                              lw=0)
+        shown += [np.asarray(b[k], float)[sl] for k in ("lo", "hi", "median")]
+        if fitted_range and leg in fitted_range:
+            for y in fitted_range[leg]:
+                ax_angle.axhline(y, color=line.get_color(), ls=":", lw=0.8)
+    values = np.concatenate(shown) if shown else np.zeros(1)
+    values = values[np.isfinite(values)]
+    if values.size and np.abs(values).max() > PLAN_FIGURE_REACH_DEG:
+        low = max(float(values.min()), -PLAN_FIGURE_REACH_DEG)
+        high = min(float(values.max()), PLAN_FIGURE_REACH_DEG)
+        pad = 0.05 * (high - low) + 1.0
+        ax_angle.set_ylim(low - pad, high + pad)
+        ax_angle.text(0.01, 0.02, f"angles beyond ±{PLAN_FIGURE_REACH_DEG:g}° cut off (the shank over the top: "
+                      "no knee goes there)", transform=ax_angle.transAxes, fontsize=8, color="tab:red")
+    ax_angle.set_ylabel("knee angle [deg]")
+    u = np.asarray(stimulation)
+    k = u[sl] > 0
+    ax_stim.vlines(t[k], 0, u[sl][k], color="k", lw=0.8)
+    ax_stim.set_ylim(0, 1.05 * (1.0 if ylabel is None else max(float(u.max(initial=0.0)), 1e-12)))
+    ax_stim.set_ylabel("u" if ylabel is None else ylabel)
+    ax_stim.set_xlabel("time [s]")
+
+
 def plot_plan_predictions(time_s, stimulation, bands: dict, label: str = "", ylabel: str | None = None,
                           fitted_range: dict | None = None):
     """A planned stimulation sequence and, per leg, the angle it would produce: the posterior
@@ -288,37 +319,32 @@ def plot_plan_predictions(time_s, stimulation, bands: dict, label: str = "", yla
     where no draw stayed finite).  ``ylabel``: None for recruitment levels u, else what the
     stimulator's values are (pulse width [µs], …).  ``fitted_range``: leg -> (lowest, highest)
     angle the fit saw, drawn as dotted lines in the leg's colour.  Angles beyond
-    ±:data:`PLAN_FIGURE_REACH_DEG` are cut off, and the figure says so."""
-    fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
-    shown = []
-    for leg, b in bands.items():
-        line, = axes[0].plot(time_s, b["median"], lw=1.2, label=f"{leg} (median)")
-        axes[0].fill_between(time_s, b["lo"], b["hi"], color=line.get_color(), alpha=0.25, lw=0)
-        shown += [np.asarray(b[k], float) for k in ("lo", "hi", "median")]
-        if fitted_range and leg in fitted_range:
-            for y in fitted_range[leg]:
-                axes[0].axhline(y, color=line.get_color(), ls=":", lw=0.8)
+    ±:data:`PLAN_FIGURE_REACH_DEG` are cut off, and the figure says so.  A plan longer than
+    :data:`RECORDING_ZOOM_AFTER_S` gets a second view below of :data:`RECORDING_ZOOM_S` seconds
+    from its first pulse, as a recording's figure does."""
+    time_s = np.asarray(time_s)
+    n = time_s.size
+    period = float(np.median(np.diff(time_s))) if n > 1 else 1.0
+    zoom = n * period > RECORDING_ZOOM_AFTER_S
+    rows = 4 if zoom else 2
+    fig, axes = plt.subplots(rows, 1, figsize=(9, 10 if zoom else 6), gridspec_kw={"height_ratios": [3, 1] * (rows // 2)})
+    axes[1].sharex(axes[0])
+    _plan_panels(axes[0], axes[1], time_s, stimulation, bands, slice(0, n), ylabel, fitted_range)
     axes[0].fill_between([], [], [], color="0.6", alpha=0.4, lw=0, label="90 % band")
     if fitted_range:
         axes[0].plot([], [], color="0.4", ls=":", lw=0.8, label="angles the fit saw (each leg's colour)")
-    values = np.concatenate(shown) if shown else np.zeros(1)
-    values = values[np.isfinite(values)]
-    if values.size and np.abs(values).max() > PLAN_FIGURE_REACH_DEG:
-        low = max(float(values.min()), -PLAN_FIGURE_REACH_DEG)
-        high = min(float(values.max()), PLAN_FIGURE_REACH_DEG)
-        pad = 0.05 * (high - low) + 1.0
-        axes[0].set_ylim(low - pad, high + pad)
-        axes[0].text(0.01, 0.02, f"angles beyond ±{PLAN_FIGURE_REACH_DEG:g}° cut off (the shank over the top: "
-                     "no knee goes there)", transform=axes[0].transAxes, fontsize=8, color="tab:red")
-    axes[0].set_ylabel("knee angle [deg]")
     axes[0].set_title(f"Predicted response to the plan{' (' + label + ')' if label else ''}: median and 90 % band")
     axes[0].legend(fontsize=8, loc="best")
-    u = np.asarray(stimulation)
-    k = u > 0
-    axes[1].vlines(np.asarray(time_s)[k], 0, u[k], color="k", lw=0.8)
-    axes[1].set_ylim(0, 1.05 * (1.0 if ylabel is None else max(float(u.max(initial=0.0)), 1e-12)))
-    axes[1].set_ylabel("u" if ylabel is None else ylabel)
-    axes[1].set_xlabel("time [s]")
+    if zoom:
+        pulses = np.flatnonzero(np.asarray(stimulation) > 0)
+        width = int(round(RECORDING_ZOOM_S / period))
+        a = int(pulses[0]) if pulses.size else 0
+        b = min(n, a + width)
+        a = max(0, min(a, b - width))
+        axes[3].sharex(axes[2])
+        _plan_panels(axes[2], axes[3], time_s, stimulation, bands, slice(a, b), ylabel, fitted_range)
+        axes[0].axvspan(time_s[a], time_s[b - 1], color="tab:orange", alpha=0.15, lw=0, zorder=0)
+        axes[2].set_title(f"{time_s[a]:.1f}-{time_s[b - 1]:.1f} s (shaded above)", fontsize=9)
     fig.tight_layout()
     return fig
 
