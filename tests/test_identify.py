@@ -316,6 +316,30 @@ def test_an_angle_zeroed_a_degree_or_more_off_the_rest_is_named_by_the_quiet_sam
     assert "accelerometer" not in found
 
 
+def test_the_gravity_offset_is_identified_from_the_quiet_samples_of_a_stimulated_trial():
+    """`--gravity-offset` on a stimulated leg fits the quiet samples with gravity about a free angle:
+    an angle zeroed 4° off the hanging shank gives that angle and the passive system as on the
+    recording zeroed right, where about 0 k1' collapses; no warning of the offset is left to give."""
+    from quadshank.data import Cohort, DataWarning, simulate_cohort
+    from quadshank.data._simulate import PASSIVE_TRUTH
+    from quadshank.inference._identify import identify_cohort
+
+    cohort, _ = simulate_cohort(legs=["JM-left"], minutes=2, seed=3, trials=[1])
+    shifted = Cohort(tuple(t.replace(angle_deg=t.angle_deg - 4.0) for t in cohort.trials))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        found = identify_cohort(shifted, gravity_offset=True)["JM-left"]
+    assert not [w for w in caught if issubclass(w.category, DataWarning) and "rather than about" in str(w.message)]
+    truth = PASSIVE_TRUTH["JM-left"]
+    assert found.passive["gravity_angle"] == pytest.approx(-4.0, abs=0.3)
+    assert found.passive["damping"] == pytest.approx(truth["damping"], rel=0.05)
+    assert found.passive["gravity"] == pytest.approx(truth["gravity"], rel=0.03)
+    assert found.passive["k1"] == pytest.approx(truth["k1"], rel=0.2)
+    with pytest.warns(DataWarning, match="rather than about the angle's zero"):
+        about_zero = identify_cohort(shifted)["JM-left"]
+    assert about_zero.passive["k1"] < 0.1 * truth["k1"]
+
+
 def test_a_marker_on_excluded_samples_leaves_the_identification_as_it_was():
     """A logger's missing-data marker set to be excluded, as the warnings advise, changes nothing
     the classical identification finds (its equivalent acceleration there is no number, and is not used)."""

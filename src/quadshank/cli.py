@@ -833,7 +833,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "the acceleration (eq. 8 on each sample); auto: the angle for pendulum tests, the "
                         "acceleration on the quiet samples between pulses")
     i.add_argument("--gravity-offset", action="store_true",
-                   help="also identify the angle gravity acts about (a shank resting off angle 0; pendulum tests)")
+                   help="also identify the angle gravity acts about (a shank resting off angle 0, or an angle zeroed "
+                        "off it; from the pendulum tests or the quiet samples between twitches)")
     i.set_defaults(func=cmd_identify)
 
     e = sub.add_parser("evaluate", help="k-step-ahead prediction errors J (Table V), sign tests, Figs. 5-6")

@@ -707,8 +707,8 @@ def identify_cohort(
     ``"angle"`` (output error on the free swing, :func:`identify_passive_free_run`; pendulum
     tests only) or ``"auto"``: the angle where a leg has pendulum tests, which predicts their
     swing best, the acceleration on the quiet samples between pulses, where a free run
-    cannot go.  ``gravity_offset``: also fit the angle gravity acts about (legs with pendulum
-    tests only: between pulses the muscle's gain factors would take it up).
+    cannot go.  ``gravity_offset``: also fit the angle gravity acts about (from the pendulum tests,
+    or the quiet samples of ``trial``, where no twitch acts).
     """
     if passive_objective not in PASSIVE_OBJECTIVES + ("auto",):
         raise ValueError(f"unknown passive objective {passive_objective!r}; use auto, acceleration or angle")
@@ -719,15 +719,17 @@ def identify_cohort(
         chosen = cohort.get(leg, trial)
         passive_trials = [t for t in cohort.trials_of(leg) if not np.any(t.stimulation > 0)]
         if not passive_trials:
-            if gravity_offset:
-                raise IdentificationError(
-                    f"{leg}: a gravity offset is identified from free swings, and the leg has no trial without "
-                    "pulses (a pendulum test); leave out the gravity offset (or fit it: `quadshank fit "
-                    "--add-effect gravity_offset`)")
             if passive_objective == "angle":
                 raise IdentificationError(
                     f"{leg}: the passive objective 'angle' fits free swings, and the leg has no trial without "
                     "pulses (a pendulum test); use the objective 'auto' or 'acceleration'")
+            if gravity_offset:  # the quiet samples between twitches, with gravity about a free angle
+                passive, p_rms, n_quiet, p_se = _passive_equation_error([chosen], gravity_offset=True)
+                out[leg] = dataclasses.replace(identify_leg(chosen, passive=passive), passive_rms_residual=p_rms,
+                                               n_quiet=n_quiet, passive_se=p_se)
+                _warn_passive_unseparated(leg, passive, p_se, f"the quiet samples of trial {trial}",
+                                          _angle_span((chosen,)))
+                continue
             out[leg] = identify_leg(chosen)
             if not _warn_rest_offset(leg, chosen, out[leg].passive, out[leg].passive_rms_residual):
                 _warn_passive_unseparated(leg, out[leg].passive, out[leg].passive_se,
@@ -824,8 +826,9 @@ def rest_offset(trial: Trial, about_zero: tuple[dict, float] | None = None) -> s
             f"about 0.{poor} Is angle_deg zeroed away from the shank hanging at rest (a goniometer's zero)?{sensor} "
             f"As recorded, the identified values are biased (G' {passive['gravity']:.3g} and k1' {passive['k1']:.3g} "
             f"deg/s² against {free['gravity']:.3g} and {free['k1']:.3g} with the offset, and the gains with them): "
-            "zero angle_deg with the shank hanging, or fit the offset (`quadshank fit --add-effect "
-            "goniometer_offset`, or `gravity_offset` for a rest the tissues hold)")
+            "zero angle_deg with the shank hanging, or identify the offset (`quadshank identify --gravity-offset`) "
+            "or fit it (`quadshank fit --add-effect goniometer_offset`, or `gravity_offset` for a rest the tissues "
+            "hold)")
 
 
 def _warn_rest_offset(leg: str, trial: Trial, passive: dict, rms: float) -> bool:
