@@ -224,7 +224,8 @@ def render(record: dict, section: str) -> str:
         f"{r['model']} + {', '.join(effects) or 'nothing'} on the simulated cohort ({len(legs)} legs, trial 1 of "
         f"{r['minutes']:g} min, data simulated with {', '.join(effects) or 'no hidden effect'}), "
         f"{r['chains']} chains ({r['chain_method']}) × {r['draws']} draws after {r['warmup']} warm-up, "
-        f"chains started from the {r['start']} (`--start {r['start']}`), the density at {r['precision']} precision"
+        f"chains started from the {r['start']} (`--start {r['start']}`)"
+        + (f", the density at {r['precision']} precision" if r.get("precision") else "")
         + ("" if full else " — **smaller than the full configuration (5 legs × 5 min, 4 × 1000 + 1000)**")
         + ".",
         "",

@@ -321,6 +321,10 @@ CSV_CASES = {
     + [T1, "'angle_deg'", "a value on every 4th row only"],
     "a title with a semicolon above the header": lambda folder: _above_header(folder / J1, ["Knee pendulum; JM right"])
     + [J1, "are on line 2", "remove the 1 line above them"],
+    "a logger's closing line": lambda folder: (folder / T1).write_text((folder / T1).read_text() + "END\n") and []
+    + [T1, "a logger's closing line or a note"],
+    "a rate as the period's column": lambda folder: _rename_column(folder / MAN, "sampling_period_s",
+                                                                    "sampling_rate_hz") + [MAN, "1 over a rate in Hz"],
     "a manifest's notes": lambda folder: _with_column(folder / MAN, "notes", "ok") + [MAN, "notes or bookkeeping"],
     "no stimulation column in a pendulum test": lambda folder: drop_column(T1, "stimulation")(folder)
     + ["add the column stimulation with 0 on every row"],
@@ -952,6 +956,9 @@ def test_a_gate_or_a_logged_setting_is_not_taken_silently_for_pulses(base, tmp_p
     _, error, warned = stimulated("trigger", lambda i: 1.0 if i % 60 in (10, 11) else 0.0)
     assert error == "" and any("runs of 2 consecutive samples" in w and "keep each run's first sample" in w
                                for w in warned), warned
+    _, _, warned = stimulated("a trigger, two pulses touching", lambda i: 1.0 if i % 60 in (10, 11) or 100 <= i < 106
+                              else 0.0)
+    assert any("runs of 2 consecutive samples" in w for w in warned), warned
     _, _, warned = stimulated("a pulse beside another", lambda i: 1.0 if i in (10, 11, 70, 130, 190) else 0.0)
     assert not [w for w in warned if "consecutive" in w], warned
 

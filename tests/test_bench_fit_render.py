@@ -106,3 +106,10 @@ def test_peer_chains_start_where_the_fits_did():
     np.testing.assert_array_equal(got[2], got[0])  # a retried start cycles through the chains
     with pytest.raises(ValueError, match="sigma_log__"):
         bench_fit._start_at(Compiled((names, slices, [(3,), (4,), (3,)]), 7), starts, chains=2)
+
+
+def test_the_densitys_precision_is_named_where_the_record_holds_it():
+    rec = _record(1.003, 2000.0)
+    assert "precision" not in bench_fit.render(rec, "s").split("| measure |")[0]
+    rec["precision"] = "double"
+    assert "the density at double precision" in bench_fit.render(rec, "s")

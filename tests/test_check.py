@@ -313,6 +313,14 @@ def test_an_angle_zeroed_elsewhere_qualifies_what_identify_can_do(tmp_path):
         uses = run_check(Cohort((stimulated.replace(angle_deg=stimulated.angle_deg + 2.0),))).legs["JM-left"]
     assert "but the angle of trial 1 looks zeroed elsewhere" in uses["identify"]
 
+    # the angle and the accelerometer in radians agree with each other: check names the span
+    in_radians = stimulated.replace(angle_deg=np.deg2rad(stimulated.angle_deg),
+                                    acceleration_deg_s2=np.deg2rad(stimulated.acceleration_deg_s2),
+                                    velocity_deg_s=np.deg2rad(stimulated.velocity_deg_s))
+    with pytest.warns(DataWarning, match="JM-left: the angle of trial 1 spans only .* in radians"):
+        uses = run_check(Cohort((in_radians,))).legs["JM-left"]
+    assert "but the angle of trial 1 looks like radians" in uses["identify"]
+
     pendulum = simulate_pendulum_test(PASSIVE_TRUTH["TN-left"], subject="TN", seed=0, seconds=3.0)  # still swinging
     assert angle_doubts(pendulum) == []
     (doubt,) = angle_doubts(pendulum.replace(angle_deg=pendulum.angle_deg + 90.0))

@@ -525,7 +525,8 @@ def test_draws_that_run_off_and_a_shank_over_the_top_are_named_not_averaged_into
     assert "TN-left: the median prediction passes ±180° at" in err and "over the top" in err
     s = json.loads((out / "summary.json").read_text())
     assert s["diverged_draws"] == {"TN-left": {"draws": 2, "first_s": 2.5}}
-    assert s["beyond_reach"]["TN-left"]["angle_deg"] >= 180.0
+    assert s["beyond_reach"]["TN-left"]["angle_deg"] >= 180.0 and s["beyond_reach"]["TN-left"]["what"] == "prediction"
+    assert "ranges over [0.0°, beyond +180°]" in err
     assert all(v is None or np.isfinite(v) for v in (s["extremes"]["TN-left"]["max_deg"], s["extremes"]["TN-left"]["min_deg"]))
     rows = list(csv.reader((out / "predictions.csv").open()))
     assert all(r[rows[0].index("TN-left median [deg]")] != "nan" for r in rows[1:])

@@ -713,13 +713,15 @@ def cmd_predict(args) -> int:
                           angle0=args.angle0, velocity0=args.velocity0, n_draws=args.draws, seed=args.seed)
     if summary.banner:
         print(f"quadshank: warning: {args.fitdir}: {summary.banner}", file=sys.stderr)
-    def deg(x):  # None where no draw stayed finite
-        return "none finite" if x is None else f"{x:.4g}"
+    def deg(x):  # None where no draw stayed finite; beyond a knee's reach, said as such (the warning says more)
+        if x is None:
+            return "no finite angle"
+        return f"{x:.1f}°" if abs(x) <= 180.0 else ("beyond +180°" if x > 0 else "beyond -180°")
 
     start = f"{args.angle0:g}°" + (f" at {args.velocity0:g} deg/s" if args.velocity0 else "")
     for leg, e in summary.extremes.items():
-        _say(args, f"{leg}: from {start} the angle ranges over [{deg(e['min_deg'])}, {deg(e['max_deg'])}]° "
-                   f"(90 % band) and ends at {deg(e['end']['median'])}° [{deg(e['end']['lo'])}, {deg(e['end']['hi'])}]")
+        _say(args, f"{leg}: from {start} the angle ranges over [{deg(e['min_deg'])}, {deg(e['max_deg'])}] "
+                   f"(90 % band) and ends at {deg(e['end']['median'])} [{deg(e['end']['lo'])}, {deg(e['end']['hi'])}]")
     _say(args, f"predictions.csv and predictions.png in {args.out}")
     return 0
 

@@ -30,6 +30,8 @@ from ..inference._identify import (
     PASSIVE_MAX_ANGLE_DEG,
     check_delay_range,
     isolated_twitches,
+    RADIAN_SPAN_DEG,
+    angle_span,
     passive_mask,
     rest_offset,
     twitch_epoch,
@@ -170,7 +172,7 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
             check_delay_range(period)  # what fit and identify would warn of at this period
         # (leg, trial) whose quiet samples swing about an angle away from 0, as identify warns where it takes
         # the passive system from them (a leg without pendulum tests, at a period it identifies)
-        offset = set()
+        offset, poor, radians = set(), set(), set()
         pendulum = {t.key for t in cohort if not np.any(t.stimulation > 0)}
         try:
             identifies = period is not None and check_delay_range(period, muscle=True, warn=False) is None
@@ -179,9 +181,16 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
         for t in cohort:
             if identifies and t.trial == identification_trial and t.key not in pendulum \
                     and np.any(t.stimulation > 0) and not angle_doubts(t):
+                span = angle_span((t,))
+                if span < RADIAN_SPAN_DEG:  # both signals in radians agree with each other: the reader lets them by
+                    radians.add((t.key, t.trial))
+                    warnings.warn(f"{t.key}: the angle of trial {t.trial} spans only {span:.3g} over its samples, where "
+                                  "a knee's swings span tens of degrees: are angle_deg (and the acceleration with it) "
+                                  "in radians? Convert them to degrees", DataWarning, stacklevel=2)
+                    continue
                 found = rest_offset(t)
                 if found:
-                    offset.add((t.key, t.trial))
+                    (poor if found.startswith("eq. (8) describes") else offset).add((t.key, t.trial))
                     warnings.warn(f"{t.key}: {found}", DataWarning, stacklevel=2)
     scales = charge_scales(cohort)
     isolated = [_isolated(t) for t in cohort]
@@ -199,10 +208,19 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
         used = [t for t in trials if t.trial == identification_trial] + [t for t in passive
                                                                            if t.trial != identification_trial]
         doubted = [t.trial for t in used if (leg, t.trial) in offset or angle_doubts(t)]
-        if doubted and not uses["identify"].startswith("no"):
+        if uses["identify"].startswith("no"):
+            continue
+        if doubted:
             uses["identify"] += (f"; but the angle of trial{'s' if len(doubted) > 1 else ''} "
                                  f"{', '.join(map(str, doubted))} looks zeroed elsewhere or signed otherwise (the "
                                  "warnings say how): as recorded, its passive and active values come out wrong")
+        for what, which in (("looks like radians", radians), ("has quiet samples the passive model describes poorly "
+                                                             "(activity between the twitches?)", poor)):
+            named = [t.trial for t in used if (leg, t.trial) in which]
+            if named:
+                uses["identify"] += (f"; but the angle of trial{'s' if len(named) > 1 else ''} "
+                                     f"{', '.join(map(str, named))} {what} (the warnings say more): as recorded, its "
+                                     "passive and active values come out wrong")
     if period is not None and any(r["pulses"] for r in rows):
         try:  # a period too short for a muscle's delays: identify and a muscle's fit refuse it
             check_delay_range(period, muscle=True, warn=False)

@@ -157,15 +157,20 @@ def run_predict(
                           f"plan, the first at {time_s[first]:.2f} s; the band is of the draws still finite at each "
                           "sample (and none where none is). The plan drives the model far beyond what the fit saw",
                           DataWarning, stacklevel=2)
-        over = np.flatnonzero(np.abs(np.nan_to_num(bands[leg]["median"], nan=np.inf)) > KNEE_REACH_DEG)
-        if over.size:
+        for what, values in (("median prediction", bands[leg]["median"]),
+                             ("90 % band", np.fmax(np.abs(bands[leg]["lo"]), np.abs(bands[leg]["hi"])))):
+            over = np.flatnonzero(np.abs(np.nan_to_num(values, nan=np.inf)) > KNEE_REACH_DEG)
+            if not over.size:
+                continue
             i = int(over[0])
-            angle = _finite_or_none(bands[leg]["median"][i])
-            reach[leg] = {"time_s": round(float(time_s[i]), 6), "angle_deg": None if angle is None else round(angle, 1)}
-            warnings.warn(f"{leg}: the median prediction passes ±{KNEE_REACH_DEG:g}° at {time_s[i]:.2f} s"
-                          + (f" ({angle:.0f}°)" if angle is not None else "") + ": the shank over the top, where no "
+            angle = _finite_or_none(values[i])
+            reach[leg] = {"what": what.split()[-1], "time_s": round(float(time_s[i]), 6),
+                          "angle_deg": None if angle is None else round(angle, 1)}
+            warnings.warn(f"{leg}: the {what} passes ±{KNEE_REACH_DEG:g}° at {time_s[i]:.2f} s"
+                          + (f" ({angle:.4g}°)" if angle is not None else "") + ": the shank over the top, where no "
                           "knee goes. The model has no end of range; its angles from there say only that the plan "
                           "would drive the knee to the end of its range", DataWarning, stacklevel=2)
+            break  # the band passes wherever its median does
     seen = {leg: fitted_angle_range(fit.idata, leg) for leg in legs}
     beyond = {}
     for leg, r in seen.items():

@@ -424,8 +424,8 @@ def _pulse_runs(trial: Trial) -> list[str]:
     rate = 1.0 / trial.sampling_period_s
     short = [(a, b) for a, b in stretches(on) if 2 <= b - a < PULSE_RUN]
     in_short = sum(b - a for a, b in short)
-    if not on.all() and not runs and rate >= PULSE_RUN_RATE_HZ and len(short) >= 3 \
-            and in_short >= 0.5 * np.count_nonzero(on):
+    if not on.all() and rate >= PULSE_RUN_RATE_HZ and len(short) >= 3 and len(short) > 2 * len(runs) \
+            and in_short >= 0.5 * np.count_nonzero(on):  # a longer run or two: pulses that touched
         widths = sorted({b - a for a, b in short})
         a = short[0][0]
         return [f"stimulation is nonzero on {len(short)} runs of {' or '.join(map(str, widths))} consecutive samples "
@@ -756,6 +756,8 @@ def _read_table(
                 msg += f"; did you mean {hint[0]!r}?"
                 if name.lower().endswith("_ms") and hint[0].endswith("_s"):
                     msg += " (in seconds: the values divided by 1000)"
+                elif ("rate" in name.lower() or "hz" in name.lower()) and hint[0].endswith("period_s"):
+                    msg += " (a period in seconds: 1 over a rate in Hz)"
             elif not name and i == 0:
                 msg += "; a row index (as pandas' to_csv writes unless index=False)? Remove the column"
             elif absent:
@@ -796,7 +798,9 @@ def _read_table(
         for line, row in bad_rows[:_MAX_PER_KIND]:
             # 0,25 for 0.25 splits each number in two: more fields than the header, each a run of digits
             comma = len(row) > n_fields and all(re.fullmatch(r"\s*-?[0-9]+\s*", c) for c in row)
-            hint = "; decimal commas (0,25 for 0.25)? The format's decimal mark is '.'" if comma else ""
+            hint = "; decimal commas (0,25 for 0.25)? The format's decimal mark is '.'" if comma else (
+                "; a logger's closing line or a note? Remove it, or start it with #"
+                if len(row) == 1 and parse_number(row[0]) is None else "")
             problems.append(Problem(file, None, line, f"{len(row)} fields, expected {n_fields} as in the header{hint}"))
         if len(bad_rows) > _MAX_PER_KIND:
             rest = bad_rows[_MAX_PER_KIND:]
