@@ -173,6 +173,7 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
         # (leg, trial) whose quiet samples swing about an angle away from 0, as identify warns where it takes
         # the passive system from them (a leg without pendulum tests, at a period it identifies)
         offset, poor, radians = set(), set(), set()
+        doubts = {(t.key, t.trial): angle_doubts(t) for t in cohort}  # the reader's doubts of zero and sign
         pendulum = {t.key for t in cohort if not np.any(t.stimulation > 0)}
         try:
             identifies = period is not None and check_delay_range(period, muscle=True, warn=False) is None
@@ -180,7 +181,7 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
             identifies = False
         for t in cohort:
             if identifies and t.trial == identification_trial and t.key not in pendulum \
-                    and np.any(t.stimulation > 0) and not angle_doubts(t):
+                    and np.any(t.stimulation > 0) and not doubts[t.key, t.trial]:
                 span = angle_span((t,))
                 if span < RADIAN_SPAN_DEG:  # both signals in radians agree with each other: the reader lets them by
                     radians.add((t.key, t.trial))
@@ -190,8 +191,8 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
                     continue
                 found = rest_offset(t)
                 if found:
-                    (poor if found.startswith("eq. (8) describes") else offset).add((t.key, t.trial))
-                    warnings.warn(f"{t.key}: {found}", DataWarning, stacklevel=2)
+                    (poor if found[1] else offset).add((t.key, t.trial))
+                    warnings.warn(f"{t.key}: {found[0]}", DataWarning, stacklevel=2)
     scales = charge_scales(cohort)
     isolated = [_isolated(t) for t in cohort]
     rows = [trial_row(t, scales.get(t.key), i) for t, i in zip(cohort, isolated)]
@@ -207,7 +208,7 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
         passive = [t for t in trials if not np.any(t.stimulation > 0)]
         used = [t for t in trials if t.trial == identification_trial] + [t for t in passive
                                                                            if t.trial != identification_trial]
-        doubted = [t.trial for t in used if (leg, t.trial) in offset or angle_doubts(t)]
+        doubted = [t.trial for t in used if (leg, t.trial) in offset or doubts[leg, t.trial]]
         if uses["identify"].startswith("no"):
             continue
         if doubted:

@@ -420,9 +420,10 @@ def _pulse_runs(trial: Trial) -> list[str]:
     on = trial.stimulation > 0
     if on.size < PULSE_RUN:
         return []
-    runs = [(a, b) for a, b in stretches(on) if b - a >= PULSE_RUN]
+    together = [(a, b) for a, b in stretches(on) if b - a >= 2]
+    runs = [(a, b) for a, b in together if b - a >= PULSE_RUN]
     rate = 1.0 / trial.sampling_period_s
-    short = [(a, b) for a, b in stretches(on) if 2 <= b - a < PULSE_RUN]
+    short = [(a, b) for a, b in together if b - a < PULSE_RUN]
     in_short = sum(b - a for a, b in short)
     if not on.all() and rate >= PULSE_RUN_RATE_HZ and len(short) >= 3 and len(short) > 2 * len(runs) \
             and in_short >= 0.5 * np.count_nonzero(on):  # a longer run or two: pulses that touched

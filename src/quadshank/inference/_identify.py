@@ -805,10 +805,11 @@ REST_OFFSET_POOR_FIT = 0.25
 REST_OFFSET_POOR_FIT_DERIVED = 0.45
 
 
-def rest_offset(trial: Trial, about_zero: tuple[dict, float] | None = None) -> str | None:
+def rest_offset(trial: Trial, about_zero: tuple[dict, float] | None = None) -> tuple[str, bool] | None:
     """Where the quiet samples of a stimulated ``trial`` are fitted much better with gravity about an
     angle away from 0 (:data:`REST_OFFSET_RMS_RATIO`, :data:`REST_OFFSET_MIN_DEG`, at most
-    :data:`PLAUSIBLE_GRAVITY_ANGLE_DEG`): what that says, in words; else None.  Such an angle is
+    :data:`PLAUSIBLE_GRAVITY_ANGLE_DEG`): what that says, in words, and whether eq. (8) describes
+    the quiet samples poorly either way (:data:`REST_OFFSET_POOR_FIT`); else None.  Such an angle is
     zeroed off the shank hanging at rest, which biases every passive and active value identified
     about angle 0 (a few degrees halve G'2); between small swings a constant offset of a measured
     acceleration looks the same.  ``about_zero``: the passive system identified about angle 0 and
@@ -836,7 +837,7 @@ def rest_offset(trial: Trial, about_zero: tuple[dict, float] | None = None) -> s
                 "stimulation column (a trigger recorded at another rate, say), a spasm, tone. An angle zeroed away "
                 f"from the hanging shank does it too.{sensor} As recorded, the passive values identified from them "
                 f"(G' {passive['gravity']:.3g}, k1' {passive['k1']:.3g} deg/s²) and the gains with them are not the "
-                "leg's")
+                "leg's"), True
     return (f"the quiet samples of trial {trial.trial} swing about {angle:+.1f}° rather than about the angle's zero: "
             f"eq. (8) with gravity about {angle:+.1f}° fits them with {rms_free:.3g} deg/s² RMS against {rms:.3g} "
             f"about 0. Is angle_deg zeroed away from the shank hanging at rest (a goniometer's zero)?{sensor} "
@@ -844,15 +845,15 @@ def rest_offset(trial: Trial, about_zero: tuple[dict, float] | None = None) -> s
             f"deg/s² against {free['gravity']:.3g} and {free['k1']:.3g} with the offset, and the gains with them): "
             "zero angle_deg with the shank hanging, or identify the offset (`quadshank identify --gravity-offset`) "
             "or fit it (`quadshank fit --add-effect goniometer_offset`, or `gravity_offset` for a rest the tissues "
-            "hold)")
+            "hold)", False)
 
 
 def _warn_rest_offset(leg: str, trial: Trial, passive: dict, rms: float) -> bool:
     """Warn (and return True) where :func:`rest_offset` finds the quiet samples' angle zeroed elsewhere."""
-    said = rest_offset(trial, (passive, rms))
-    if said:
-        warnings.warn(f"{leg}: {said}", DataWarning, stacklevel=3)
-    return bool(said)
+    found = rest_offset(trial, (passive, rms))
+    if found:
+        warnings.warn(f"{leg}: {found[0]}", DataWarning, stacklevel=3)
+    return bool(found)
 
 
 #: A range [deg] of the angle (the central 98 % of the samples kept) narrower than this, with next to

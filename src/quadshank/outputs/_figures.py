@@ -323,28 +323,16 @@ def plot_plan_predictions(time_s, stimulation, bands: dict, label: str = "", yla
     :data:`RECORDING_ZOOM_AFTER_S` gets a second view below of :data:`RECORDING_ZOOM_S` seconds
     from its first pulse, as a recording's figure does."""
     time_s = np.asarray(time_s)
-    n = time_s.size
-    period = float(np.median(np.diff(time_s))) if n > 1 else 1.0
-    zoom = n * period > RECORDING_ZOOM_AFTER_S
-    rows = 4 if zoom else 2
-    fig, axes = plt.subplots(rows, 1, figsize=(9, 10 if zoom else 6), gridspec_kw={"height_ratios": [3, 1] * (rows // 2)})
-    axes[1].sharex(axes[0])
-    _plan_panels(axes[0], axes[1], time_s, stimulation, bands, slice(0, n), ylabel, fitted_range)
+    period = float(np.median(np.diff(time_s))) if time_s.size > 1 else 1.0
+    def draw(ax_angle, ax_stim, sl):
+        _plan_panels(ax_angle, ax_stim, time_s, stimulation, bands, sl, ylabel, fitted_range)
+
+    fig, axes = _whole_and_first_pulses(time_s, stimulation, period, (9, 6, 10), draw)
     axes[0].fill_between([], [], [], color="0.6", alpha=0.4, lw=0, label="90 % band")
     if fitted_range:
         axes[0].plot([], [], color="0.4", ls=":", lw=0.8, label="angles the fit saw (each leg's colour)")
     axes[0].set_title(f"Predicted response to the plan{' (' + label + ')' if label else ''}: median and 90 % band")
     axes[0].legend(fontsize=8, loc="best")
-    if zoom:
-        pulses = np.flatnonzero(np.asarray(stimulation) > 0)
-        width = int(round(RECORDING_ZOOM_S / period))
-        a = int(pulses[0]) if pulses.size else 0
-        b = min(n, a + width)
-        a = max(0, min(a, b - width))
-        axes[3].sharex(axes[2])
-        _plan_panels(axes[2], axes[3], time_s, stimulation, bands, slice(a, b), ylabel, fitted_range)
-        axes[0].axvspan(time_s[a], time_s[b - 1], color="tab:orange", alpha=0.15, lw=0, zorder=0)
-        axes[2].set_title(f"{time_s[a]:.1f}-{time_s[b - 1]:.1f} s (shaded above)", fontsize=9)
     fig.tight_layout()
     return fig
 
@@ -354,6 +342,33 @@ def plot_plan_predictions(time_s, stimulation, bands: dict, label: str = "", yla
 RECORDING_ZOOM_AFTER_S = 60.0
 #: The length [s] of that second view, from the first pulse (or the first sample without any).
 RECORDING_ZOOM_S = 20.0
+
+
+def _whole_and_first_pulses(time_s, stimulation, period: float, size: tuple[float, float, float], draw):
+    """A figure of a whole recording or plan, an angle over its pulses (``draw(ax_angle, ax_stim,
+    sl)`` draws one view of the samples ``sl``), and, where it lasts longer than
+    :data:`RECORDING_ZOOM_AFTER_S`, a second view below of :data:`RECORDING_ZOOM_S` seconds from
+    its first pulse, that span shaded in the whole view.  ``size``: the width and the height
+    without and with the second view.  Returns the figure and its axes (the whole view first)."""
+    time_s = np.asarray(time_s)
+    n = time_s.size
+    zoom = n * period > RECORDING_ZOOM_AFTER_S
+    rows = 4 if zoom else 2
+    fig, axes = plt.subplots(rows, 1, figsize=(size[0], size[2] if zoom else size[1]),
+                             gridspec_kw={"height_ratios": [3, 1] * (rows // 2)})
+    axes[1].sharex(axes[0])
+    draw(axes[0], axes[1], slice(0, n))
+    if zoom:
+        width = int(round(RECORDING_ZOOM_S / period))
+        pulses = np.flatnonzero(np.asarray(stimulation) > 0)
+        a = int(pulses[0]) if pulses.size else 0
+        b = min(n, a + width)
+        a = max(0, min(a, b - width))
+        axes[3].sharex(axes[2])
+        draw(axes[2], axes[3], slice(a, b))
+        axes[0].axvspan(time_s[a], time_s[b - 1], color="tab:orange", alpha=0.15, lw=0, zorder=0)
+        axes[2].set_title(f"{time_s[a]:.1f}-{time_s[b - 1]:.1f} s (shaded above)", fontsize=9)
+    return fig, axes
 
 
 def _recording_panels(ax_angle, ax_stim, trial, sl: slice, isolated) -> None:
@@ -386,25 +401,13 @@ def plot_recording(trial, isolated=None, summary: str = ""):
     A trial longer than :data:`RECORDING_ZOOM_AFTER_S` gets a second view below of its first
     :data:`RECORDING_ZOOM_S` seconds from the first pulse, where single twitches can be seen
     (its span shaded in the whole view)."""
-    n = trial.n_samples
-    zoom = n * trial.sampling_period_s > RECORDING_ZOOM_AFTER_S
-    rows = 4 if zoom else 2
-    fig, axes = plt.subplots(rows, 1, figsize=(10, 9 if zoom else 5),
-                             gridspec_kw={"height_ratios": [3, 1] * (rows // 2)})
-    axes[1].sharex(axes[0])
-    _recording_panels(axes[0], axes[1], trial, slice(0, n), isolated)
+    def draw(ax_angle, ax_stim, sl):
+        _recording_panels(ax_angle, ax_stim, trial, sl, isolated)
+
+    fig, axes = _whole_and_first_pulses(trial.time_s, trial.stimulation, trial.sampling_period_s, (10, 5, 9), draw)
     derived = [name for name, measured in (("velocity", trial.velocity_measured),
                                            ("acceleration", trial.acceleration_measured)) if not measured]
     note = "; ".join(x for x in (summary, f"{' and '.join(derived)} derived from the angle" if derived else "") if x)
     axes[0].set_title(f"{trial.key}, trial {trial.trial}" + (f": {note}" if note else ""), fontsize=10)
-    if zoom:
-        pulses = np.flatnonzero(trial.stimulation > 0)
-        a = int(pulses[0]) if pulses.size else 0
-        b = min(n, a + int(round(RECORDING_ZOOM_S / trial.sampling_period_s)))
-        a = max(0, min(a, b - int(round(RECORDING_ZOOM_S / trial.sampling_period_s))))
-        axes[3].sharex(axes[2])
-        _recording_panels(axes[2], axes[3], trial, slice(a, b), isolated)
-        axes[0].axvspan(trial.time_s[a], trial.time_s[b - 1], color="tab:orange", alpha=0.15, lw=0, zorder=0)
-        axes[2].set_title(f"{trial.time_s[a]:.1f}-{trial.time_s[b - 1]:.1f} s (shaded above)", fontsize=9)
     fig.tight_layout()
     return fig
