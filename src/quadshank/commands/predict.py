@@ -47,7 +47,7 @@ class PlanPrediction(Result):
     beyond_fitted_range: dict | None = None  # leg -> the start or predicted angle beyond that range by more than the margin
     banner: str | None = None  # the fit's, where it failed its checks: its bands come from draws not to be trusted
     diverged_draws: dict | None = None  # leg -> {"draws", "first_s"}: draws whose run left the numbers, left out from there
-    beyond_reach: dict | None = None  # leg -> {"time_s", "angle_deg"}: where the median first passes ±KNEE_REACH_DEG
+    beyond_reach: dict | None = None  # leg -> {"what", "time_s", "angle_deg"}: where the median (else band) passes ±180°
     seed: int = 0  # which posterior draws were rolled out
 
 
