@@ -185,9 +185,9 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
                 span = angle_span((t,))
                 if span < RADIAN_SPAN_DEG:  # both signals in radians agree with each other: the reader lets them by
                     radians.add((t.key, t.trial))
-                    warnings.warn(f"{t.key}: the angle of trial {t.trial} spans only {span:.3g} over its samples, where "
-                                  "a knee's swings span tens of degrees: are angle_deg (and the acceleration with it) "
-                                  "in radians? Convert them to degrees", DataWarning, stacklevel=2)
+                    warnings.warn(f"{t.key}: the angle of trial {t.trial} spans only {span:.3g} over its samples, "
+                                  "where a knee's swings span tens of degrees: are angle_deg (and the acceleration with "
+                                  "it) in radians? Convert them to degrees", DataWarning, stacklevel=2)
                     continue
                 found = rest_offset(t)
                 if found:
@@ -208,19 +208,16 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
         passive = [t for t in trials if not np.any(t.stimulation > 0)]
         used = [t for t in trials if t.trial == identification_trial] + [t for t in passive
                                                                            if t.trial != identification_trial]
-        doubted = [t.trial for t in used if (leg, t.trial) in offset or doubts[leg, t.trial]]
         if uses["identify"].startswith("no"):
             continue
-        if doubted:
-            uses["identify"] += (f"; but the angle of trial{'s' if len(doubted) > 1 else ''} "
-                                 f"{', '.join(map(str, doubted))} looks zeroed elsewhere or signed otherwise (the "
-                                 "warnings say how): as recorded, its passive and active values come out wrong")
-        for what, which in (("looks like radians", radians), ("has quiet samples the passive model describes poorly "
-                                                             "(activity between the twitches?)", poor)):
+        zeroed = {(leg, t.trial) for t in used if doubts[leg, t.trial]} | offset
+        for what, which in (("looks zeroed elsewhere or signed otherwise", zeroed), ("looks like radians", radians),
+                            ("has quiet samples the passive model describes poorly (activity between the twitches?)",
+                             poor)):
             named = [t.trial for t in used if (leg, t.trial) in which]
             if named:
                 uses["identify"] += (f"; but the angle of trial{'s' if len(named) > 1 else ''} "
-                                     f"{', '.join(map(str, named))} {what} (the warnings say more): as recorded, its "
+                                     f"{', '.join(map(str, named))} {what} (the warnings say how): as recorded, its "
                                      "passive and active values come out wrong")
     if period is not None and any(r["pulses"] for r in rows):
         try:  # a period too short for a muscle's delays: identify and a muscle's fit refuse it

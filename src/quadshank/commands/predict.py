@@ -208,8 +208,8 @@ def run_predict(
         velocity0_deg_s=float(velocity0), n_draws=used, interval=list(INTERVAL), samples=int(time_s.size),
         files=["predictions.csv", "predictions.png"], plan_columns=list(planned.columns) or None,
         extremes={leg: {"end": {k: _finite_or_none(b[k][-1]) for k in ("median", "lo", "hi")},
-                       "max_deg": _finite_or_none(np.nanmax(b["hi"]) if np.isfinite(b["hi"]).any() else np.nan),
-                       "min_deg": _finite_or_none(np.nanmin(b["lo"]) if np.isfinite(b["lo"]).any() else np.nan)}
+                       "max_deg": _finite_or_none(np.max(b["hi"], initial=-np.inf, where=np.isfinite(b["hi"]))),
+                       "min_deg": _finite_or_none(np.min(b["lo"], initial=np.inf, where=np.isfinite(b["lo"])))}
                   for leg, b in bands.items()},
         fitted_angle_range_deg={leg: [round(r[0], 3), round(r[1], 3)] for leg, r in seen.items() if r is not None},
         beyond_fitted_range=beyond,
