@@ -444,3 +444,49 @@ def test_quiet_samples_of_an_angle_only_minute_that_trade_gravity_for_elasticity
         run_identify(Cohort((t,)), tmp_path / "sensor")
     assert "Not separated: TN-left: their data do not tell gravity" in (tmp_path / "angle-only" / "report.md").read_text()
     assert "Not separated" not in (tmp_path / "sensor" / "report.md").read_text()
+
+
+def test_quiet_samples_far_off_the_pendulum_are_left_out_and_named():
+    """A knee meeting the end of its range in deep flexion (or a heel touching the chair) pushes the
+    shank with thousands of deg/s² on a few quiet samples; on plain least squares 3 such samples in
+    17 000 took k1' from 21 to 3.  They are left out, named with their times, and the rest fitted."""
+    cohort, _ = simulate_cohort(legs=("JM-left",), minutes=5.0, seed=11, trials=(1,))
+    clean = cohort.get("JM-left", 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DataWarning)  # clean data: nothing left out, nothing said
+        ref, _, n_ref = identify_passive([clean])
+    from quadshank.inference._identify import passive_mask
+
+    used = np.flatnonzero(passive_mask(clean))
+    deepest = used[np.argsort(clean.angle_deg[used])[:14]]
+    for size in (3000.0, 13000.0):
+        acc = clean.acceleration_deg_s2.copy()
+        acc[deepest] += size
+        with pytest.warns(DataWarning, match=r"JM-left trial 1 .*: 14 of the \d+ quiet samples left out of the passive "
+                          r"fit.*t = \d+\.\d\d s \(-\d+\.\d°\).*end of its range.*exclude column") as said:
+            est, _, n = identify_passive([clean.replace(acceleration_deg_s2=acc)])
+        places = re.findall(r"t = (\d+\.\d\d) s", str(said[0].message))
+        assert places and all(np.isclose(clean.time_s[deepest], float(t), atol=0.006).any() for t in places)
+        assert n == n_ref - 14
+        for name, tol in (("damping", 0.01), ("gravity", 0.01), ("k1", 0.05), ("k2", 0.03)):
+            assert est[name] == pytest.approx(ref[name], rel=tol), (size, name)
+        # the same samples marked in exclude give the same fit, silently
+        exclude = np.zeros(clean.n_samples, bool)
+        exclude[deepest] = True
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", DataWarning)
+            marked, _, _ = identify_passive([clean.replace(acceleration_deg_s2=acc, exclude=exclude)])
+        assert marked == pytest.approx(est, rel=1e-4)
+
+
+def test_an_angle_only_recordings_last_samples_are_not_in_the_passive_fit():
+    """A derived acceleration's last half window comes from the Savitzky-Golay cubic extrapolated:
+    its noise is many times the rest's, and it stays out of the passive fit (and out of its warnings)."""
+    from quadshank.inference._identify import passive_mask
+
+    cohort, _ = simulate_cohort(legs=("TN-left",), minutes=1.0, seed=2, trials=(1,))
+    t = cohort.get("TN-left", 1)
+    angle_only = Trial.from_signals(t.subject, t.leg, 1, t.sampling_period_s, t.angle_deg, None, t.stimulation)
+    measured, derived = passive_mask(t), passive_mask(angle_only)
+    assert measured[-3:].all() or not measured[-1]  # the measured acceleration's end is used where quiet
+    assert not derived[-3:].any() and np.array_equal(derived[:-3], measured[:-3])

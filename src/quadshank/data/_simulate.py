@@ -22,8 +22,9 @@ Passive system, eq. (8) with φ in degrees (the sine takes φ·π/180)::
 The knee has no end of range in extension: the rare large swings of random
 stimulation are free to pass full extension (see the extremes below).  The models' passive part
 is eq. (8), and a steep passive stop in the data is a misfit every model shares: a stop past 85°
-(and below −60°) that touches 14 of the 30 000 samples of a trial puts JM-left's classical k1'
-at 1 instead of 20, and in the cohort with hidden potentiation (0.25 % of samples) a model
+(and below −60°) touches 14 of the 30 000 samples of a trial, which least squares over every quiet
+sample would let take JM-left's classical k1' to 1 instead of 20 (the identification leaves such
+samples out and names them), and in the cohort with hidden potentiation (0.25 % of samples) a model
 with potentiation predicts the stopped swings too large, so that the loop rejects the hidden
 effect although its evidence is the largest (docs/limits.md).
 

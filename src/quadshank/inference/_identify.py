@@ -43,7 +43,7 @@ from ..common._arrays import stretches
 from ..common._io import nulls_as_nan
 from ..common._progress import progress_bar
 from ..common._results import Result
-from ..data._cohort import SAME_PERIOD_REL, Cohort, Trial, quiet_mask
+from ..data._cohort import SAME_PERIOD_REL, Cohort, Trial, derivation_settings, quiet_mask
 from ..data._interchange import DataWarning, check_cohort
 from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S, TWITCH_REACH_S, TWITCH_SAMPLES
 from ..model._likelihood import TWITCH_S, twitch_window
@@ -293,9 +293,15 @@ def _standard_errors(jac: np.ndarray, resid: np.ndarray, n: int | None = None) -
 
 def passive_mask(trial: Trial) -> np.ndarray:
     """The samples of ``trial`` the passive system is fitted to: quiet (no twitch can act), at
-    most :data:`PASSIVE_MAX_ANGLE_DEG` extended, not excluded."""
+    most :data:`PASSIVE_MAX_ANGLE_DEG` extended, not excluded, and, where the acceleration is
+    derived from the angle, not within half its window of the recording's end (there the
+    Savitzky-Golay filter extrapolates its cubic, and its noise is many times the rest's)."""
     quiet = quiet_mask(trial.stimulation, quiet_samples(trial.sampling_period_s))
-    return quiet & (trial.angle_deg <= PASSIVE_MAX_ANGLE_DEG) & ~trial.exclude
+    mask = quiet & (trial.angle_deg <= PASSIVE_MAX_ANGLE_DEG) & ~trial.exclude
+    if not trial.acceleration_measured:
+        half = derivation_settings(trial.sampling_period_s)["acceleration"]["window_samples"] // 2
+        mask[:half] = mask[mask.size - half:] = False
+    return mask
 
 
 def _passive_samples(trials) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -319,7 +325,129 @@ def identify_passive(trials: list[Trial] | tuple[Trial, ...], gravity_offset: bo
     return _passive_equation_error(trials, gravity_offset)[:3]
 
 
-def _passive_equation_error(trials, gravity_offset: bool = False) -> tuple[dict, float, int, dict]:
+#: A quiet sample whose acceleration lies more than this many robust standard deviations (1.4826
+#: times the residuals' median absolute deviation) from eq. (8)'s is left out of the passive fit:
+#: a knee meeting the end of its range, a heel touching the chair or a sensor's spike can
+#: accelerate the shank by thousands of deg/s², and on plain least squares three such samples among 17 000
+#: take a simulated leg's k1' from 21 to 3.  Gaussian noise reaches 8 SDs once in 10^15 samples.
+PASSIVE_OUTLIER_SD = 8.0
+#: At most this share of the samples is left out as outliers: more than that far from eq. (8) is
+#: the equation's misfit, not a few samples' artefact, and all samples are then kept.
+PASSIVE_OUTLIER_MAX_SHARE = 0.01
+
+
+#: k2 [1/deg] of the grid the passive fits start from (D', G' and k1' are linear at a fixed k2).
+PASSIVE_K2_GRID = np.geomspace(1e-3, 0.3, 61)
+
+
+def _passive_fit_once(angle, velocity, accel, gravity_offset: bool, robust_scale: float | None = None, x0=None):
+    """Bounded least squares of eq. (8) on the given samples, from ``x0`` or else the best k2 of
+    :data:`PASSIVE_K2_GRID`.  With ``robust_scale`` [deg/s²], scipy's Cauchy loss at that scale,
+    from the best k2 by that loss (its linear coefficients by iteratively reweighted least squares),
+    so that a few samples far off neither pull the fit nor choose its start."""
+    if x0 is None:
+        best = None
+        for k2 in PASSIVE_K2_GRID:
+            X = _passive_columns(angle, velocity, k2, gravity_offset)
+            coef, *_ = np.linalg.lstsq(X, accel, rcond=None)
+            if robust_scale is None:
+                loss = float(np.sum((accel - X @ coef) ** 2))
+            else:  # Huber's weights, then Cauchy's (a redescending loss needs a start near the bulk's fit)
+                for weights in [_huber_weights] * 4 + [_cauchy_weights] * 4:
+                    w = np.sqrt(weights((X @ coef - accel) / robust_scale))
+                    coef, *_ = np.linalg.lstsq(X * w[:, None], accel * w, rcond=None)
+                loss = float(np.sum(np.log1p(((X @ coef - accel) / robust_scale) ** 2)))
+            if best is None or loss < best[0]:
+                best = (loss, k2, coef)
+        _, k2, coef = best
+        d0, g0, k10 = coef[:3]
+        x0 = np.array([max(d0, 1e-3), max(g0, 1.0), max(k10, 1e-3), k2, *coef[3:]])
+    extra = len(x0) - 4
+
+    def resid(p):
+        return _passive_residuals(p, angle, velocity, accel, gravity_offset)
+
+    robust = {} if robust_scale is None else {"loss": "cauchy", "f_scale": robust_scale}
+    return least_squares(resid, x0, bounds=([0, 0, 0, 1e-4] + [-np.inf] * extra, [np.inf, np.inf, np.inf, 1.0]
+                                            + [np.inf] * extra), x_scale="jac", **robust)
+
+
+def _huber_weights(z: np.ndarray) -> np.ndarray:
+    return np.minimum(1.0, 1.345 / np.maximum(np.abs(z), 1e-12))
+
+
+def _cauchy_weights(z: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + z**2)
+
+
+def _passive_residuals(x, angle, velocity, accel, gravity_offset: bool) -> np.ndarray:
+    return _passive_columns(angle, velocity, x[3], gravity_offset) @ np.concatenate([x[:3], x[4:]]) - accel
+
+
+def _passive_least_squares(angle, velocity, accel, gravity_offset: bool, rounds: int = 5):
+    """Eq. (8) fitted to the samples by least squares, leaving out those whose residual lies more
+    than :data:`PASSIVE_OUTLIER_SD` robust standard deviations from the median residual (refitted
+    until no further sample goes, at most ``rounds`` times, and no more than
+    :data:`PASSIVE_OUTLIER_MAX_SHARE` of them); returns the fit on the kept samples and the mask of
+    kept samples.  A trimmed least squares rather than scipy's robust losses: a sample left out is
+    one the user can be told of (and mark in ``exclude``), and the fit on the rest is the plain
+    least squares whose standard errors the identification reports."""
+    keep = np.ones(angle.size, bool)
+    fit = _passive_fit_once(angle, velocity, accel, gravity_offset)
+    r = fit.fun
+    sd = _robust_sd(r)
+    if not sd > 0:
+        return fit, keep
+    # which samples lie far off is judged from a fit they cannot pull: on least squares a cluster of
+    # them bends the fit towards itself, and the samples beside them look the farther off
+    robust = _passive_fit_once(angle, velocity, accel, gravity_offset, robust_scale=sd)
+    r = _passive_residuals(robust.x, angle, velocity, accel, gravity_offset)
+    for _ in range(rounds):
+        centre = float(np.median(r[keep]))
+        sd = _robust_sd(r[keep])
+        kept = np.abs(r - centre) <= PASSIVE_OUTLIER_SD * sd
+        if np.count_nonzero(~kept) > PASSIVE_OUTLIER_MAX_SHARE * angle.size or np.array_equal(kept, keep):
+            break
+        keep = kept
+        fit = _passive_fit_once(angle[keep], velocity[keep], accel[keep], gravity_offset, x0=fit.x)
+        r = _passive_residuals(fit.x, angle, velocity, accel, gravity_offset)
+    return fit, keep
+
+
+def _robust_sd(r: np.ndarray) -> float:
+    """1.4826 times the median absolute deviation: a normal sample's SD, unmoved by a few far values."""
+    return 1.4826 * float(np.median(np.abs(r - np.median(r))))
+
+
+def _passive_sample_places(trials) -> tuple[np.ndarray, np.ndarray]:
+    """Trial number and time [s] of each sample :func:`_passive_samples` returns, in its order."""
+    number, time = [], []
+    for t in trials:
+        m = passive_mask(t)
+        number.append(np.full(np.count_nonzero(m), t.trial))
+        time.append(t.time_s[m])
+    return np.concatenate(number), np.concatenate(time)
+
+
+def _warn_passive_left_out(where: str, trials, keep, fit, angle, velocity, accel, gravity_offset: bool) -> None:
+    """Say which quiet samples the passive fit left out as outliers (:func:`_passive_least_squares`)."""
+    r = _passive_residuals(fit.x, angle, velocity, accel, gravity_offset)
+    out = np.flatnonzero(~keep)
+    number, time = _passive_sample_places(trials)
+    worst = out[np.argsort(-np.abs(r[out]))][:3]
+    places = ", ".join((f"trial {number[i]} " if len(trials) > 1 else "") + f"t = {time[i]:.2f} s ({angle[i]:.1f}°)"
+                       for i in worst)
+    sd = _robust_sd(r[keep])
+    warnings.warn(
+        f"{where}: {out.size} of the {angle.size} quiet samples left out of the passive fit: their acceleration "
+        f"lies more than {PASSIVE_OUTLIER_SD:g} robust SDs ({PASSIVE_OUTLIER_SD * sd:.3g} deg/s²) from eq. (8)'s, "
+        f"up to {float(np.max(np.abs(r[out]))):.3g} deg/s² off (the largest at {places}), at angles "
+        f"{float(np.min(angle[out])):.1f}° to {float(np.max(angle[out])):.1f}°. A knee meeting the end of its range, "
+        "an impact or a sensor's spike? Mark them in the exclude column to leave them out knowingly",
+        DataWarning, stacklevel=4)
+
+
+def _passive_equation_error(trials, gravity_offset: bool = False, warn: bool = True) -> tuple[dict, float, int, dict]:
     """Passive parameters (D', G', k1', k2) from the quiet samples of ``trials`` (excluded ones left out);
     with ``gravity_offset``, also the angle gravity acts about (``gravity_angle``, see the
     ``gravity_offset`` effect).
@@ -329,8 +457,10 @@ def _passive_equation_error(trials, gravity_offset: bool = False) -> tuple[dict,
     that range, and further into extension a real knee meets the end of its
     range (capsule, and hamstrings stretched in the seated position), which
     the exponential flexion term cannot represent and would be distorted by.
+    Samples far off eq. (8) (an end of range, an impact, a spike) are left out
+    and, with ``warn``, named (:func:`_passive_least_squares`).
     Returns the parameters, the RMS residual acceleration [deg/s²], the
-    number of quiet samples used and the parameters' standard errors
+    number of quiet samples used (those left out not counted) and the parameters' standard errors
     (:func:`_standard_errors`; G' by the delta method where a gravity angle is fitted).
     """
     angle, velocity, accel = _passive_samples(trials)
@@ -353,23 +483,9 @@ def _passive_equation_error(trials, gravity_offset: bool = False) -> tuple[dict,
         raise IdentificationError(f"{where}: the angle does not move in the {angle.size} quiet samples "
                                   f"({float(angle[0])!r}° throughout): no swing to identify the passive system from")
 
-    best = None
-    for k2 in np.geomspace(1e-3, 0.3, 61):
-        X = _passive_columns(angle, velocity, k2, gravity_offset)
-        coef, *_ = np.linalg.lstsq(X, accel, rcond=None)
-        rss = float(np.sum((accel - X @ coef) ** 2))
-        if best is None or rss < best[0]:
-            best = (rss, k2, coef)
-    _, k2, coef = best
-    d0, g0, k10 = coef[:3]
-    x0 = np.array([max(d0, 1e-3), max(g0, 1.0), max(k10, 1e-3), k2, *coef[3:]])
-    extra = len(coef) - 3
-
-    def resid(p):
-        return _passive_columns(angle, velocity, p[3], gravity_offset) @ np.concatenate([p[:3], p[4:]]) - accel
-
-    fit = least_squares(resid, x0, bounds=([0, 0, 0, 1e-4] + [-np.inf] * extra, [np.inf, np.inf, np.inf, 1.0]
-                                           + [np.inf] * extra), x_scale="jac")
+    fit, keep = _passive_least_squares(angle, velocity, accel, gravity_offset)
+    if warn and not keep.all():
+        _warn_passive_left_out(where, trials, keep, fit, angle, velocity, accel, gravity_offset)
     rms = float(np.sqrt(np.mean(fit.fun**2)))
     se = _standard_errors(fit.jac, fit.fun)
     if gravity_offset:
@@ -378,9 +494,9 @@ def _passive_equation_error(trials, gravity_offset: bool = False) -> tuple[dict,
         # G' = |(gc, gs)|: its standard error by the delta method, gc and gs taken as independent
         se_g = float(np.hypot(gc * se[1], gs * se[4]) / g) if g > 0 else float(np.hypot(se[1], se[4]))
         ses = {"damping": float(se[0]), "gravity": se_g, "k1": float(se[2]), "k2": float(se[3])}
-        return _with_gravity_angle(d, gc, k1, k2, gs), rms, int(angle.size), ses
+        return _with_gravity_angle(d, gc, k1, k2, gs), rms, int(keep.sum()), ses
     D, G, k1, k2 = fit.x
-    return {"damping": D, "gravity": G, "k1": k1, "k2": k2}, rms, int(angle.size), dict(zip(_PASSIVE_NAMES, map(float, se)))
+    return {"damping": D, "gravity": G, "k1": k1, "k2": k2}, rms, int(keep.sum()), dict(zip(_PASSIVE_NAMES, map(float, se)))
 
 
 #: k2 [1/deg] of the further starts of the free-run fit (:func:`_valley_starts`): from stiff to
@@ -817,8 +933,8 @@ def rest_offset(trial: Trial, about_zero: tuple[dict, float] | None = None) -> t
     if angle_span((trial,)) < RADIAN_SPAN_DEG:
         return None  # a span of a few units: radians, which the warning of next to no gravity names
     try:
-        passive, rms = about_zero or _passive_equation_error([trial])[:2]
-        free, rms_free, _, _ = _passive_equation_error([trial], gravity_offset=True)
+        passive, rms = about_zero or _passive_equation_error([trial], warn=False)[:2]
+        free, rms_free, _, _ = _passive_equation_error([trial], gravity_offset=True, warn=False)
     except IdentificationError:
         return None
     angle = float(free["gravity_angle"])
