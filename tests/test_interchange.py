@@ -323,6 +323,9 @@ def test_problem_and_error_text():
     assert len(lines) == 1 + 49 + 1 and lines[-1].strip() == "... and 10 more"
     assert str(InterchangeError([p], "ctx")) == f"ctx: {p}"
     assert isinstance(err, ValueError)
+    # a summary of further rows counts them: the header's count is of rows, not of lines
+    summary = Problem("f.csv", "angle_deg", None, "25 more rows like this (rows 107 to 131)", count=25)
+    assert str(InterchangeError([p, p, summary], "ctx")).splitlines()[0].endswith("(and 26 more problems, listed below)")
     copy = pickle.loads(pickle.dumps(err))
     assert copy.problems == err.problems and str(copy) == str(err)
 

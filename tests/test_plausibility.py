@@ -221,3 +221,13 @@ def test_an_angle_clipped_at_a_rail_is_named_and_a_knee_resting_between_twitches
     resting = Trial.from_signals("TN", "left", 1, DT, angle, np.gradient(np.gradient(angle, DT), DT), np.zeros(n),
                                  time_s=np.arange(n) * DT)
     assert not any("sits at its" in f for f in plausibility(resting)), plausibility(resting)
+
+
+def test_a_time_in_a_message_is_written_as_the_recording_has_it():
+    """115 samples of 10 ms are 1.1500000000000001 s in floating point; the message says 1.15."""
+    t = _trial()
+    assert repr(float(t.time_s[115])) != "1.15"
+    angle = t.angle_deg.copy()
+    angle[115] = 1e6
+    found = [f for f in plausibility(t.replace(angle_deg=angle)) if "jumps by" in f]
+    assert found and "time_s = 1.15," in found[0], found
