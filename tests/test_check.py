@@ -302,7 +302,8 @@ def test_an_angle_zeroed_elsewhere_qualifies_what_identify_can_do(tmp_path):
 
     cohort, _ = simulate_cohort(legs=["JM-left"], minutes=0.5, seed=1, trials=(1,))
     stimulated = cohort.trials[0]
-    assert "looks zeroed" not in run_check(cohort).legs["JM-left"]["identify"]
+    clean = run_check(cohort).legs["JM-left"]["identify"]
+    assert "looks zeroed" not in clean and "does not match" not in clean
     with pytest.warns(DataWarning, match="is the goniometer's zero offset"):
         uses = run_check(Cohort((stimulated.replace(angle_deg=stimulated.angle_deg + 30.0),))).legs["JM-left"]
     assert uses["identify"].startswith("models 1-3 (")
@@ -320,6 +321,15 @@ def test_an_angle_zeroed_elsewhere_qualifies_what_identify_can_do(tmp_path):
     with pytest.warns(DataWarning, match="JM-left: the angle of trial 1 spans only .* in radians"):
         uses = run_check(Cohort((in_radians,))).legs["JM-left"]
     assert "but the angle of trial 1 looks like radians" in uses["identify"]
+
+    # an accelerometer in rad/s² (or wired the other way round) beside an angle in degrees: the reader
+    # warns of it, and the verdict says the values would come out wrong
+    for acc, said in ((np.deg2rad(stimulated.acceleration_deg_s2), "about pi/180"),
+                      (-stimulated.acceleration_deg_s2, "runs against")):
+        with pytest.warns(DataWarning, match=said):
+            uses = run_check(Cohort((stimulated.replace(acceleration_deg_s2=acc),))).legs["JM-left"]
+        assert "but the measured acceleration or velocity of trial 1 does not match the angle's derivatives" \
+            in uses["identify"], uses
 
     pendulum = simulate_pendulum_test(PASSIVE_TRUTH["TN-left"], subject="TN", seed=0, seconds=3.0)  # still swinging
     assert angle_doubts(pendulum) == []

@@ -21,7 +21,7 @@ from ..common._io import file_stems, save_figure
 from ..common._results import Result
 from ..data._cohort import Cohort, Trial
 from ..data._interchange import (DataWarning, angle_doubts, charge_scales, check_cohort, kept_warnings, load_cohort,
-                                 twitch_direction)
+                                 signal_doubts, twitch_direction)
 from ..data._paper import MAX_DELAY
 from ..inference._identify import (
     DelayRangeError,
@@ -211,12 +211,14 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
         if uses["identify"].startswith("no"):
             continue
         zeroed = {(leg, t.trial) for t in used if doubts[leg, t.trial]} | offset
-        for what, which in (("looks zeroed elsewhere or signed otherwise", zeroed), ("looks like radians", radians),
-                            ("has quiet samples the passive model describes poorly (activity between the twitches?)",
-                             poor)):
+        mismatched = {(leg, t.trial) for t in used if signal_doubts(t)}
+        for signal, what, which in (
+                ("angle", "looks zeroed elsewhere or signed otherwise", zeroed), ("angle", "looks like radians", radians),
+                ("angle", "has quiet samples the passive model describes poorly (activity between the twitches?)", poor),
+                ("measured acceleration or velocity", "does not match the angle's derivatives", mismatched)):
             named = [t.trial for t in used if (leg, t.trial) in which]
             if named:
-                uses["identify"] += (f"; but the angle of trial{'s' if len(named) > 1 else ''} "
+                uses["identify"] += (f"; but the {signal} of trial{'s' if len(named) > 1 else ''} "
                                      f"{', '.join(map(str, named))} {what} (the warnings say how): as recorded, its "
                                      "passive and active values come out wrong")
     if period is not None and any(r["pulses"] for r in rows):

@@ -313,13 +313,25 @@ def plausibility(trial: Trial) -> list[str]:
     found = glitches + _markers(trial) + _faint_pulses(trial) + _pulse_runs(trial) \
         + (_rest_plausibility(trial) + twitch_direction(trial) + _unmoved_pulses(trial) if stimulated
            else _pendulum_plausibility(trial))
-    checks = [("acceleration_deg_s2", 2, "deg/s²")] if trial.acceleration_measured else []
-    if trial.velocity_measured:
-        checks.append(("velocity_deg_s", 1, "deg/s"))
     kept = ~trial.exclude  # an excluded artefact is not evidence of a wrong unit or sign
     if np.count_nonzero(kept) < 3 * window:
         return found
-    found += _rails(trial, kept)
+    return found + _rails(trial, kept) + signal_doubts(trial)
+
+
+def signal_doubts(trial: Trial) -> list[str]:
+    """What :func:`plausibility` says of ``trial``'s measured acceleration and velocity against the
+    angle's own derivatives (a placeholder, a sign, a unit, another signal), in words; empty where
+    they agree or were derived.  ``check`` qualifies what identify can do with such a trial by them."""
+    dt = trial.sampling_period_s
+    window = _smoothing_window(dt)
+    kept = ~trial.exclude  # an excluded artefact is not evidence of a wrong unit or sign
+    if trial.n_samples < 3 * window or np.count_nonzero(kept) < 3 * window or np.ptp(trial.angle_deg) == 0:
+        return []
+    checks = [("acceleration_deg_s2", 2, "deg/s²")] if trial.acceleration_measured else []
+    if trial.velocity_measured:
+        checks.append(("velocity_deg_s", 1, "deg/s"))
+    found = []
     # a logger's placeholder for a signal it did not record: named, and not compared with the angle
     constant = [c for c in checks if np.ptp(getattr(trial, c[0])[kept]) == 0]
     for column, _, _ in constant:
