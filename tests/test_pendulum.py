@@ -412,3 +412,70 @@ def test_pulses_whose_twitch_is_excluded_inform_nothing():
     only_pulses = np.zeros(t.n_samples, bool)
     only_pulses[pulses] = True
     assert uninformed_legs(model, Cohort((t.replace(exclude=only_pulses),))) == {}
+
+
+def _recorded_from_before_the_release(t: Trial, held_s: float = 2.0, seed: int = 5) -> Trial:
+    """``t`` (a release from 60° at rest) with what a lab's recording holds before it: a second at
+    rest, a second's lift to 60° by hand and ``held_s`` held there (sensor noise as ``t``'s)."""
+    rng = np.random.default_rng(seed)
+    n_lift, n_hold = int(1.0 / DT), int(held_s / DT)
+    lift = 60.0 * (1 - np.cos(np.linspace(0, np.pi, n_lift))) / 2
+    pre = np.concatenate([np.zeros(int(1.0 / DT)), lift, np.full(n_hold, 60.0)])
+    acc = np.gradient(np.gradient(pre, DT), DT)
+    return Trial.from_signals(t.subject, t.leg, t.trial, DT, np.concatenate([pre + rng.normal(0, 0.05, pre.size),
+                                                                            t.angle_deg]),
+                              np.concatenate([acc + rng.normal(0, 30.0, pre.size), t.acceleration_deg_s2]),
+                              np.zeros(pre.size + t.n_samples))
+
+
+def test_a_pendulum_test_recorded_from_before_its_release_is_read_from_the_release(tmp_path):
+    """A lab's pendulum test often starts before the release: the shank at rest, lifted by hand and
+    held.  No pendulum model holds the lift and the hold (the free runs start at rest and never
+    rise): the reader finds the release, excludes what comes before it and the release's 350 ms,
+    as at a recording that starts there, and says so; a trial built in Python is warned of, and
+    check's verdict says its values would come out wrong."""
+    from quadshank.commands import run_check
+    from quadshank.data import load_cohort
+    from quadshank.data._interchange import pendulum_release
+
+    swing = simulate_pendulum_test(PASSIVE, hand=False, seed=3)
+    held = _recorded_from_before_the_release(swing)
+    start = held.n_samples - swing.n_samples  # the release
+    assert abs(pendulum_release(held) - start) <= 6  # the shank leaves the hold's band within 60 ms
+    # as built: warned of, and the free swing is not found
+    with pytest.warns(DataWarning, match=r"held at 60\.0° until time_s = 4\.0\d and then swings: a pendulum test "
+                                         r"recorded from before its release"):
+        uses = run_check(Cohort((held,))).legs["PT-left"]["identify"]
+    assert "holds the lift and the hold before the pendulum's release" in uses
+    with pytest.warns(DataWarning):
+        wrong = identify_cohort(Cohort((held,)))["PT-left"].passive
+    assert not wrong["gravity"] == pytest.approx(PASSIVE["gravity"], rel=0.5)
+    # read from a folder: excluded up to 350 ms after the release, and the pendulum found
+    write_interchange(Cohort((held,)), tmp_path / "pt")
+    with pytest.warns(DataWarning, match=r"PT-left trial 1\): a pendulum test recorded from before its release: the "
+                                         r"shank is held at 60\.0° until time_s = 4\.0\d, .* 350 ms after"):
+        read = load_cohort(tmp_path / "pt")
+    t = read.trials[0]
+    assert t.exclude[:start + 35].all() and not t.exclude[start + 41:].any()
+    r = identify_cohort(read)["PT-left"]
+    _assert_passive_recovered(r.passive, PASSIVE, swing.angle_deg)
+    assert run_check(read).legs["PT-left"]["identify"] == "the passive system only (no pulses: a pendulum test)"
+
+
+def test_a_free_swing_is_not_taken_for_a_hold():
+    """Pendulum tests released at the recording's start, from 20-80° or from flexion, with and
+    without the hand's push, at 5-20 ms, with and without an accelerometer, and stimulated trials:
+    no release is found before their swing."""
+    from quadshank.data._interchange import pendulum_release
+
+    for angle0 in (20.0, 60.0, 80.0, -30.0):
+        for hand in (True, False):
+            for dt, acc in ((0.01, 30.0), (0.005, None), (0.02, 30.0)):
+                t = simulate_pendulum_test(PASSIVE, angle0=angle0, hand=hand, sampling_period_s=dt,
+                                           acceleration_noise_deg_s2=acc, seed=1)
+                assert pendulum_release(t) == 0, (angle0, hand, dt)
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.5, seed=0, trials=[1])
+    assert pendulum_release(cohort.trials[0]) == 0
+    # held for a tenth of a second: too short to tell from the turn at the top of a swing, and left as it is
+    held = _recorded_from_before_the_release(simulate_pendulum_test(PASSIVE, hand=False, seed=3), held_s=0.1)
+    assert pendulum_release(held) == 0

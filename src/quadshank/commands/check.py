@@ -21,7 +21,7 @@ from ..common._io import file_stems, save_figure
 from ..common._results import Result
 from ..data._cohort import Cohort, Trial
 from ..data._interchange import (DataWarning, angle_doubts, charge_scales, check_cohort, kept_warnings, load_cohort,
-                                 signal_doubts, twitch_direction)
+                                 pendulum_release, signal_doubts, twitch_direction)
 from ..data._paper import MAX_DELAY
 from ..inference._identify import (
     DelayRangeError,
@@ -212,9 +212,11 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
             continue
         zeroed = {(leg, t.trial) for t in used if doubts[leg, t.trial]} | offset
         mismatched = {(leg, t.trial) for t in used if signal_doubts(t)}
+        held = {(leg, t.trial) for t in used if pendulum_release(t)}
         for signal, what, which in (
                 ("angle", "looks zeroed elsewhere or signed otherwise", zeroed), ("angle", "looks like radians", radians),
                 ("angle", "has quiet samples the passive model describes poorly (activity between the twitches?)", poor),
+                ("angle", "holds the lift and the hold before the pendulum's release", held),
                 ("measured acceleration or velocity", "does not match the angle's derivatives", mismatched)):
             named = [t.trial for t in used if (leg, t.trial) in which]
             if named:

@@ -115,7 +115,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path, PurePosixPath
 
 import numpy as np
-from scipy.signal import savgol_filter
+from scipy.signal import medfilt, savgol_filter
 
 from ..common._arrays import is_whole_number, stretches
 from ..common._io import file_stem, temp_sibling
@@ -289,6 +289,18 @@ STILL_RANGE_DEG = 2.0
 REST_TOLERANCE_DEG = 5.0
 #: A trial without pulses that starts this far [deg] into flexion gets a warning about the sign.
 RELEASE_FLEXION_DEG = 20.0
+#: A trial without pulses whose shank stays within this share of its largest swing (and at least
+#: :data:`RELEASE_HOLD_MIN_DEG`) of its extreme angle for :data:`RELEASE_HOLD_S` or more before
+#: leaving it was held there by hand: a pendulum test recorded from before its release ...
+RELEASE_HOLD_SHARE = 0.03
+RELEASE_HOLD_MIN_DEG = 1.0
+#: ... (a free swing passes its extreme within about 0.1 s: 45 ms either side of the peak within 3 %
+#: of a 60° swing at 0.9 Hz) ...
+RELEASE_HOLD_S = 0.3
+#: ... whose largest swing is at least this [deg] from where it comes to rest.
+RELEASE_SWING_DEG = 10.0
+
+
 #: An angle that jumps away and back within one sample faster than this [deg/s] (a knee swings
 #: at a few hundred, kicks at about 1500) is taken for a sensor glitch.
 GLITCH_SPEED_DEG_S = 5000.0
@@ -485,10 +497,11 @@ def _glitches(trial: Trial) -> list[str]:
             "exclude = 1 there (the fit then leaves the sample out)"]
 
 
-def _pendulum_plausibility(trial: Trial) -> list[str]:
+def _pendulum_plausibility(trial: Trial, release: bool = True) -> list[str]:
     """A trial without pulses (a pendulum test) should swing about angle 0, the shank at rest,
     after a release from extension: a swing that comes to rest elsewhere, or that starts deep in
-    flexion, says that the zero or the sign of the angle may be off."""
+    flexion, says that the zero or the sign of the angle may be off; with ``release``, a shank held
+    before its swing (:func:`pendulum_release`), that the lift and the hold are in the recording."""
     kept = ~trial.exclude
     angle = trial.angle_deg[kept]
     if angle.size < 2:  # nothing left to judge (the rules refuse such a trial)
@@ -499,7 +512,14 @@ def _pendulum_plausibility(trial: Trial) -> list[str]:
         found.append(f"the shank comes to rest at {float(np.median(tail)):.1f}° (its last second), not at 0, the "
                      "shank at rest: is angle_deg zeroed elsewhere? (the effects gravity_offset and "
                      "goniometer_offset model such an offset)")
-    if angle[0] < -RELEASE_FLEXION_DEG:
+    held = pendulum_release(trial) if release else 0
+    if held:
+        release = held
+        found.append(f"the shank is held at {_held_angle(trial, release):.1f}° until time_s = "
+                     f"{seconds_text(trial.time_s[release])} and then swings: a pendulum test recorded from before its "
+                     "release, whose lift and hold no pendulum model describes; exclude the samples before the release "
+                     "(or cut them with start_s)")
+    if angle[0] < -RELEASE_FLEXION_DEG and not trial.exclude[0]:  # a release excluded leaves the swing under way
         found.append(f"the swing starts at {float(angle[0]):.1f}°, deep in flexion; a pendulum test is released "
                      "from extension (positive angle_deg): is the sign of angle_deg flipped?")
     median = float(np.median(angle))
@@ -510,6 +530,44 @@ def _pendulum_plausibility(trial: Trial) -> list[str]:
     return found
 
 
+def pendulum_release(trial: Trial) -> int:
+    """Where the free swing of a pendulum test (a trial without pulses) starts, as a sample index:
+    the last sample of the shank held by hand at its extreme angle (the one furthest from where it
+    comes to rest, its last second), where it stayed within :data:`RELEASE_HOLD_SHARE` of the swing
+    for :data:`RELEASE_HOLD_S` or more; 0 where the recording starts at the release (or has pulses,
+    or no swing of :data:`RELEASE_SWING_DEG`).  Excluded samples are not judged; single-sample
+    glitches are smoothed away by a running median."""
+    if np.any(trial.stimulation > 0):
+        return 0
+    dt = trial.sampling_period_s
+    kept = np.flatnonzero(~trial.exclude)
+    hold = int(np.ceil(RELEASE_HOLD_S / dt))
+    if kept.size < 2 * hold + int(round(1.0 / dt)):
+        return 0
+    angle = medfilt(trial.angle_deg[kept], 5) if kept.size >= 5 else trial.angle_deg[kept]
+    rest = float(np.median(angle[-max(2, int(round(1.0 / dt))):]))
+    far = np.abs(angle - rest)
+    top = int(np.argmax(far))
+    if far[top] < RELEASE_SWING_DEG:
+        return 0
+    near = np.abs(angle - angle[top]) <= max(RELEASE_HOLD_MIN_DEG, RELEASE_HOLD_SHARE * far[top])
+    first = last = top
+    while first > 0 and near[first - 1]:
+        first -= 1
+    while last + 1 < near.size and near[last + 1]:
+        last += 1
+    if last - first + 1 < hold:
+        return 0
+    return int(kept[last])
+
+
+def _held_angle(trial: Trial, release: int) -> float:
+    """The angle [deg] a pendulum test's shank is held at before its ``release``: the median of the
+    preceding :data:`RELEASE_HOLD_S`."""
+    hold = int(np.ceil(RELEASE_HOLD_S / trial.sampling_period_s))
+    return float(np.median(trial.angle_deg[max(0, release - hold):release + 1]))
+
+
 def angle_doubts(trial: Trial) -> list[str]:
     """What the plausibility warnings say of the zero or the sign of ``trial``'s angle (a rest
     away from 0 between twitches, a pendulum test that rests elsewhere or starts in flexion), in
@@ -517,7 +575,7 @@ def angle_doubts(trial: Trial) -> list[str]:
     trial by them."""
     if trial.n_samples < 3 * _smoothing_window(trial.sampling_period_s):
         return []
-    return _rest_plausibility(trial) if np.any(trial.stimulation > 0) else _pendulum_plausibility(trial)
+    return _rest_plausibility(trial) if np.any(trial.stimulation > 0) else _pendulum_plausibility(trial, release=False)
 
 
 #: A stimulated trial whose angle, where no twitch acts, has its median further than this [deg] from
@@ -616,6 +674,25 @@ def _unmoved_pulses(trial: Trial) -> list[str]:
             f"them (the first at {float(trial.time_s[flat[0]]):.3f} s), where a twitch moves the shank: was the sensor "
             "stuck or saturated there, the knee held at the end of its range, the pulse too weak to recruit, or not "
             "delivered? Leave such stretches out with exclude = 1"]
+
+
+def _exclude_before_release(trial: Trial, label: str) -> Trial:
+    """A pendulum test recorded from before its release (:func:`pendulum_release`) with the samples
+    before the release excluded, and those of the release itself (the first
+    :data:`~quadshank.data._paper.TWITCH_REACH_S` of the swing, which a recording that starts at
+    the release leaves out too), and a warning that says so; any other trial as it is."""
+    release = pendulum_release(trial)
+    if not release:
+        return trial
+    exclude = trial.exclude.copy()
+    after = int(round(TWITCH_REACH_S / trial.sampling_period_s))  # as at a recording's start: the hand letting go
+    exclude[:release + after] = True
+    warnings.warn(
+        f"{label} ({trial.key} trial {trial.trial}): a pendulum test recorded from before its release: the shank is "
+        f"held at {_held_angle(trial, release):.1f}° until time_s = {seconds_text(trial.time_s[release])}, and "
+        f"the samples before it and {TWITCH_REACH_S * 1000:g} ms after (the lift, the hold and the release, which no "
+        "pendulum model describes) are excluded. start_s in the manifest cuts them instead", DataWarning, stacklevel=4)
+    return trial.replace(exclude=exclude)
 
 
 def _warn_implausible(cohort: Cohort, labels: Sequence[str]) -> None:
@@ -1616,7 +1693,7 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
             source=e.file,
             exclude=s["exclude"],
         )
-        trials.append(trim(whole, e.start_s, e.end_s))
+        trials.append(_exclude_before_release(trim(whole, e.start_s, e.end_s), str(folder / e.file)))
         _warn_cut_twitch(whole, e)
     if resample_s is not None:
         trials = [resample_trial(t, resample_s) for t in trials]
