@@ -956,6 +956,13 @@ def test_a_gate_or_a_logged_setting_is_not_taken_silently_for_pulses(base, tmp_p
     _, error, warned = stimulated("trigger", lambda i: 1.0 if i % 60 in (10, 11) else 0.0)
     assert error == "" and any("runs of 2 consecutive samples" in w and "keep each run's first sample" in w
                                for w in warned), warned
+    # identify, finding no isolated twitch among the runs, says why rather than pointing to fit
+    from quadshank.inference import IdentificationError, identify_cohort
+
+    cohort, _, _ = stimulated("trigger for identify", lambda i: 1.0 if i % 100 in (10, 11) else 0.0)
+    with pytest.raises(IdentificationError, match=r"JM-right trial 1: only 0 isolated twitches .*runs of 2 consecutive "
+                                                  r"samples.*keep each run's first sample.*`quadshank fit` would take"):
+        identify_cohort(cohort.select(["JM-right"]), trial=1)
     _, _, warned = stimulated("a trigger, two pulses touching", lambda i: 1.0 if i % 60 in (10, 11) or 100 <= i < 106
                               else 0.0)
     assert any("runs of 2 consecutive samples" in w for w in warned), warned

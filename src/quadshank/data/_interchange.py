@@ -322,7 +322,7 @@ def plausibility(trial: Trial) -> list[str]:
     if trial.n_samples < 3 * window:
         return glitches
     stimulated = bool(np.any(trial.stimulation > 0))
-    found = glitches + _markers(trial) + _faint_pulses(trial) + _pulse_runs(trial) \
+    found = glitches + _markers(trial) + _faint_pulses(trial) + pulse_runs(trial) \
         + (_rest_plausibility(trial) + twitch_direction(trial) + _unmoved_pulses(trial) if stimulated
            else _pendulum_plausibility(trial))
     kept = ~trial.exclude  # an excluded artefact is not evidence of a wrong unit or sign
@@ -440,11 +440,12 @@ def _faint_pulses(trial: Trial) -> list[str]:
             "where no pulse was delivered? Write 0 there"]
 
 
-def _pulse_runs(trial: Trial) -> list[str]:
+def pulse_runs(trial: Trial) -> list[str]:
     """Pulses on consecutive samples at :data:`PULSE_RUN_RATE_HZ` or faster, or on every sample of the
     trial, in words: each nonzero level is one pulse delivered at that sample, so a stimulation
-    column that is nonzero throughout a train (a gate) or on every row (a setting) says pulses
-    that were never delivered."""
+    column that is nonzero over a pulse's width (a trigger), throughout a train (a gate) or on
+    every row (a setting) says pulses that were never delivered.  Empty where none are found;
+    identify names them where they leave too few isolated twitches."""
     on = trial.stimulation > 0
     if on.size < PULSE_RUN:
         return []

@@ -44,7 +44,7 @@ from ..common._io import nulls_as_nan
 from ..common._progress import progress_bar
 from ..common._results import Result
 from ..data._cohort import SAME_PERIOD_REL, Cohort, Trial, derivation_settings, quiet_mask
-from ..data._interchange import DataWarning, check_cohort
+from ..data._interchange import DataWarning, check_cohort, pulse_runs
 from ..data._paper import MAX_DELAY, SAMPLING_PERIOD_S, TWITCH_REACH_S, TWITCH_SAMPLES
 from ..model._likelihood import TWITCH_S, twitch_window
 from ..model._model import Model, equivalent_acceleration, paper_model, passive_effects, simulate_angles
@@ -715,10 +715,12 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
     epoch = twitch_epoch(dt)
     pulses = isolated_twitches(u, epoch, exclude=trial.exclude)
     if pulses.size < MIN_TWITCHES:
+        runs = pulse_runs(trial)  # a trigger over the pulse's width, a gate: pulses never delivered
         raise IdentificationError(
             f"{where}: only {pulses.size} isolated twitches (a pulse with {epoch} quiet samples "
             f"before and {2 * epoch} after, none of them excluded); the classical identification needs at least {MIN_TWITCHES} "
-            "(`quadshank fit` does not: it fits every sample, trains of pulses too)"
+            + (f"({runs[0]}; `quadshank fit` would take each such sample for a pulse too)" if runs else
+               "(`quadshank fit` does not: it fits every sample, trains of pulses too)")
         )
     pulses = pulses[pulses > MAX_DELAY + 2]
 
