@@ -394,7 +394,7 @@ def _rails(trial: Trial, kept: np.ndarray) -> list[str]:
         n = sum(b - a for a, b in runs)
         if len(runs) >= 2 and n >= RAIL_SHARE * np.count_nonzero(kept):
             found.append(f"angle_deg sits at its {side} value, {extreme!r}°, on {n} samples in {len(runs)} runs "
-                         f"(the first from time_s = {seconds_text(float(trial.time_s[runs[0][0]]))}): a saturated sensor or "
+                         f"(the first from time_s = {seconds_text(trial.time_s[runs[0][0]])}): a saturated sensor or "
                          "amplifier? The model takes a clipped angle for the knee's; set exclude = 1 there")
     return found
 
@@ -411,7 +411,7 @@ def _markers(trial: Trial) -> list[str]:
             if runs:
                 n = sum(b - a for a, b in runs)
                 found.append(f"{column} holds {marker:g} on {n} samples in {len(runs)} run{'s' if len(runs) > 1 else ''}, "
-                             f"the first from time_s = {seconds_text(float(trial.time_s[runs[0][0]]))}: a logger's missing-data "
+                             f"the first from time_s = {seconds_text(trial.time_s[runs[0][0]])}: a logger's missing-data "
                              "marker? Set exclude = 1 there (the fit then leaves those samples out)")
     return found
 
@@ -436,7 +436,7 @@ def _faint_pulses(trial: Trial) -> list[str]:
     if not faint.size:
         return []
     return [f"stimulation holds {faint.size} level{'s' if faint.size > 1 else ''} above 0 and below {FAINT_PULSE:g}, "
-            f"the first at time_s = {seconds_text(float(trial.time_s[faint[0]]))}: each nonzero level is a pulse; float noise "
+            f"the first at time_s = {seconds_text(trial.time_s[faint[0]])}: each nonzero level is a pulse; float noise "
             "where no pulse was delivered? Write 0 there"]
 
 
@@ -459,7 +459,7 @@ def pulse_runs(trial: Trial) -> list[str]:
         widths = sorted({b - a for a, b in short})
         a = short[0][0]
         return [f"stimulation is nonzero on {len(short)} runs of {' or '.join(map(str, widths))} consecutive samples "
-                f"({in_short} of its {np.count_nonzero(on)} pulses), the first from time_s = {seconds_text(float(trial.time_s[a]))}: "
+                f"({in_short} of its {np.count_nonzero(on)} pulses), the first from time_s = {seconds_text(trial.time_s[a])}: "
                 f"each nonzero sample is one pulse delivered at that sample, so each run reads as pulses at "
                 f"{rate:g} Hz. Is it a trigger recorded over the pulse's width? Then keep each run's first sample (the "
                 "rising edge) and write 0 on the others. Pulses delivered that close (doublets) are told apart only "
@@ -469,7 +469,7 @@ def pulse_runs(trial: Trial) -> list[str]:
     elif runs and rate >= PULSE_RUN_RATE_HZ:
         a, b = max(runs, key=lambda r: r[1] - r[0])
         what = (f"{len(runs)} run{'s' if len(runs) > 1 else ''} of consecutive samples, the longest {b - a} samples "
-                f"from time_s = {seconds_text(float(trial.time_s[a]))} (pulses at {rate:g} Hz)")
+                f"from time_s = {seconds_text(trial.time_s[a])} (pulses at {rate:g} Hz)")
     else:
         return []
     return [f"stimulation is nonzero on {what}: each nonzero sample is one pulse delivered at that sample. Is the "
@@ -493,7 +493,7 @@ def _glitches(trial: Trial) -> list[str]:
         return []
     i = int(at[0])
     more = f" and {at.size - 1} more such sample{'s' if at.size > 2 else ''}" if at.size > 1 else ""
-    return [f"angle_deg jumps by {float(a[i] - a[i - 1]):+.4g}° and back at time_s = {seconds_text(float(trial.time_s[i]))}{more}, "
+    return [f"angle_deg jumps by {float(a[i] - a[i - 1]):+.4g}° and back at time_s = {seconds_text(trial.time_s[i])}{more}, "
             f"faster than a knee moves (over {GLITCH_SPEED_DEG_S:g} deg/s): a sensor glitch? Correct it, or set "
             "exclude = 1 there (the fit then leaves the sample out)"]
 
@@ -515,9 +515,8 @@ def _pendulum_plausibility(trial: Trial, release: bool = True) -> list[str]:
                      "goniometer_offset model such an offset)")
     held = pendulum_release(trial) if release else 0
     if held:
-        release = held
-        found.append(f"the shank is held at {_held_angle(trial, release):.1f}° until time_s = "
-                     f"{seconds_text(trial.time_s[release])} and then swings: a pendulum test recorded from before its "
+        found.append(f"the shank is held at {_held_angle(trial, held):.1f}° until time_s = "
+                     f"{seconds_text(trial.time_s[held])} and then swings: a pendulum test recorded from before its "
                      "release, whose lift and hold no pendulum model describes; exclude the samples before the release "
                      "(or cut them with start_s)")
     if angle[0] < -RELEASE_FLEXION_DEG and not trial.exclude[0]:  # a release excluded leaves the swing under way
@@ -1650,7 +1649,7 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
                 if kept < 2:
                     problems.append(Problem(MANIFEST_NAME, column, e.line,
                                             f"start_s/end_s keep {kept} sample(s) of {e.file} (its time runs from "
-                                            f"{seconds_text(float(time[0]))} to {seconds_text(float(time[-1]))} s); at least 2 are needed"))
+                                            f"{seconds_text(time[0])} to {seconds_text(time[-1])} s); at least 2 are needed"))
                 elif free < 2:
                     problems.append(Problem(MANIFEST_NAME, column, e.line,
                                             f"start_s/end_s keep {kept} samples of {e.file}, of which {free} not "
@@ -1932,7 +1931,7 @@ def _warn_charge_scales(entries: Sequence[_Entry], signals_of: dict, charges: di
         (second, *_), (top, i, k) = pulses[-2], pulses[-1]
         if top > CHARGE_OUTLIER_RATIO * second:
             time = signals_of[i].get("time_s")
-            when = f" at time_s = {seconds_text(float(time[k]))}" if time is not None and time.size > k else ""
+            when = f" at time_s = {seconds_text(time[k])}" if time is not None and time.size > k else ""
             warnings.warn(f"{entries[i].file} ({name}): its largest pulse charge{when} is {top / second:.0f} times the "
                           f"leg's next largest; every pulse's level is its charge over the largest, so all the others "
                           f"fall below {second / top:.2g}: a typo in pulse_width_us or current_mA?", DataWarning,
@@ -2005,7 +2004,7 @@ class StimulationPlan:
         over = np.flatnonzero(levels > 1.0 + 1e-9)
         if over.size:
             i = int(over[0])
-            raise ValueError(f"the plan's pulse at {seconds_text(float(self.time_s[i]))} s has a charge of "
+            raise ValueError(f"the plan's pulse at {seconds_text(self.time_s[i])} s has a charge of "
                              f"{float(charge[i]):g} {scale['unit']}, above the largest in {leg}'s fitted data "
                              f"({scale['largest_charge']:g} {scale['unit']}), which the fitted recruitment does not "
                              f"reach{f' (and {over.size - 1} more)' if over.size > 1 else ''}")

@@ -66,7 +66,7 @@ def resample_trial(trial: Trial, period_s: float) -> Trial:
     long = np.flatnonzero(steps > MAX_STEP_RATIO * step)
     if long.size:
         i = int(long[0])
-        raise ValueError(f"{where}, column 'time_s': a gap of {steps[i]:.6g} s from {seconds_text(float(time[i]))} s to "
+        raise ValueError(f"{where}, column 'time_s': a gap of {steps[i]:.6g} s from {seconds_text(time[i])} s to "
                          f"{float(time[i + 1])!r} s, more than {MAX_STEP_RATIO:g} times the median step {step:.6g} s: "
                          "samples are missing there, and resampling would invent them")
     grid = time[0] + period_s * np.arange(int(np.floor((time[-1] - time[0]) / period_s + 1e-9)) + 1)
@@ -84,8 +84,9 @@ def resample_trial(trial: Trial, period_s: float) -> Trial:
     clash = np.flatnonzero(np.diff(slots) == 0)
     if clash.size:
         i = int(clash[0])
-        raise ValueError(f"{where}: the pulses at {seconds_text(float(time[pulses[i]]))} s and {seconds_text(float(time[pulses[i + 1]]))} s fall on one sample "
-                         f"of the new period {period_s:g} s; resample to a shorter period")
+        raise ValueError(f"{where}: the pulses at {seconds_text(time[pulses[i]])} s and "
+                         f"{seconds_text(time[pulses[i + 1]])} s fall on one sample of the new period {period_s:g} s; "
+                         "resample to a shorter period")
     stimulation = np.zeros(grid.size)
     stimulation[slots] = trial.stimulation[pulses]
     exclude = np.zeros(grid.size, bool)
