@@ -352,8 +352,9 @@ def cmd_convert(args) -> int:
     if args.resample is not None and not args.resample > 0:
         raise ValueError(f"--resample {args.resample:g}: the new sampling period must be positive (in seconds)")
     dst = convert(args.src, args.dst, overwrite=args.overwrite or Path(args.dst).suffix.lower() != ".nc",
-                  resample_s=args.resample)
-    _say(args, f"converted {args.src} -> {dst}" + (f", resampled to {args.resample * 1000:g} ms" if args.resample else ""))
+                  resample_s=args.resample, repair_artefacts=args.repair_artefacts)
+    _say(args, f"converted {args.src} -> {dst}" + (f", resampled to {args.resample * 1000:g} ms" if args.resample else "")
+         + (", stimulation artefacts repaired where found" if args.repair_artefacts else ""))
     return 0
 
 
@@ -824,6 +825,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("dst")
     c.add_argument("--resample", type=float, default=None, metavar="PERIOD_S",
                    help="resample every trial to this period [s] (anti-aliased; irregular time stamps allowed)")
+    c.add_argument("--repair-artefacts", action="store_true",
+                   help="replace the samples a stimulation artefact holds at each pulse (found as the reader warns) "
+                        "by a straight line between their neighbours")
     c.set_defaults(func=cmd_convert)
 
     i = sub.add_parser("identify", help="classical identification as the paper (Tables I-IV)")

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..common._io import file_stems, save_figure
 from ..common._results import Result
+from ..data._artefacts import stimulation_artefacts
 from ..data._cohort import Cohort, Trial
 from ..data._interchange import (DataWarning, angle_doubts, charge_scales, check_cohort, kept_warnings, load_cohort,
                                  pendulum_release, signal_doubts, twitch_direction)
@@ -213,11 +214,14 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
         zeroed = {(leg, t.trial) for t in used if doubts[leg, t.trial]} | offset
         mismatched = {(leg, t.trial) for t in used if signal_doubts(t)}
         held = {(leg, t.trial) for t in used if pendulum_release(t)}
+        jumping = {(leg, t.trial) for t in used if stimulation_artefacts(t)}
         for signal, what, which in (
                 ("angle", "looks zeroed elsewhere or signed otherwise", zeroed), ("angle", "looks like radians", radians),
                 ("angle", "has quiet samples the passive model describes poorly (activity between the twitches?)", poor),
                 ("angle", "holds the lift and the hold before the pendulum's release", held),
-                ("measured acceleration or velocity", "does not match the angle's derivatives", mismatched)):
+                ("measured acceleration or velocity", "does not match the angle's derivatives", mismatched),
+                ("recording", "jumps at the pulses' own samples (a stimulation artefact, or pulses logged late)",
+                 jumping)):
             named = [t.trial for t in used if (leg, t.trial) in which]
             if named:
                 uses["identify"] += (f"; but the {signal} of trial{'s' if len(named) > 1 else ''} "

@@ -13,6 +13,7 @@ from ._cohort import (
     derive_velocity,
     leg_key,
 )
+from ._artefacts import repair_stimulation_artefacts, stimulation_artefacts
 from ._interchange import (
     DEFAULT_SAMPLING_PERIOD_S,
     DataWarning,
@@ -63,6 +64,7 @@ __all__ = [
     "Cohort", "Trial", "derive_velocity", "derive_acceleration", "leg_key", "VELOCITY_WINDOW", "ACCELERATION_WINDOW_S",
     "InterchangeError", "Problem", "DataWarning", "plausibility", "check_cohort", "read_interchange", "read_netcdf", "write_interchange", "load_cohort", "convert",
     "parse_number", "trim", "read_stimulation_plan", "read_plan", "StimulationPlan", "charge_scales", "resample_trial", "resample_cohort",
+    "stimulation_artefacts", "repair_stimulation_artefacts",
     "MANIFEST_NAME", "DEFAULT_SAMPLING_PERIOD_S",
     "EFFECTS", "PASSIVE_TRUTH", "default_truth", "simulate_cohort", "simulate_pendulum_test", "simulate_response", "stimulation_sequence",
     "write_truth",

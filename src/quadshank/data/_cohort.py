@@ -48,6 +48,10 @@ SAME_PERIOD_REL = 1e-6
 _SIGNALS = ("time_s", "angle_deg", "velocity_deg_s", "acceleration_deg_s2", "stimulation")
 
 
+class DataWarning(UserWarning):
+    """Recordings that pass the rules but look implausible: a unit or a sign that seems off."""
+
+
 def seconds_text(t: float) -> str:
     """A time [s] for a message: rounded to the nanosecond, so that 1.15 is not 1.1500000000000001."""
     return repr(round(float(t), 9))

@@ -119,9 +119,10 @@ from scipy.signal import medfilt, savgol_filter
 
 from ..common._arrays import is_whole_number, stretches
 from ..common._io import file_stem, temp_sibling
-from ._cohort import (ANGLE_LIMIT_DEG, MAX_SAMPLING_PERIOD_S, MISSING_MARKERS, Cohort, Trial, derive_acceleration,
-                      fingerprint_problem, is_checked, leg_key, mark_checked, quiet_mask,
+from ._cohort import (ANGLE_LIMIT_DEG, MAX_SAMPLING_PERIOD_S, MISSING_MARKERS, Cohort, DataWarning, Trial,
+                      derive_acceleration, fingerprint_problem, is_checked, leg_key, mark_checked, quiet_mask,
                       seconds_text)
+from ._artefacts import artefact_texts, repair_stimulation_artefacts
 from ._paper import TWITCH_REACH_S
 from ._resample import resample_cohort, resample_trial
 
@@ -256,10 +257,6 @@ def _report_cells(
 
 
 # --------------------------------------------------------------------------- plausibility
-class DataWarning(UserWarning):
-    """Recordings that pass the rules but look implausible: a unit or a sign that seems off."""
-
-
 @contextlib.contextmanager
 def kept_warnings():
     """Record the warnings issued inside (every :class:`DataWarning`, even one said before) and issue
@@ -323,8 +320,8 @@ def plausibility(trial: Trial) -> list[str]:
         return glitches
     stimulated = bool(np.any(trial.stimulation > 0))
     found = glitches + _markers(trial) + _faint_pulses(trial) + pulse_runs(trial) \
-        + (_rest_plausibility(trial) + twitch_direction(trial) + _unmoved_pulses(trial) if stimulated
-           else _pendulum_plausibility(trial))
+        + (_rest_plausibility(trial) + twitch_direction(trial) + _unmoved_pulses(trial) + artefact_texts(trial)
+           if stimulated else _pendulum_plausibility(trial))
     kept = ~trial.exclude  # an excluded artefact is not evidence of a wrong unit or sign
     if np.count_nonzero(kept) < 3 * window:
         return found
@@ -2376,7 +2373,7 @@ def load_cohort(path: str | os.PathLike) -> Cohort:
 
 
 def convert(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: bool = False,
-            resample_s: float | None = None) -> Path:
+            resample_s: float | None = None, repair_artefacts: bool = False) -> Path:
     """Convert between the two forms, losslessly (unless resampled); returns ``dst``.
 
     An interchange folder becomes a NetCDF file (``dst`` must end in ``.nc``);
@@ -2385,7 +2382,9 @@ def convert(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: bool =
     existing ``dst`` (a file, or a folder that is not empty) is refused unless
     ``overwrite`` (see :func:`write_interchange` for what that replaces).
     ``resample_s``: every trial resampled to that period on the way
-    (:func:`~quadshank.data._resample.resample_trial`).
+    (:func:`~quadshank.data._resample.resample_trial`).  ``repair_artefacts``: stimulation
+    artefacts replaced by a straight line first
+    (:func:`~quadshank.data._artefacts.repair_stimulation_artefacts`).
     """
     src, dst = Path(src), Path(dst)
     if src.is_file() and src.name == MANIFEST_NAME:  # the folder named by its manifest, as load_cohort takes it
@@ -2404,11 +2403,16 @@ def convert(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: bool =
         above = next((p for p in dst.parents if p.exists()), None)
         if above is not None and not above.is_dir():
             raise NotADirectoryError(f"{dst}: {above} is a file, not a folder")
-        return read_interchange(src, resample_s=resample_s).save_netcdf(dst)
+        if not repair_artefacts:
+            return read_interchange(src, resample_s=resample_s).save_netcdf(dst)
+        cohort = repair_stimulation_artefacts(read_interchange(src))
+        return (cohort if resample_s is None else resample_cohort(cohort, resample_s)).save_netcdf(dst)
     if src.is_file() and _is_netcdf_name(src):
         if _is_netcdf_name(dst):
             raise ValueError(f"{dst}: a NetCDF file converts to an interchange folder; give a folder name, not .nc")
         cohort = read_netcdf(src)
+        if repair_artefacts:
+            cohort = repair_stimulation_artefacts(cohort)
         return write_interchange(cohort if resample_s is None else resample_cohort(cohort, resample_s), dst,
                                  overwrite=overwrite)
     if not src.exists():

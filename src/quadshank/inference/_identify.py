@@ -115,6 +115,10 @@ POOR_SWING_SHARE = 0.3
 PASSIVE_GRAVITY_REL_SE = 0.1
 
 
+#: An identified delay [s] shorter than this is no muscle's (an electrically stimulated quadriceps'
+#: is 20-50 ms): a twitch that seems to begin at its pulse is warned of.
+SHORTEST_MUSCLE_DELAY_S = 0.015
+
 #: Shortest longest-delay [s] the delays considered (0 … MAX_DELAY samples) should reach: the
 #: paper's delays were 40–50 ms.
 SHORTEST_DELAY_RANGE_S = 0.06
@@ -733,7 +737,16 @@ def identify_leg(trial: Trial, passive: dict | None = None) -> LegIdentification
             f"{where}: the delay comes out at {MAX_DELAY} samples ({MAX_DELAY * dt * 1000:g} ms), the longest considered: "
             "model 2's residual is lowest at the edge of the scan, and the muscle's delay may be longer"
             + (" (resampled to 10 ms, `quadshank convert DATA data.nc --resample 0.01`, the delays considered reach "
-               "100 ms)" if dt < SAMPLING_PERIOD_S * (1 - 1e-6) else ""), DataWarning, stacklevel=3)
+               "100 ms)" if dt < SAMPLING_PERIOD_S * (1 - 1e-6) else "")
+            + ("; or the noise of an acceleration derived from the angle (no accelerometer) hides the twitch's onset"
+               if not trial.acceleration_measured else ""), DataWarning, stacklevel=3)
+    elif d * dt < SHORTEST_MUSCLE_DELAY_S:
+        warnings.warn(
+            f"{where}: the delay comes out at {d} sample{'s' if d != 1 else ''} ({d * dt * 1000:g} ms), shorter than a "
+            "stimulated muscle's (20-50 ms; the paper's 40-50 ms): the twitch seems to begin at its pulse. A stimulation "
+            "artefact on the pulses' samples (the reader names one where it finds it: `quadshank check`), or pulses "
+            "logged later than they were delivered? The gains come out wrong with such a delay", DataWarning,
+            stacklevel=3)
     a, b, c, _ = fits[d]
 
     # integrated twitch responses (per unit recruitment)
