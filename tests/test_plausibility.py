@@ -3,6 +3,8 @@ that ties a fit to its data."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -231,3 +233,42 @@ def test_a_time_in_a_message_is_written_as_the_recording_has_it():
     angle[115] = 1e6
     found = [f for f in plausibility(t.replace(angle_deg=angle)) if "jumps by" in f]
     assert found and "time_s = 1.15," in found[0], found
+
+
+@pytest.fixture(scope="module")
+def stimulated():
+    from quadshank.data import simulate_cohort
+
+    cohort, _ = simulate_cohort(legs=["JM-left"], minutes=1.0, seed=3, trials=[1])
+    return cohort.trials[0]
+
+
+def test_an_accelerometer_off_in_scale_lag_or_sensing_gravity_is_named(stimulated):
+    """An accelerometer 20 % off in scale, filtered by its amplifier (a causal 15 Hz low-pass), one
+    that also senses gravity's projection, and an angle sensor that lags (10 Hz): each shifts the
+    identified values by 20-100 % while agreeing with the angle well enough for the units' check.
+    Each is named; the recording as simulated draws none of these."""
+    from scipy.signal import butter, lfilter
+
+    from quadshank.data._interchange import signal_doubts
+
+    t = stimulated
+    assert signal_doubts(t) == []
+    acc = t.acceleration_deg_s2
+    b, a = butter(2, 15.0, fs=1 / DT)
+    cases = {
+        "scale": (t.replace(acceleration_deg_s2=1.2 * acc), r"is 1\.2\d? times the size of the angle's second "
+                                                            r"derivative: is its scale off"),
+        "amplifier": (t.replace(acceleration_deg_s2=lfilter(b, a, acc)), r"lags the angle's second derivative by "
+                                                                         r"(\d+\.?\d*) ms: a filter in its amplifier"),
+        "gravity": (t.replace(acceleration_deg_s2=acc + 1900 * np.sin(np.deg2rad(t.angle_deg))),
+                    r"holds about \+1\.\d+e\+03·sin\(angle\) deg/s² besides the angle's second derivative"),
+        "slow angle": (Trial.from_signals("JM", "left", 1, DT, lfilter(*butter(2, 10.0, fs=1 / DT), t.angle_deg), acc,
+                                          t.stimulation), r"leads the angle's second derivative by (\d+\.?\d*) ms"),
+    }
+    for name, (trial, pattern) in cases.items():
+        said = [d for d in signal_doubts(trial) if re.search(pattern, d)]
+        assert len(said) == 1, (name, signal_doubts(trial))
+        if (m := re.search(pattern, said[0])) and m.groups():
+            assert 5.0 < float(m.group(1)) < 25.0, (name, said)
+        assert said[0] in plausibility(trial)

@@ -122,7 +122,7 @@ from ..common._io import file_stem, temp_sibling
 from ._cohort import (ANGLE_LIMIT_DEG, MAX_SAMPLING_PERIOD_S, MISSING_MARKERS, Cohort, DataWarning, Trial,
                       derive_acceleration, fingerprint_problem, is_checked, leg_key, mark_checked, quiet_mask,
                       seconds_text)
-from ._artefacts import artefact_texts, repair_stimulation_artefacts
+from ._artefacts import artefact_texts, repair_stimulation_artefacts, stimulation_artefacts
 from ._paper import TWITCH_REACH_S
 from ._resample import resample_cohort, resample_trial
 
@@ -280,6 +280,23 @@ PLAUSIBILITY_WINDOW_S = 0.1
 PLAUSIBLE_RATIO = (0.5, 2.0)
 #: Correlations (measured derivative against the angle's) below which a warning says they disagree.
 PLAUSIBLE_CORRELATION = 0.5
+#: A measured derivative whose size ratio to the angle's own lies outside this range, though
+#: within :data:`PLAUSIBLE_RATIO`, gets a warning of a scale off (an accelerometer's distance from
+#: the knee or its gain): the ratio is 0.99-1.03 on the simulated cohort at 1-20 ms (an
+#: accelerometer that rings included), its pendulum tests and the other simulator's, and a scale off
+#: by 20 % scales D', G' and G'2 with it.
+SCALE_RATIO = (0.9, 1.1)
+#: A measured derivative that lags (or leads) the angle's own by more than this [s] gets a warning:
+#: within 0.5 ms on the simulated cohort at 1-20 ms, its pendulum tests and the other simulator's
+#: recordings; an accelerometer's amplifier filtering at 15 Hz lags by 10-12 ms and makes D' 35-44 %
+#: too small, and an angle sensor filtering at 10 Hz leads it by 14-16 ms.
+PLAUSIBLE_LAG_S = 0.005
+#: A measured acceleration of a trial with pulses holding more than this [deg/s²] times sin φ
+#: besides the angle's second derivative senses gravity's projection (about g/r, 1900 deg/s² at
+#: 30 cm from the knee, which doubles G' or takes it to 0); within ±160 on the simulated cohort at
+#: 1-20 ms (an accelerometer that rings included), ±190 on the other simulator's.  A pendulum
+#: test's acceleration is itself nearly G'·sin φ, and is not judged so.
+GRAVITY_SHARE_DEG_S2 = 500.0
 #: A trial without pulses whose last second moves less than this [deg] has come to rest ...
 STILL_RANGE_DEG = 2.0
 #: ... and one resting further than this [deg] from angle 0 (the shank at rest) gets a warning.
@@ -348,12 +365,36 @@ def signal_doubts(trial: Trial) -> list[str]:
                      "moves: a placeholder for a signal that was not recorded? Leave the column out and the reader "
                      "derives it from the angle")
     checks = [c for c in checks if c not in constant]
+    spiked = stimulation_artefacts(trial) if np.any(trial.stimulation > 0) else {}
     for column, order, unit in checks:
+        if column in spiked or "angle_deg" in spiked:  # named as an artefact, which says nothing of units or signs
+            continue
         agreement = _agreement(trial.angle_deg, getattr(trial, column), order, dt, kept)
         if agreement is None:
             continue
         corr, ratio = agreement
         what = "second derivative" if order == 2 else "derivative"
+        if order == 2 and corr > 0 and np.any(trial.stimulation > 0) \
+                and abs(share := _gravity_share(trial, kept) or 0.0) > GRAVITY_SHARE_DEG_S2:
+            found.append(f"{column} holds about {share:+.3g}·sin(angle) deg/s² besides the angle's {what}: an "
+                         "accelerometer that senses gravity's projection as well as the shank's turning (a single "
+                         "accelerometer on the shank does)? Subtract it (or record as the paper did, with two "
+                         "accelerometers); left in, it adds to or cancels G'")
+            continue
+        if corr > PLAUSIBLE_CORRELATION and PLAUSIBLE_RATIO[0] <= ratio <= PLAUSIBLE_RATIO[1]:
+            lag = _lag_s(trial.angle_deg, getattr(trial, column), order, dt, kept)
+            if lag is not None and abs(lag) > PLAUSIBLE_LAG_S:
+                found.append(
+                    f"{column} {'lags' if lag > 0 else 'leads'} the angle's {what} by {abs(lag) * 1000:.3g} ms: "
+                    + ("a filter in its amplifier, or the channels logged at different instants? " if lag > 0 else
+                       "a filtered or slow angle sensor, or the channels logged at different instants? ")
+                    + "Left so, the damping and the velocity's effects come out wrong")
+            elif not SCALE_RATIO[0] <= ratio <= SCALE_RATIO[1]:
+                found.append(f"{column} is {ratio:.3g} times the size of the angle's {what}: is its scale off (an "
+                             "accelerometer's distance from the knee, a gain)? The passive and active values come "
+                             "out scaled with it" if order == 2 else
+                             f"{column} is {ratio:.3g} times the size of the angle's {what}: is its scale off?")
+            continue
         if corr < -PLAUSIBLE_CORRELATION:
             found.append(f"{column} runs against the angle's {what} (correlation {corr:.2f}): is the sign of one "
                          "of them flipped? (positive angle = extension)")
@@ -1245,23 +1286,61 @@ def _smoothing_window(dt: float) -> int:
     return max(7, int(round(PLAUSIBILITY_WINDOW_S / dt)) | 1)
 
 
-def _agreement(angle: np.ndarray, measured: np.ndarray, order: int, dt: float, kept=None) -> tuple[float, float] | None:
-    """The correlation and the size ratio (standard deviations, measured over derived) of a
-    measured signal with the angle's ``order``-th derivative, both smoothed by the same
-    Savitzky–Golay filter of :data:`PLAUSIBILITY_WINDOW_S`, on the samples ``kept``; None where
-    either is flat."""
+def _smoothed_pairs(angle: np.ndarray, measured: np.ndarray, order: int, dt: float, kept=None):
+    """The angle's ``order``-th derivative, the measured signal and the angle, each smoothed by the
+    same Savitzky–Golay filter of :data:`PLAUSIBILITY_WINDOW_S`, stretch by stretch of the samples
+    ``kept`` (so that an excluded artefact does not reach the samples beside it through the
+    filter's window): a list of ``(derived, measured, angle)`` per stretch."""
     window = _smoothing_window(dt)
     kept = np.ones(angle.size, bool) if kept is None else np.asarray(kept, bool)
-    # stretch by stretch of kept samples, so that an excluded artefact does not reach the samples
-    # beside it through the filter's window
-    pieces = [(savgol_filter(angle[a:b], window, 3, deriv=order, delta=dt), savgol_filter(measured[a:b], window, 3))
-              for a, b in stretches(kept) if b - a >= window]
+    return [(savgol_filter(angle[a:b], window, 3, deriv=order, delta=dt), savgol_filter(measured[a:b], window, 3),
+             savgol_filter(angle[a:b], window, 3)) for a, b in stretches(kept) if b - a >= window]
+
+
+def _agreement(angle: np.ndarray, measured: np.ndarray, order: int, dt: float, kept=None) -> tuple[float, float] | None:
+    """The correlation and the size ratio (standard deviations, measured over derived) of a
+    measured signal with the angle's ``order``-th derivative, both smoothed alike
+    (:func:`_smoothed_pairs`), on the samples ``kept``; None where either is flat."""
+    pieces = _smoothed_pairs(angle, measured, order, dt, kept)
     if not pieces:
         return None
-    derived, smooth = (np.concatenate(x) for x in zip(*pieces))
+    derived, smooth, _ = (np.concatenate(x) for x in zip(*pieces))
     if np.std(derived) == 0 or np.std(smooth) == 0:
         return None
     return float(np.corrcoef(smooth, derived)[0, 1]), float(np.std(smooth) / np.std(derived))
+
+
+def _lag_s(angle: np.ndarray, measured: np.ndarray, order: int, dt: float, kept=None) -> float | None:
+    """How long [s] a measured signal lags the angle's ``order``-th derivative (negative: leads),
+    both smoothed alike: a signal late by τ is about ``d(t) − τ·ḋ(t)``, so τ is minus the ratio of
+    the coefficients of ḋ and d in the least squares of the measured signal on both (and a
+    constant), stretch by stretch, the filter's edges left out.  Unlike the peak of a
+    cross-correlation it is not pulled by a swing that decays.  None where no stretch is long
+    enough."""
+    half = _smoothing_window(dt) // 2
+    rows = []
+    for d, m, _ in _smoothed_pairs(angle, measured, order, dt, kept):
+        if d.size > 4 * half + 2:
+            inner = slice(half, d.size - half)
+            rows.append((d[inner], np.gradient(d, dt)[inner], m[inner]))
+    if not rows:
+        return None
+    d, rate, m = (np.concatenate(x) for x in zip(*rows))
+    coef, *_ = np.linalg.lstsq(np.column_stack([d, rate, np.ones_like(d)]), m, rcond=None)
+    return float(-coef[1] / coef[0]) if coef[0] > 0 else None
+
+
+def _gravity_share(trial: Trial, kept) -> float | None:
+    """The coefficient [deg/s²] of sin φ in a measured acceleration besides the angle's second
+    derivative (least squares of the smoothed acceleration on the derivative, sin φ and a
+    constant): what a single accelerometer that also senses gravity's projection adds."""
+    pieces = _smoothed_pairs(trial.angle_deg, trial.acceleration_deg_s2, 2, trial.sampling_period_s, kept)
+    if not pieces:
+        return None
+    derived, smooth, angle = (np.concatenate(x) for x in zip(*pieces))
+    X = np.column_stack([derived, np.sin(np.deg2rad(angle)), np.ones_like(derived)])
+    coef, *_ = np.linalg.lstsq(X, smooth, rcond=None)
+    return float(coef[1])
 
 
 def _same_units(angle: np.ndarray, acceleration: np.ndarray | None, time: np.ndarray | None, kept=None) -> bool:
