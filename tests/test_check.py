@@ -183,6 +183,22 @@ def test_a_period_too_short_for_the_delays_considered_is_said():
     assert result.trials[0]["sampling_period_ms"] == pytest.approx(5.0)
 
 
+def test_pendulum_tests_at_a_short_period_are_not_told_to_be_resampled():
+    """Pendulum tests alone are modelled at any period: no word of the delays considered."""
+    import warnings
+
+    from quadshank.data import simulate_pendulum_test
+    from quadshank.data._simulate import PASSIVE_TRUTH
+    from quadshank.inference import identify_cohort
+
+    pendulum = Cohort((simulate_pendulum_test(PASSIVE_TRUTH["TN-left"], subject="TN", sampling_period_s=0.005),))
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        run_check(pendulum)
+        identify_cohort(pendulum)
+    assert not [w for w in said if "delays considered" in str(w.message)], [str(w.message) for w in said]
+
+
 def test_a_period_too_short_for_a_muscles_delays_is_each_legs_verdict():
     """Below 3 ms identify and a muscle's fit refuse stimulated data: check says so per leg, not "models 1-3"."""
     cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.5, seed=1, trials=(1,), sampling_period_s=0.002)

@@ -75,6 +75,7 @@ def test_identify_and_evaluate_a_cohort_of_pendulum_tests(tmp_path, capsys):
     assert main(["identify", str(data), "--out", str(tmp_path / "id")]) == 0
     err = capsys.readouterr().err
     assert "PT-left: passive system only, from trial(s) 1, 2" in err
+    assert f"tables and summary.json in {tmp_path / 'id'}" in err and not (tmp_path / "id" / "figures").exists()
     s = json.loads((tmp_path / "id" / "summary.json").read_text())["legs"]
     assert s["PT-left"]["passive_only"] and s["QT-left"]["passive_trials"] == [1]
     assert "(no rows)" in (tmp_path / "id" / "tables" / "table1.md").read_text()

@@ -370,7 +370,8 @@ def cmd_identify(args) -> int:
                      f"; passive system from trial(s) {', '.join(map(str, s['passive_trials']))} (no pulses)"
                      if s.get("passive_trials") else "")
                  for leg, s in summary.legs.items()))
-    _say(args, f"tables, figures and summary.json in {args.out}")
+    muscle = any(not s.get("passive_only") for s in summary.legs.values())  # the figures are of twitches
+    _say(args, f"tables, {'figures ' if muscle else ''}and summary.json in {args.out}".replace("tables, and", "tables and"))
     return 0
 
 

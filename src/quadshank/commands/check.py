@@ -170,7 +170,8 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
             warnings.warn(f"{mixed}; every other command refuses these data as they are", DataWarning, stacklevel=2)
         else:
             mixed = None
-            check_delay_range(period)  # what fit and identify would warn of at this period
+            # what fit and identify would warn of at this period (pendulum tests alone are modelled at any)
+            check_delay_range(period, warn=any(np.any(t.stimulation > 0) for t in cohort))
         # (leg, trial) whose quiet samples swing about an angle away from 0, as identify warns where it takes
         # the passive system from them (a leg without pendulum tests, at a period it identifies)
         offset, poor, radians = set(), set(), set()

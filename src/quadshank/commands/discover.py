@@ -73,7 +73,8 @@ def run_discover(
     if int(max_rounds) < 1:
         raise ValueError(f"--max-rounds must be at least 1, not {max_rounds}")
     current = build_model(model, sampling_period_s=cohort.sampling_period_s) if isinstance(model, str) else model
-    check_delay_range(cohort.sampling_period_s, muscle=current.activation.name != "no_muscle")
+    check_delay_range(cohort.sampling_period_s, muscle=current.activation.name != "no_muscle",
+                      warn=current.activation.name != "no_muscle")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     fits, nuts_folder = {}, None

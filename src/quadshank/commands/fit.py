@@ -89,7 +89,8 @@ def run_fit(
     settings = settings or FitSettings()
     out = Path(out)
     m = build_model(model, add_effects, sampling_period_s=cohort.sampling_period_s)
-    check_delay_range(cohort.sampling_period_s, muscle=m.activation.name != "no_muscle")
+    check_delay_range(cohort.sampling_period_s, muscle=m.activation.name != "no_muscle",
+                      warn=m.activation.name != "no_muscle")  # the pendulum alone is modelled at any period
     objective = resolve_objective(m, settings.likelihood)  # refuse the angle for a muscle before anything is written
     chosen_legs(cohort, legs, settings.trials)  # and legs or trials the data lack
     if progress and objective == "angle" and m.activation.name != "no_muscle":

@@ -405,7 +405,7 @@ class Cohort:
             where = ", ".join(f"{t.key} trial {t.trial}" + (f" ({t.source})" if t.source.lower().endswith(".csv") else "")
                               + f": {t.sampling_period_s * 1000:g} ms" for t in self.trials)
             raise ValueError(f"the trials are sampled at different periods ({where}); one model runs at one period: "
-                             "`quadshank convert DATA OUT --resample PERIOD_S` puts every trial on one")
+                             "`quadshank convert DATA OUT.nc --resample PERIOD_S` puts every trial on one")
         return periods[0]
 
     def trials_of(self, leg: str) -> tuple[Trial, ...]:

@@ -1178,7 +1178,7 @@ def _check_signals(
                         Problem(file, "time_s", int(lines[i + 1]),
                                 f"non-uniform sampling: step {step[i]:.6g} s from the previous row differs "
                                 f"from the median step {median:.6g} s by more than {UNIFORM_TOLERANCE:.0%} "
-                                "(irregular time stamps? `quadshank convert FOLDER OUT --resample PERIOD_S` puts "
+                                "(irregular time stamps? `quadshank convert FOLDER OUT.nc --resample PERIOD_S` puts "
                                 "them on a uniform grid)")
                     )
                 if sampling_period_s is not None and not math.isclose(
@@ -2112,7 +2112,7 @@ def read_plan(path: str | os.PathLike, sampling_period_s: float) -> StimulationP
         _check_signals(path.name, table.lines, signals, sampling_period_s, "(the fitted model's period)", problems)
     # a plan is written, not recorded: it is put on the fit's grid by whoever writes it, not by convert
     problems = [dataclasses.replace(p, message=p.message.replace(
-        "(irregular time stamps? `quadshank convert FOLDER OUT --resample PERIOD_S` puts them on a uniform grid)",
+        "(irregular time stamps? `quadshank convert FOLDER OUT.nc --resample PERIOD_S` puts them on a uniform grid)",
         f"(a plan gives each pulse at a sample of the fit's grid: time_s every {sampling_period_s:g} s)"))
         for p in problems]
     if problems:

@@ -476,7 +476,7 @@ def _passive_equation_error(trials, gravity_offset: bool = False, warn: bool = T
         high = quiet.size >= MIN_PASSIVE_SAMPLES and np.count_nonzero(quiet > PASSIVE_MAX_ANGLE_DEG) > quiet.size / 2
         raise IdentificationError(
             f"{where}: only {angle.size} quiet samples (no pulse in the preceding "
-            f"{quiet_samples(trials[0].sampling_period_s)}, knee at "
+            f"{quiet_samples(trials[0].sampling_period_s)} samples, knee at "
             f"most {PASSIVE_MAX_ANGLE_DEG:g}° extended); the passive system needs at least {MIN_PASSIVE_SAMPLES}, "
             "stretches without "
             "stimulation"
@@ -844,7 +844,8 @@ def identify_cohort(
     if passive_objective not in PASSIVE_OBJECTIVES + ("auto",):
         raise ValueError(f"unknown passive objective {passive_objective!r}; use auto, acceleration or angle")
     check_cohort(cohort)  # a cohort built in Python meets the rules a file's does
-    check_delay_range(cohort.sampling_period_s, muscle=any(np.any(t.stimulation > 0) for t in cohort))
+    muscle = any(np.any(t.stimulation > 0) for t in cohort)  # pendulum tests alone are modelled at any period
+    check_delay_range(cohort.sampling_period_s, muscle=muscle, warn=muscle)
     out: dict = {}
     for leg in progress_bar(cohort.legs, desc="identify", enabled=progress):
         chosen = cohort.get(leg, trial)
