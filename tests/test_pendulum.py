@@ -480,3 +480,31 @@ def test_a_free_swing_is_not_taken_for_a_hold():
     # held for a tenth of a second: too short to tell from the turn at the top of a swing, and left as it is
     held = _recorded_from_before_the_release(simulate_pendulum_test(PASSIVE, hand=False, seed=3), held_s=0.1)
     assert pendulum_release(held) == 0
+
+
+def test_a_glitch_in_a_pendulum_test_does_not_bend_the_swing(tmp_path):
+    """A one-sample spike of 25° (2500 deg/s away and back) had taken the free swing's G' to 0.  Read
+    from a folder it is excluded as a glitch; built in Python and left in, the free-run fit leaves
+    it out and says so; excluded by hand, the velocity a free run starts from is derived across it
+    by a straight line (derived through it, D' had come out 65 % too large)."""
+    from quadshank.data import load_cohort
+
+    t = simulate_pendulum_test(PASSIVE, seed=0)
+    spiked = t.angle_deg.copy()
+    spiked[300] += 25.0
+    left_in = t.replace(angle_deg=spiked)
+    with pytest.warns(DataWarning, match=r"PT-left trial 1 .*: 1 of the \d+ samples of the free swing left out of "
+                                         r"the passive fit: .* \(the largest at t = 3\.00 s\)\. A sensor's spike\?"):
+        r = identify_cohort(Cohort((left_in,)))["PT-left"]
+    _assert_passive_recovered(r.passive, PASSIVE, t.angle_deg)
+    exclude = np.zeros(t.n_samples, bool)
+    exclude[300] = True
+    by_hand = Trial.from_signals("PT", "left", 1, DT, spiked, t.acceleration_deg_s2, t.stimulation, exclude=exclude)
+    assert abs(by_hand.velocity_deg_s[301] - t.velocity_deg_s[301]) < 5.0  # derived across the glitch
+    _assert_passive_recovered(identify_cohort(Cohort((by_hand,)))["PT-left"].passive, PASSIVE, t.angle_deg)
+    write_interchange(Cohort((left_in,)), tmp_path / "pt")
+    with pytest.warns(DataWarning, match=r"angle_deg jumps by \+2\d\.\d+° and back at time_s = 3\.0, .*a sensor "
+                                         r"glitch, excluded"):
+        read = load_cohort(tmp_path / "pt")
+    assert read.trials[0].exclude[300] and read.trials[0].exclude.sum() == 1
+    _assert_passive_recovered(identify_cohort(read)["PT-left"].passive, PASSIVE, t.angle_deg)

@@ -140,9 +140,29 @@ def quiet_mask(stimulation: np.ndarray, quiet: int) -> np.ndarray:
     return mask
 
 
+#: A run of excluded samples no longer than this [s] (a glitch, a dropout) is bridged by a straight
+#: line before a signal is derived from the angle: derived through it, the samples beside it would
+#: carry it, and a free run starting there would start from a velocity the glitch made.
+BRIDGED_EXCLUSION_S = 0.03
+
+
 def _derived_by_stretch(derive, angle: np.ndarray, dt: float, exclude) -> np.ndarray:
     """``derive(angle, dt)``, run apart on each side of the excluded samples whose angle is no
-    knee's (``exclude``: True on excluded samples, or None) and on those samples themselves."""
+    knee's (``exclude``: True on excluded samples, or None) and on those samples themselves; a
+    run of excluded samples of at most :data:`BRIDGED_EXCLUSION_S` between kept ones is bridged
+    by a straight line first."""
+    if exclude is not None and np.any(exclude):
+        exclude = np.asarray(exclude, bool)
+        short = [(a, b) for a, b in stretches(exclude)
+                 if 0 < a and b < angle.size and (b - a) * dt <= BRIDGED_EXCLUSION_S + 1e-12]
+        if short:
+            angle = np.array(angle, dtype=float)
+            for a, b in short:
+                angle[a:b] = np.interp(np.arange(a, b), [a - 1, b], [angle[a - 1], angle[b]])
+            bridged = np.zeros(angle.size, bool)
+            for a, b in short:
+                bridged[a:b] = True
+            exclude = exclude & ~bridged
     broken = np.zeros(angle.size, bool) if exclude is None else np.asarray(exclude, bool) & (
         (np.abs(angle) > ANGLE_LIMIT_DEG) | np.isin(angle, MISSING_MARKERS) | ~np.isfinite(angle))
     if not broken.any():

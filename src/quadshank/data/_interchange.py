@@ -315,9 +315,11 @@ RELEASE_HOLD_S = 0.3
 RELEASE_SWING_DEG = 10.0
 
 
-#: An angle that jumps away and back within one sample faster than this [deg/s] (a knee swings
-#: at a few hundred, kicks at about 1500) is taken for a sensor glitch.
-GLITCH_SPEED_DEG_S = 5000.0
+#: An angle that jumps away and back within one sample faster than this [deg/s] is taken for a
+#: sensor glitch.  A knee swings at a few hundred and kicks at about 1500, but it does not turn back
+#: within a sample: away and back at 1000 deg/s each is an acceleration of over 10^5 deg/s² at
+#: 10 ms, a hundred times a twitch's (a 25° spike at 10 ms, 2500 deg/s, took a pendulum's G' to 0).
+GLITCH_SPEED_DEG_S = 1000.0
 
 
 def plausibility(trial: Trial) -> list[str]:
@@ -515,18 +517,51 @@ def pulse_runs(trial: Trial) -> list[str]:
             "the samples where a pulse was delivered, 0 elsewhere"]
 
 
-def _glitches(trial: Trial) -> list[str]:
+def _glitch_indices(trial: Trial) -> np.ndarray:
     """Samples not excluded where the angle jumps away and back within one sample, faster than
-    :data:`GLITCH_SPEED_DEG_S` both ways (a sensor glitch), in words: the first, and how many."""
+    :data:`GLITCH_SPEED_DEG_S` both ways: a sensor glitch."""
     a = trial.angle_deg
     if a.size < 3:
-        return []
+        return np.zeros(0, int)
     jump = GLITCH_SPEED_DEG_S * trial.sampling_period_s
     out, back = a[1:-1] - a[:-2], a[2:] - a[1:-1]
     spike = (np.abs(out) > jump) & (np.abs(back) > jump) & (np.sign(out) != np.sign(back)) \
         & (np.abs(a[2:] - a[:-2]) < 0.5 * np.minimum(np.abs(out), np.abs(back)))
     at = np.flatnonzero(spike) + 1
-    at = at[~trial.exclude[at]]
+    return at[~trial.exclude[at]]
+
+
+def _exclude_glitches(trial: Trial, label: str) -> Trial:
+    """``trial`` with its glitches (:func:`_glitch_indices`) excluded, and the velocity and
+    acceleration derived from the angle derived again (across them by a straight line), with a
+    warning that says so; a trial without one as it is."""
+    at = _glitch_indices(trial)
+    # on a pulse's sample or the next one a stimulation artefact's: repaired rather than excluded, since
+    # an excluded sample in a twitch's window leaves the twitch out (repair_stimulation_artefacts)
+    at = at[~np.isin(at, np.concatenate([trial.pulse_indices, trial.pulse_indices + 1]))]
+    if not at.size:
+        return trial
+    exclude = trial.exclude.copy()
+    exclude[at] = True
+    i = int(at[0])
+    more = f" and {at.size - 1} more such sample{'s' if at.size > 2 else ''}" if at.size > 1 else ""
+    warnings.warn(f"{label} ({trial.key} trial {trial.trial}): angle_deg jumps by "
+                  f"{float(trial.angle_deg[i] - trial.angle_deg[i - 1]):+.4g}° and back at time_s = "
+                  f"{seconds_text(trial.time_s[i])}{more}, faster than a knee moves (over {GLITCH_SPEED_DEG_S:g} "
+                  "deg/s): a sensor glitch, excluded (a velocity or acceleration derived from the angle is derived "
+                  "across it by a straight line). Correct it in the file to keep the sample", DataWarning,
+                  stacklevel=4)
+    return Trial.from_signals(
+        trial.subject, trial.leg, trial.trial, trial.sampling_period_s, angle_deg=trial.angle_deg,
+        acceleration_deg_s2=trial.acceleration_deg_s2 if trial.acceleration_measured else None,
+        stimulation=trial.stimulation, velocity_deg_s=trial.velocity_deg_s if trial.velocity_measured else None,
+        time_s=trial.time_s, source=trial.source, exclude=exclude)
+
+
+def _glitches(trial: Trial) -> list[str]:
+    """:func:`_glitch_indices` in words: the first, and how many."""
+    a = trial.angle_deg
+    at = _glitch_indices(trial)
     if not at.size:
         return []
     i = int(at[0])
@@ -1769,6 +1804,7 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
             source=e.file,
             exclude=s["exclude"],
         )
+        whole = _exclude_glitches(whole, str(folder / e.file))
         trials.append(_exclude_before_release(trim(whole, e.start_s, e.end_s), str(folder / e.file)))
         _warn_cut_twitch(whole, e)
     if resample_s is not None:

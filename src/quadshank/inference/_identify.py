@@ -553,6 +553,13 @@ def _free_run_residuals(params, segments, dt: float):
     return jnp.concatenate(out)
 
 
+def _free_run_start(start: dict, gravity_offset: bool) -> np.ndarray:
+    """The free-run fit's parameter vector (logarithms of D', G', k1', k2, then the gravity angle)
+    at the passive parameters ``start``."""
+    x0 = np.log([max(float(start[k]), 1e-6) for k in _PASSIVE_NAMES])
+    return np.append(x0, float(start.get("gravity_angle", 0.0))) if gravity_offset else x0
+
+
 def identify_passive_free_run(trials: list[Trial] | tuple[Trial, ...], start: dict | None = None,
                               gravity_offset: bool = False) -> tuple[dict, float, int]:
     """Passive parameters (D', G', k1', k2) of trials without pulses (pendulum tests) by output
@@ -581,34 +588,43 @@ def _passive_free_run(trials, start: dict | None = None, gravity_offset: bool = 
     (:func:`_standard_errors`, of the logarithms: relative ones).
     """
     if start is None:
-        starts = [identify_passive(trials, gravity_offset=gravity_offset)[0], *_valley_starts(trials, gravity_offset)]
+        # a start only: the samples its equation error leaves out are not named as left out of this fit
+        starts = [_passive_equation_error(trials, gravity_offset=gravity_offset, warn=False)[0],
+                  *_valley_starts(trials, gravity_offset)]
     else:
         starts = [start]
     dt = trials[0].sampling_period_s
+    where = ", ".join(f"{t.key} trial {t.trial}" + (f" ({t.source})" if t.source else "") for t in trials)
     with jax.enable_x64(True):
-        segments = []
-        for t in trials:
-            for a, b in free_run_segments(t):
-                measured = jnp.asarray(t.angle_deg[a:b], jnp.float64)
-                weight = jnp.asarray(t.angle_deg[a:b] <= PASSIVE_MAX_ANGLE_DEG, jnp.float64)
-                segments.append((jnp.float64(t.angle_deg[a]), jnp.float64(t.velocity_deg_s[a]), measured, weight))
-        if not segments:
-            where = ", ".join(f"{t.key} trial {t.trial}" for t in trials)
+        pieces = [(t, a, b) for t in trials for a, b in free_run_segments(t)]
+        if not pieces:
             raise IdentificationError(f"{where}: no stretch of {FREE_RUN_MIN_S:g} s without pulses and excluded "
                                       "samples to compare a free run with")
-        resid = jax.jit(lambda p: _free_run_residuals(p, segments, dt))
-        jac = jax.jit(jax.jacfwd(lambda p: _free_run_residuals(p, segments, dt)))
-        def jacobian(p):
-            # a run that grows past what a float holds (a stiff start on a swing beyond the fitted
-            # range) has no slope there: zero, so that the trust region turns back instead of failing
-            J = np.asarray(jac(jnp.asarray(p)))
-            return np.where(np.isfinite(J), J, 0.0)
+        kept = np.concatenate([t.angle_deg[a:b] <= PASSIVE_MAX_ANGLE_DEG for t, a, b in pieces])
 
+        def fitting(kept):
+            """The residual function and its Jacobian on the samples ``kept`` (concatenated)."""
+            segments, i = [], 0
+            for t, a, b in pieces:
+                weight = jnp.asarray(kept[i:i + b - a], jnp.float64)
+                segments.append((jnp.float64(t.angle_deg[a]), jnp.float64(t.velocity_deg_s[a]),
+                                 jnp.asarray(t.angle_deg[a:b], jnp.float64), weight))
+                i += b - a
+            resid = jax.jit(lambda p: _free_run_residuals(p, segments, dt))
+            jac = jax.jit(jax.jacfwd(lambda p: _free_run_residuals(p, segments, dt)))
+
+            def jacobian(p):
+                # a run that grows past what a float holds (a stiff start on a swing beyond the fitted
+                # range) has no slope there: zero, so that the trust region turns back instead of failing
+                J = np.asarray(jac(jnp.asarray(p)))
+                return np.where(np.isfinite(J), J, 0.0)
+
+            return resid, jacobian
+
+        resid, jacobian = fitting(kept)
         fit, failed = None, []
         for s0 in starts:  # the lowest of the local minima along the valley
-            x0 = np.log([max(float(s0[k]), 1e-6) for k in _PASSIVE_NAMES])
-            if gravity_offset:
-                x0 = np.append(x0, float(s0.get("gravity_angle", 0.0)))
+            x0 = _free_run_start(s0, gravity_offset)
             if not np.all(np.isfinite(np.asarray(resid(jnp.asarray(x0))))):
                 failed.append("its free run diverges from the start")
                 continue
@@ -622,13 +638,42 @@ def _passive_free_run(trials, start: dict | None = None, gravity_offset: bool = 
             if np.isfinite(this.cost) and (fit is None or this.cost < fit.cost):
                 fit = this
         if fit is None:
-            where = ", ".join(f"{t.key} trial {t.trial}" for t in trials)
             raise IdentificationError(
                 f"{where}: the free run of the passive system diverged from every start "
                 f"({failed[0] if failed else 'no finite error'}); fit the "
                 "acceleration instead (`identify --passive-objective acceleration`), or leave out the swings beyond "
                 "the knee's range (start_s, end_s or exclude)")
-        n = int(sum(float(jnp.sum(w)) for *_, w in segments))
+        # samples far off the free run (a spike) are left out and the fit refined without them, as
+        # the equation error leaves out those far off eq. (8): least squares would bend to them
+        r = np.asarray(fit.fun)
+        sd = _robust_sd(r[kept])
+        far = kept & (np.abs(r - np.median(r[kept])) > PASSIVE_OUTLIER_SD * sd)
+        if sd > 0 and 0 < np.count_nonzero(far) <= PASSIVE_OUTLIER_MAX_SHARE * np.count_nonzero(kept):
+            resid, jacobian = fitting(kept & ~far)
+            again = None
+            for x0 in (fit.x, *[_free_run_start(s0, gravity_offset) for s0 in starts]):
+                with np.errstate(over="ignore", invalid="ignore"):
+                    try:  # from every start again: the samples left out may have held the fit in the valley
+                        this = least_squares(lambda p: np.asarray(resid(jnp.asarray(p))), x0, jac=jacobian,
+                                             method="trf", x_scale="jac")
+                    except (ValueError, np.linalg.LinAlgError):
+                        continue
+                if np.isfinite(this.cost) and (again is None or this.cost < again.cost):
+                    again = this
+            if again is not None:
+                time = np.concatenate([t.time_s[a:b] for t, a, b in pieces])
+                number = np.concatenate([np.full(b - a, t.trial) for t, a, b in pieces])
+                worst = np.flatnonzero(far)[np.argsort(-np.abs(r[far]))][:3]
+                places = ", ".join((f"trial {number[i]} " if len(trials) > 1 else "") + f"t = {time[i]:.2f} s"
+                                   for i in worst)
+                warnings.warn(
+                    f"{where}: {np.count_nonzero(far)} of the {np.count_nonzero(kept)} samples of the free swing left "
+                    f"out of the passive fit: their angle lies more than {PASSIVE_OUTLIER_SD:g} robust SDs "
+                    f"({PASSIVE_OUTLIER_SD * sd:.2g}°) from the free run's, up to {float(np.max(np.abs(r[far]))):.3g}° "
+                    f"off (the largest at {places}). A sensor's spike? Mark them in the exclude column to leave them "
+                    "out knowingly", DataWarning, stacklevel=3)
+                fit, kept = again, kept & ~far
+        n = int(np.count_nonzero(kept))
     params = dict(zip(_PASSIVE_NAMES, map(float, np.exp(fit.x[:4]))))
     if gravity_offset:
         params["gravity_angle"] = float(fit.x[4])
