@@ -432,8 +432,8 @@ def _recorded_from_before_the_release(t: Trial, held_s: float = 2.0, seed: int =
 def test_a_pendulum_test_recorded_from_before_its_release_is_read_from_the_release(tmp_path):
     """A lab's pendulum test often starts before the release: the shank at rest, lifted by hand and
     held.  No pendulum model holds the lift and the hold (the free runs start at rest and never
-    rise): the reader finds the release, excludes what comes before it and the release's 350 ms,
-    as at a recording that starts there, and says so; a trial built in Python is warned of, and
+    rise): the reader finds the release, excludes the lift, the hold and the release's 350 ms (as
+    at a recording that starts there), and says so; a trial built in Python is warned of, and
     check's verdict says its values would come out wrong."""
     from quadshank.commands import run_check
     from quadshank.data import load_cohort
@@ -444,8 +444,8 @@ def test_a_pendulum_test_recorded_from_before_its_release_is_read_from_the_relea
     start = held.n_samples - swing.n_samples  # the release
     assert abs(pendulum_release(held) - start) <= 6  # the shank leaves the hold's band within 60 ms
     # as built: warned of, and the free swing is not found
-    with pytest.warns(DataWarning, match=r"held at 60\.0° until time_s = 4\.0\d and then swings: a pendulum test "
-                                         r"recorded from before its release"):
+    with pytest.warns(DataWarning, match=r"lifted from time_s = 1\.\d+ and held at 60\.0° until time_s = 4\.0\d and then "
+                                         r"swings: a pendulum test recorded from before its release"):
         uses = run_check(Cohort((held,))).legs["PT-left"]["identify"]
     assert "holds the lift and the hold before the pendulum's release" in uses
     with pytest.warns(DataWarning):
@@ -454,10 +454,13 @@ def test_a_pendulum_test_recorded_from_before_its_release_is_read_from_the_relea
     # read from a folder: excluded up to 350 ms after the release, and the pendulum found
     write_interchange(Cohort((held,)), tmp_path / "pt")
     with pytest.warns(DataWarning, match=r"PT-left trial 1\): a pendulum test recorded from before its release: the "
-                                         r"shank is held at 60\.0° until time_s = 4\.0\d, .* 350 ms after"):
+                                         r"shank is lifted from time_s = 1\.\d+ and held at 60\.0° until time_s = 4\.0\d, "
+                                         r".* 350 ms after each release"):
         read = load_cohort(tmp_path / "pt")
     t = read.trials[0]
-    assert t.exclude[:start + 35].all() and not t.exclude[start + 41:].any()
+    # the second at rest before the lift is kept (a free run from rest stays there); from the lift on to
+    # 350 ms after the release is excluded
+    assert not t.exclude[:100].any() and t.exclude[120:start + 35].all() and not t.exclude[start + 45:].any()
     r = identify_cohort(read)["PT-left"]
     _assert_passive_recovered(r.passive, PASSIVE, swing.angle_deg)
     assert run_check(read).legs["PT-left"]["identify"] == "the passive system only (no pulses: a pendulum test)"
@@ -477,9 +480,11 @@ def test_a_free_swing_is_not_taken_for_a_hold():
                 assert pendulum_release(t) == 0, (angle0, hand, dt)
     cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.5, seed=0, trials=[1])
     assert pendulum_release(cohort.trials[0]) == 0
-    # held for a tenth of a second: too short to tell from the turn at the top of a swing, and left as it is
-    held = _recorded_from_before_the_release(simulate_pendulum_test(PASSIVE, hand=False, seed=3), held_s=0.1)
-    assert pendulum_release(held) == 0
+    # lifted from rest and let go at once (held a tenth of a second): the rise from a still rest is a
+    # lift, released at its top
+    swing = simulate_pendulum_test(PASSIVE, hand=False, seed=3)
+    held = _recorded_from_before_the_release(swing, held_s=0.1)
+    assert abs(pendulum_release(held) - (held.n_samples - swing.n_samples)) <= 6
 
 
 def test_a_glitch_in_a_pendulum_test_does_not_bend_the_swing(tmp_path):
@@ -508,3 +513,31 @@ def test_a_glitch_in_a_pendulum_test_does_not_bend_the_swing(tmp_path):
         read = load_cohort(tmp_path / "pt")
     assert read.trials[0].exclude[300] and read.trials[0].exclude.sum() == 1
     _assert_passive_recovered(identify_cohort(read)["PT-left"].passive, PASSIVE, t.angle_deg)
+
+
+def test_two_drops_and_a_trembling_hold_in_one_recording_are_each_found(tmp_path):
+    """Two lifts in one file, the second held with a tremor of ±1° at 5 Hz: each lift and hold is
+    found and excluded (the free swing between them kept), and the pendulum comes out right."""
+    from quadshank.data import load_cohort
+    from quadshank.data._interchange import pendulum_lifts
+
+    first = _recorded_from_before_the_release(simulate_pendulum_test(PASSIVE, hand=False, seed=3, seconds=6.0))
+    rng = np.random.default_rng(7)
+    lift = 50.0 * (1 - np.cos(np.linspace(0, np.pi, 100))) / 2
+    hold = 50.0 + np.sin(2 * np.pi * 5.0 * np.arange(150) * DT)
+    second = simulate_pendulum_test(PASSIVE, hand=False, seed=4, seconds=6.0, angle0=50.0)
+    pre = np.concatenate([lift, hold])
+    acc = np.gradient(np.gradient(pre, DT), DT) + rng.normal(0, 30.0, pre.size)
+    angle = np.concatenate([first.angle_deg, pre + rng.normal(0, 0.05, pre.size), second.angle_deg])
+    both = Trial.from_signals("PT", "left", 1, DT, angle,
+                              np.concatenate([first.acceleration_deg_s2, acc, second.acceleration_deg_s2]),
+                              np.zeros(angle.size))
+    lifts = pendulum_lifts(both)
+    releases = [first.n_samples - 600, first.n_samples + pre.size]  # the true releases
+    assert len(lifts) == 2 and all(abs(b - r) <= 8 for (_, b), r in zip(lifts, releases)), lifts
+    assert lifts[1][0] >= first.n_samples - 10  # the first drop's free swing before the second lift is kept
+    write_interchange(Cohort((both,)), tmp_path / "pt")
+    with pytest.warns(DataWarning, match=r"held at 60\.0° until time_s = 4\.0\d; then lifted from .* held at "
+                                         r"5\d\.\d° until .* the lifts, the holds and 350 ms after each release"):
+        read = load_cohort(tmp_path / "pt")
+    _assert_passive_recovered(identify_cohort(read)["PT-left"].passive, PASSIVE, first.angle_deg)

@@ -586,11 +586,10 @@ def _pendulum_plausibility(trial: Trial, release: bool = True) -> list[str]:
         found.append(f"the shank comes to rest at {float(np.median(tail)):.1f}° (its last second), not at 0, the "
                      "shank at rest: is angle_deg zeroed elsewhere? (the effects gravity_offset and "
                      "goniometer_offset model such an offset)")
-    held = pendulum_release(trial) if release else 0
-    if held:
-        found.append(f"the shank is held at {_held_angle(trial, held):.1f}° until time_s = "
-                     f"{seconds_text(trial.time_s[held])} and then swings: a pendulum test recorded from before its "
-                     "release, whose lift and hold no pendulum model describes; exclude the samples before the release "
+    lifts = pendulum_lifts(trial) if release else []
+    if lifts:
+        found.append(f"the shank is {_lifts_in_words(trial, lifts)} and then swings: a pendulum test recorded from "
+                     "before its release, whose lift and hold no pendulum model describes; exclude those samples "
                      "(or cut them with start_s)")
     if angle[0] < -RELEASE_FLEXION_DEG and not trial.exclude[0]:  # a release excluded leaves the swing under way
         found.append(f"the swing starts at {float(angle[0]):.1f}°, deep in flexion; a pendulum test is released "
@@ -603,35 +602,73 @@ def _pendulum_plausibility(trial: Trial, release: bool = True) -> list[str]:
     return found
 
 
-def pendulum_release(trial: Trial) -> int:
-    """Where the free swing of a pendulum test (a trial without pulses) starts, as a sample index:
-    the last sample of the shank held by hand at its extreme angle (the one furthest from where it
-    comes to rest, its last second), where it stayed within :data:`RELEASE_HOLD_SHARE` of the swing
-    for :data:`RELEASE_HOLD_S` or more; 0 where the recording starts at the release (or has pulses,
-    or no swing of :data:`RELEASE_SWING_DEG`).  Excluded samples are not judged; single-sample
-    glitches are smoothed away by a running median."""
+def pendulum_lifts(trial: Trial) -> list[tuple[int, int]]:
+    """The examiner's lifts in a pendulum test (a trial without pulses) recorded from before its
+    release(s), as ``(start, release)`` sample indices: the shank held by hand (within
+    :data:`RELEASE_HOLD_SHARE` of its distance from where it comes to rest, at least
+    :data:`RELEASE_HOLD_MIN_DEG`, over every :data:`RELEASE_HOLD_S`: a tremor or a slow sag is
+    still a hold) at least :data:`RELEASE_SWING_DEG` from rest, and before it the lift back to where
+    the shank was near rest; or, where no hold is found, a rise from a still rest straight to the
+    swing's largest extreme (released at the top).  Rest is the median of the last second.  Empty
+    where the recording starts at the release, has pulses, or no swing.  Excluded samples are not
+    judged; single-sample glitches are smoothed away by a running median."""
     if np.any(trial.stimulation > 0):
-        return 0
+        return []
     dt = trial.sampling_period_s
     kept = np.flatnonzero(~trial.exclude)
     hold = int(np.ceil(RELEASE_HOLD_S / dt))
-    if kept.size < 2 * hold + int(round(1.0 / dt)):
-        return 0
+    second = max(2, int(round(1.0 / dt)))
+    if kept.size < 2 * hold + second:
+        return []
     angle = medfilt(trial.angle_deg[kept], 5) if kept.size >= 5 else trial.angle_deg[kept]
-    rest = float(np.median(angle[-max(2, int(round(1.0 / dt))):]))
+    rest = float(np.median(angle[-second:]))
     far = np.abs(angle - rest)
-    top = int(np.argmax(far))
-    if far[top] < RELEASE_SWING_DEG:
-        return 0
-    near = np.abs(angle - angle[top]) <= max(RELEASE_HOLD_MIN_DEG, RELEASE_HOLD_SHARE * far[top])
-    first = last = top
-    while first > 0 and near[first - 1]:
-        first -= 1
-    while last + 1 < near.size and near[last + 1]:
-        last += 1
-    if last - first + 1 < hold:
-        return 0
-    return int(kept[last])
+    windows = np.lib.stride_tricks.sliding_window_view(angle, hold)
+    level = np.abs(windows.mean(axis=1) - rest)
+    still = np.ptp(windows, axis=1) <= 2 * np.maximum(RELEASE_HOLD_MIN_DEG, RELEASE_HOLD_SHARE * level)
+    whole = kept[hold - 1:] - kept[: kept.size - hold + 1] == hold - 1  # no excluded sample inside the window
+    held_from = np.flatnonzero(still & whole & (level >= RELEASE_SWING_DEG))
+    held = np.zeros(angle.size, bool)
+    for i in held_from:
+        held[i:i + hold] = True
+    lifts, after = [], 0
+    for h0, h1 in stretches(held):
+        if h1 >= angle.size - second // 2:
+            continue  # held to the end: the leg caught, not released
+        drop = float(np.max(np.abs(angle[h1:h1 + second] - np.median(angle[h0:h1]))))
+        if drop < max(RELEASE_SWING_DEG, 0.5 * float(far[h0:h1].mean())):
+            continue  # no swing follows: a slow turn, or a rest taken for elsewhere, not a release
+        begin = _lift_start(far, kept, h0, after)
+        if begin > 0 and far[h0] - far[begin] < 0.5 * far[h0]:
+            continue  # no lift before it (and not held from the recording's start): a swing slowing, not a hand
+        lifts.append((int(kept[begin]), int(kept[h1 - 1])))
+        after = h1
+    if not lifts:  # released at the top of a lift: a rise from a still rest to the largest extreme
+        top = int(np.argmax(far))
+        if far[top] >= RELEASE_SWING_DEG:
+            begin = _lift_start(far, kept, top, 0)
+            if begin >= hold and top - begin >= hold // 2 and kept[begin] - kept[begin - hold] == hold \
+                    and np.ptp(angle[begin - hold:begin]) <= 2 * RELEASE_HOLD_MIN_DEG:
+                lifts.append((int(kept[begin]), int(kept[top])))
+    return lifts
+
+
+def _lift_start(far: np.ndarray, kept: np.ndarray, at: int, after: int) -> int:
+    """Back from ``at``, the sample where a lift to it began: the distance from rest ``far`` falls
+    going back (within :data:`RELEASE_HOLD_MIN_DEG` of noise) until it is within that of rest, until
+    ``after``, or until excluded samples (``kept``: the indices of those not) interrupt it."""
+    begin = at
+    while begin > after and kept[begin] - kept[begin - 1] == 1 and far[begin - 1] > RELEASE_HOLD_MIN_DEG \
+            and far[begin - 1] <= far[begin] + RELEASE_HOLD_MIN_DEG:
+        begin -= 1
+    return begin
+
+
+def pendulum_release(trial: Trial) -> int:
+    """Where the last free swing of a pendulum test recorded from before its release starts, as a
+    sample index (the last lift's release, :func:`pendulum_lifts`); 0 where none is found."""
+    lifts = pendulum_lifts(trial)
+    return lifts[-1][1] if lifts else 0
 
 
 def _held_angle(trial: Trial, release: int) -> float:
@@ -749,22 +786,31 @@ def _unmoved_pulses(trial: Trial) -> list[str]:
             "delivered? Leave such stretches out with exclude = 1"]
 
 
+def _lifts_in_words(trial: Trial, lifts) -> str:
+    """Where and to what the shank was lifted and held before each release, in words."""
+    return "; then ".join(f"lifted from time_s = {seconds_text(trial.time_s[a])} and held at "
+                          f"{_held_angle(trial, b):.1f}° until time_s = {seconds_text(trial.time_s[b])}"
+                          for a, b in lifts)
+
+
 def _exclude_before_release(trial: Trial, label: str) -> Trial:
-    """A pendulum test recorded from before its release (:func:`pendulum_release`) with the samples
-    before the release excluded, and those of the release itself (the first
+    """A pendulum test recorded from before its release(s) (:func:`pendulum_lifts`) with each lift
+    and hold excluded, and each release itself (the first
     :data:`~quadshank.data._paper.TWITCH_REACH_S` of the swing, which a recording that starts at
     the release leaves out too), and a warning that says so; any other trial as it is."""
-    release = pendulum_release(trial)
-    if not release:
+    lifts = pendulum_lifts(trial)
+    if not lifts:
         return trial
     exclude = trial.exclude.copy()
     after = int(round(TWITCH_REACH_S / trial.sampling_period_s))  # as at a recording's start: the hand letting go
-    exclude[:release + after] = True
+    for a, b in lifts:
+        exclude[a:b + after + 1] = True
     warnings.warn(
         f"{label} ({trial.key} trial {trial.trial}): a pendulum test recorded from before its release: the shank is "
-        f"held at {_held_angle(trial, release):.1f}° until time_s = {seconds_text(trial.time_s[release])}, and "
-        f"the samples before it and {TWITCH_REACH_S * 1000:g} ms after (the lift, the hold and the release, which no "
-        "pendulum model describes) are excluded. start_s in the manifest cuts them instead", DataWarning, stacklevel=4)
+        f"{_lifts_in_words(trial, lifts)}, and the lift{'s' if len(lifts) > 1 else ''}, the "
+        f"hold{'s' if len(lifts) > 1 else ''} and {TWITCH_REACH_S * 1000:g} ms after each release (which no "
+        "pendulum model describes) are excluded. start_s in the manifest cuts a first one instead", DataWarning,
+        stacklevel=4)
     return trial.replace(exclude=exclude)
 
 
