@@ -247,7 +247,7 @@ def test_a_free_run_that_diverges_from_its_start_is_named_with_what_to_do():
     from quadshank.inference._identify import IdentificationError, _passive_free_run
 
     trial = simulate_pendulum_test({"damping": 2.2, "gravity": 1800.0, "k1": 1.0, "k2": 0.01}, angle0=60.0, seed=2)
-    with pytest.raises(IdentificationError, match=r"PT-left trial 1: the free run of the passive system diverged "
+    with pytest.raises(IdentificationError, match=r"PT-left trial 1 \(simulated pendulum test\): the free run of the passive system diverged "
                                                   r"from every start .*--passive-objective acceleration"):
         _passive_free_run([trial], start={"damping": 50.0, "gravity": 1800.0, "k1": 1e6, "k2": 0.1})
 
