@@ -131,3 +131,29 @@ def test_convert_repairs_the_artefacts_and_check_qualifies_its_verdict(clean, tm
     assert repaired.attrs["artefacts_repaired"].startswith("JM-left trial 1: acceleration_deg_s2 on sample 0")
     assert stimulation_artefacts(repaired.trials[0]) == {}
     assert np.allclose(repaired.trials[0].angle_deg, clean.angle_deg)
+
+
+def test_excluding_the_pulses_samples_is_named_for_the_twitches_it_leaves_out(clean):
+    """Excluding a stimulation artefact's samples, the obvious fix, leaves every twitch out (the
+    classical identification drops a twitch with an excluded sample, the fit its windows): named,
+    with the repair to use instead."""
+    exclude = np.zeros(clean.n_samples, bool)
+    exclude[clean.pulse_indices] = True
+    said = [t for t in plausibility(_spiked(clean, [5000.0]).replace(exclude=exclude)) if "excluded sample" in t]
+    n = clean.pulse_indices.size
+    assert len(said) == 1 and said[0].startswith(f"{n} of the {n} pulses have an excluded sample within the 350 ms")
+    assert "a stimulation artefact excluded? Repair it instead" in said[0] and "--repair-artefacts" in said[0]
+    assert not [t for t in plausibility(clean) if "excluded sample" in t]
+
+
+def test_a_stimulation_column_held_between_pulses_qualifies_the_fits_verdict(clean):
+    """A column that holds the level over the 50 ms after each pulse (a gate): check's verdict on a
+    fit says each of those samples is taken for a pulse."""
+    held = clean.stimulation.copy()
+    for p in clean.pulse_indices:
+        held[p:p + 5] = clean.stimulation[p]
+    with pytest.warns(DataWarning, match="consecutive samples"):
+        uses = run_check(Cohort((clean.replace(stimulation=held),))).legs["JM-left"]
+    assert "but the stimulation of trial 1 is nonzero on consecutive samples, each of which a fit takes for a pulse" \
+        in uses["fit"], uses
+    assert "but the stimulation" not in run_check(Cohort((clean,))).legs["JM-left"]["fit"]

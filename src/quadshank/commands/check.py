@@ -22,7 +22,7 @@ from ..common._results import Result
 from ..data._artefacts import stimulation_artefacts
 from ..data._cohort import Cohort, Trial
 from ..data._interchange import (DataWarning, angle_doubts, charge_scales, check_cohort, kept_warnings, load_cohort,
-                                 pendulum_release, signal_doubts, twitch_direction)
+                                 pendulum_release, pulse_runs, signal_doubts, twitch_direction)
 from ..data._paper import MAX_DELAY
 from ..inference._identify import (
     DelayRangeError,
@@ -210,19 +210,26 @@ def run_check(data, out=None, *, identification_trial: int = 1) -> Check:
         passive = [t for t in trials if not np.any(t.stimulation > 0)]
         used = [t for t in trials if t.trial == identification_trial] + [t for t in passive
                                                                            if t.trial != identification_trial]
+        gated = [t.trial for t in trials if pulse_runs(t)]
+        if gated:  # fit takes every nonzero sample of any trial for a pulse delivered there
+            uses["fit"] += (f"; but the stimulation of trial{'s' if len(gated) > 1 else ''} "
+                            f"{', '.join(map(str, gated))} is nonzero on consecutive samples, each of which a fit "
+                            "takes for a pulse (the warnings say how)")
         if uses["identify"].startswith("no"):
             continue
         zeroed = {(leg, t.trial) for t in used if doubts[leg, t.trial]} | offset
         mismatched = {(leg, t.trial) for t in used if signal_doubts(t)}
         held = {(leg, t.trial) for t in used if pendulum_release(t)}
         jumping = {(leg, t.trial) for t in used if stimulation_artefacts(t)}
+        runs = {(leg, t.trial) for t in used if t.trial in gated}
         for signal, what, which in (
                 ("angle", "looks zeroed elsewhere or signed otherwise", zeroed), ("angle", "looks like radians", radians),
                 ("angle", "has quiet samples the passive model describes poorly (activity between the twitches?)", poor),
                 ("angle", "holds the lift and the hold before the pendulum's release", held),
                 ("measured acceleration or velocity", "does not match the angle's derivatives", mismatched),
                 ("recording", "jumps at the pulses' own samples (a stimulation artefact, or pulses logged late)",
-                 jumping)):
+                 jumping),
+                ("stimulation", "is nonzero on consecutive samples, each of which is taken for a pulse", runs)):
             named = [t.trial for t in used if (leg, t.trial) in which]
             if named:
                 uses["identify"] += (f"; but the {signal} of trial{'s' if len(named) > 1 else ''} "

@@ -340,7 +340,7 @@ def plausibility(trial: Trial) -> list[str]:
     stimulated = bool(np.any(trial.stimulation > 0))
     found = glitches + _markers(trial) + _faint_pulses(trial) + pulse_runs(trial) \
         + (_rest_plausibility(trial) + twitch_direction(trial) + _unmoved_pulses(trial) + artefact_texts(trial)
-           if stimulated else _pendulum_plausibility(trial))
+           + _excluded_twitches(trial) if stimulated else _pendulum_plausibility(trial))
     kept = ~trial.exclude  # an excluded artefact is not evidence of a wrong unit or sign
     if np.count_nonzero(kept) < 3 * window:
         return found
@@ -515,6 +515,33 @@ def pulse_runs(trial: Trial) -> list[str]:
     return [f"stimulation is nonzero on {what}: each nonzero sample is one pulse delivered at that sample. Is the "
             "column a gate (on while a train runs) or a stimulator setting logged on every row? Give a level only at "
             "the samples where a pulse was delivered, 0 elsewhere"]
+
+
+#: A trial where at least this share of its pulses (and 10 or more) has an excluded sample among the
+#: samples its twitch may reach is named: each of those twitches is left out.
+EXCLUDED_TWITCH_SHARE = 0.5
+
+
+def _excluded_twitches(trial: Trial) -> list[str]:
+    """Pulses whose twitch reaches an excluded sample (within :data:`~quadshank.data._paper.TWITCH_REACH_S`),
+    in words, where they are most of them (:data:`EXCLUDED_TWITCH_SHARE`): the classical
+    identification drops such a twitch and the fit its windows, so that excluding a stimulation
+    artefact at every pulse leaves no twitch at all."""
+    pulses = trial.pulse_indices
+    if pulses.size < 10 or not trial.exclude.any():
+        return []
+    reach = max(1, int(round(TWITCH_REACH_S / trial.sampling_period_s)))
+    before = np.concatenate([[0], np.cumsum(trial.exclude, dtype=np.int64)])
+    hit = before[np.minimum(pulses + reach, trial.n_samples)] - before[pulses] > 0
+    if np.count_nonzero(hit) < EXCLUDED_TWITCH_SHARE * pulses.size:
+        return []
+    at_pulse = np.count_nonzero(trial.exclude[pulses] | trial.exclude[np.minimum(pulses + 1, trial.n_samples - 1)])
+    return [f"{np.count_nonzero(hit)} of the {pulses.size} pulses have an excluded sample within the "
+            f"{TWITCH_REACH_S * 1000:g} ms their twitch may reach, and each such twitch is left out (of the classical "
+            "identification and of the fit's windows)"
+            + (f"; {at_pulse} have it on their own sample or the next: a stimulation artefact excluded? Repair it "
+               "instead (`quadshank convert DATA repaired.nc --repair-artefacts`, after setting exclude back to 0 "
+               "there)" if at_pulse >= EXCLUDED_TWITCH_SHARE * pulses.size else "")]
 
 
 def _glitch_indices(trial: Trial) -> np.ndarray:

@@ -447,7 +447,10 @@ def _warn_passive_left_out(where: str, trials, keep, fit, angle, velocity, accel
         f"lies more than {PASSIVE_OUTLIER_SD:g} robust SDs ({PASSIVE_OUTLIER_SD * sd:.3g} deg/s²) from eq. (8)'s, "
         f"up to {float(np.max(np.abs(r[out]))):.3g} deg/s² off (the largest at {places}), at angles "
         f"{float(np.min(angle[out])):.1f}° to {float(np.max(angle[out])):.1f}°. A knee meeting the end of its range, "
-        "an impact or a sensor's spike? Mark them in the exclude column to leave them out knowingly",
+        "an impact or a sensor's spike?"
+        + (" Or the twitch of a pulse missing from the stimulation column?" if any(np.any(t.stimulation > 0)
+                                                                                  for t in trials) else "")
+        + " Mark them in the exclude column to leave them out knowingly",
         DataWarning, stacklevel=4)
 
 
@@ -1073,6 +1076,9 @@ def _warn_passive_unseparated(leg: str, passive: dict, se: dict, source: str, sp
         if span is not None and span < RADIAN_SPAN_DEG:
             text += (f". Or angle_deg (and the acceleration with it) in radians: the angle spans only "
                      f"{span:.3g} over its samples, where a knee's swings span tens of degrees; convert to degrees")
+        if source.startswith("the quiet samples"):
+            text += (". Or twitches among the quiet samples: pulses missing from the stimulation column (dropouts, "
+                     "a trigger logged at another rate), or an accelerometer that senses gravity's projection")
         text += f". Or: {trade}" if trade else ""
     else:
         text = trade
