@@ -371,7 +371,7 @@ def cmd_identify(args) -> int:
                      if s.get("passive_trials") else "")
                  for leg, s in summary.legs.items()))
     muscle = any(not s.get("passive_only") for s in summary.legs.values())  # the figures are of twitches
-    _say(args, f"tables, {'figures ' if muscle else ''}and summary.json in {args.out}".replace("tables, and", "tables and"))
+    _say(args, ("tables, figures and" if muscle else "tables and") + f" summary.json in {args.out}")
     return 0
 
 

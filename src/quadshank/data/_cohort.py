@@ -156,13 +156,10 @@ def _derived_by_stretch(derive, angle: np.ndarray, dt: float, exclude) -> np.nda
         short = [(a, b) for a, b in stretches(exclude)
                  if 0 < a and b < angle.size and (b - a) * dt <= BRIDGED_EXCLUSION_S + 1e-12]
         if short:
-            angle = np.array(angle, dtype=float)
+            angle, exclude = np.array(angle, dtype=float), exclude.copy()
             for a, b in short:
                 angle[a:b] = np.interp(np.arange(a, b), [a - 1, b], [angle[a - 1], angle[b]])
-            bridged = np.zeros(angle.size, bool)
-            for a, b in short:
-                bridged[a:b] = True
-            exclude = exclude & ~bridged
+                exclude[a:b] = False  # bridged: no longer broken for the derivation
     broken = np.zeros(angle.size, bool) if exclude is None else np.asarray(exclude, bool) & (
         (np.abs(angle) > ANGLE_LIMIT_DEG) | np.isin(angle, MISSING_MARKERS) | ~np.isfinite(angle))
     if not broken.any():
