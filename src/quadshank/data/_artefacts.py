@@ -126,11 +126,12 @@ def stimulation_artefacts(trial: Trial) -> dict[str, dict]:
     return found
 
 
-def artefact_texts(trial: Trial) -> list[str]:
-    """:func:`stimulation_artefacts` in words, one per signal, with what to do."""
+def artefact_texts(trial: Trial, found: dict | None = None) -> list[str]:
+    """:func:`stimulation_artefacts` (``found``, where already found) in words, one per signal, with
+    what to do."""
     dt = trial.sampling_period_s
     texts = []
-    for name, a in stimulation_artefacts(trial).items():
+    for name, a in (stimulation_artefacts(trial) if found is None else found).items():
         unit = {"angle_deg": "°", "acceleration_deg_s2": " deg/s²", "velocity_deg_s": " deg/s"}[name]
         where = ", ".join(f"{s:+.3g}{unit} {_lag_words(j, dt)}" for j, s in zip(a["lags"], a["size"]))
         if a["kind"] == "early":

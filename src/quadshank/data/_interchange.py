@@ -339,19 +339,23 @@ def plausibility(trial: Trial) -> list[str]:
     if trial.n_samples < 3 * window:
         return glitches
     stimulated = bool(np.any(trial.stimulation > 0))
+    artefacts = stimulation_artefacts(trial) if stimulated else {}
     found = glitches + _markers(trial) + _faint_pulses(trial) + pulse_runs(trial) \
-        + (_rest_plausibility(trial) + twitch_direction(trial) + _unmoved_pulses(trial) + artefact_texts(trial)
-           + _excluded_twitches(trial) if stimulated else _pendulum_plausibility(trial))
+        + (_rest_plausibility(trial) + twitch_direction(trial) + _unmoved_pulses(trial)
+           + artefact_texts(trial, artefacts) + _excluded_twitches(trial) if stimulated
+           else _pendulum_plausibility(trial))
     kept = ~trial.exclude  # an excluded artefact is not evidence of a wrong unit or sign
     if np.count_nonzero(kept) < 3 * window:
         return found
-    return found + _rails(trial, kept) + signal_doubts(trial)
+    return found + _rails(trial, kept) + signal_doubts(trial, artefacts)
 
 
-def signal_doubts(trial: Trial) -> list[str]:
+def signal_doubts(trial: Trial, artefacts: dict | None = None) -> list[str]:
     """What :func:`plausibility` says of ``trial``'s measured acceleration and velocity against the
     angle's own derivatives (a placeholder, a sign, a unit, another signal), in words; empty where
-    they agree or were derived.  ``check`` qualifies what identify can do with such a trial by them."""
+    they agree or were derived.  ``check`` qualifies what identify can do with such a trial by them.
+    ``artefacts``: the trial's :func:`~quadshank.data._artefacts.stimulation_artefacts`, where already
+    found (a signal one holds is not compared)."""
     dt = trial.sampling_period_s
     window = _smoothing_window(dt)
     kept = ~trial.exclude  # an excluded artefact is not evidence of a wrong unit or sign
@@ -368,9 +372,10 @@ def signal_doubts(trial: Trial) -> list[str]:
                      "moves: a placeholder for a signal that was not recorded? Leave the column out and the reader "
                      "derives it from the angle")
     checks = [c for c in checks if c not in constant]
-    spiked = stimulation_artefacts(trial) if np.any(trial.stimulation > 0) else {}
+    if artefacts is None:
+        artefacts = stimulation_artefacts(trial) if np.any(trial.stimulation > 0) else {}
     for column, order, unit in checks:
-        if column in spiked or "angle_deg" in spiked:  # named as an artefact, which says nothing of units or signs
+        if column in artefacts or "angle_deg" in artefacts:  # named as an artefact: says nothing of units or signs
             continue
         agreement = _agreement(trial.angle_deg, getattr(trial, column), order, dt, kept)
         if agreement is None:
