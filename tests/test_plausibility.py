@@ -102,6 +102,10 @@ def test_a_pendulum_test_about_zero_released_from_extension_is_plausible():
 def test_a_pendulum_test_resting_off_zero_is_named():
     found = plausibility(_pendulum(rest=-23.0))
     assert any("comes to rest at -23.0°" in f and "gravity_offset" in f for f in found), found
+    # at 90°: a flexion angle, named as one rather than as an offset zero
+    found = [f for f in plausibility(_pendulum(rest=90.0)) if "comes to rest at 90.0°" in f]
+    assert len(found) == 1 and "a flexion angle" in found[0] and "90 − angle_deg" in found[0], found
+    assert "gravity_offset" not in found[0]
 
 
 def test_a_pendulum_test_released_from_flexion_asks_about_the_sign():

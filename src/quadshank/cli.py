@@ -66,7 +66,7 @@ NEEDS_PARTNER = {
              "acts only with --target-ess (a fit of fixed length runs to its end)")],
     "evaluate": [
         *[(option, lambda a: bool(a.fit), "acts only with --fit (the posterior's bands); without it evaluate "
-                                          "identifies and gives point estimates")
+                                          "scores the classical models' point estimates")
           for option in ("--draws", "--start-stride", "--band-mcse")],
         *[(option, lambda a: a.band_mcse is None, f"is chosen by --band-mcse: give one of {option} and --band-mcse")
           for option in ("--draws", "--start-stride")],

@@ -615,10 +615,12 @@ def _pendulum_plausibility(trial: Trial, release: bool = True) -> list[str]:
         return []
     tail = angle[-max(2, int(round(1.0 / trial.sampling_period_s))):]
     found = []
-    if np.ptp(tail) < STILL_RANGE_DEG and abs(float(np.median(tail))) > REST_TOLERANCE_DEG:
-        found.append(f"the shank comes to rest at {float(np.median(tail)):.1f}° (its last second), not at 0, the "
-                     "shank at rest: is angle_deg zeroed elsewhere? (the effects gravity_offset and "
-                     "goniometer_offset model such an offset)")
+    if np.ptp(tail) < STILL_RANGE_DEG and abs(rest := float(np.median(tail))) > REST_TOLERANCE_DEG:
+        found.append(f"the shank comes to rest at {rest:.1f}° (its last second), not at 0, the shank at rest: "
+                     + ("is angle_deg a flexion angle (90° with the shank hanging)? Write 90 − angle_deg, positive "
+                        "in extension" if abs(rest) > REST_MEDIAN_DEG else
+                        "is angle_deg zeroed elsewhere? (the effects gravity_offset and goniometer_offset model such "
+                        "an offset)"))
     lifts = pendulum_lifts(trial) if release else []
     if lifts:
         found.append(f"the shank is {_lifts_in_words(trial, lifts)} and then swings: a pendulum test recorded from "
