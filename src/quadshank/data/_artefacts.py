@@ -23,6 +23,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+from scipy.stats import median_abs_deviation
 
 from ._cohort import Cohort, DataWarning, Trial
 
@@ -106,7 +107,7 @@ def stimulation_artefacts(trial: Trial) -> dict[str, dict]:
             continue
         x = getattr(trial, name)
         r = _departures(x, ref, span)  # the line's error grows with the lag: each lag its own noise
-        noise = 1.4826 * np.median(np.abs(r - np.median(r, axis=0)), axis=0)
+        noise = median_abs_deviation(r, axis=0, scale="normal")
         if not np.all(noise > 0):
             continue
         size = np.median(_departures(x, judged, span), axis=0)

@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.stats import median_abs_deviation
 
 from ..common._arrays import stretches
 from ..common._io import nulls_as_nan
@@ -419,8 +420,8 @@ def _passive_least_squares(angle, velocity, accel, gravity_offset: bool, rounds:
 
 
 def _robust_sd(r: np.ndarray) -> float:
-    """1.4826 times the median absolute deviation: a normal sample's SD, unmoved by a few far values."""
-    return 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    """The median absolute deviation scaled to a normal sample's SD (scipy's), unmoved by a few far values."""
+    return float(median_abs_deviation(r, scale="normal"))
 
 
 def _passive_sample_places(trials) -> tuple[np.ndarray, np.ndarray]:
