@@ -310,7 +310,12 @@ def _minimize_from(value_and_grad, v0: np.ndarray, S: np.ndarray, x: dict, max_i
 
     def f(u):
         val, g = value_and_grad(jnp.asarray(v0 + S @ u, jnp.float64), x)
-        return float(val), S.T @ np.asarray(g, np.float64)
+        val, g = float(val), np.asarray(g, np.float64)
+        if not (np.isfinite(val) and np.isfinite(g).all()):
+            # a step into parameters where the model overflows (a steep limit, say): reported as
+            # infinitely bad, so the line search steps back, rather than as NaN, which ends the search
+            return math.inf, np.zeros(u.size)
+        return val, S.T @ g
 
     res = optimize.minimize(f, np.zeros(v0.size), jac=True, method="L-BFGS-B", options={"maxiter": max_iter})
     return res, v0 + S @ res.x

@@ -853,6 +853,8 @@ class GravityOffset(Effect):
 
 #: Knee angle [deg] at which ``extension_limit`` states its stiffness: full extension.
 FULL_EXTENSION_DEG = 90.0
+#: The largest exponent a limit's torque takes (``ExtensionLimit``).
+LIMIT_EXPONENT_MAX = 20.0
 
 
 @register_effect
@@ -866,7 +868,7 @@ class ExtensionLimit(Effect):
     (:data:`FULL_EXTENSION_DEG`), ``limit_width`` w how steeply it rises (by e per w).  Its
     prior reaches down to torques too small to matter, so a knee that never meets its limit
     is described by the effect too.  Its absence shows as a residual against the angle at the
-    top of the swing.
+    top of the swing, and in predictions that swing past the range where the knee stopped.
     """
 
     kind = "passive"
@@ -882,7 +884,9 @@ class ExtensionLimit(Effect):
     limit_width: Any = 6.0
 
     def acceleration(self, angle, velocity):
-        return -self.limit_stiffness * jnp.exp((angle - FULL_EXTENSION_DEG) / self.limit_width)
+        # the exponent is bounded (e^20 past the limit is beyond any knee) so that a steep limit tried
+        # by an optimiser or a sampler gives a large, finite torque rather than an overflow
+        return -self.limit_stiffness * jnp.exp(jnp.minimum((angle - FULL_EXTENSION_DEG) / self.limit_width, LIMIT_EXPONENT_MAX))
 
 
 @register_effect
