@@ -68,7 +68,7 @@ pd.set_option("display.width", 160)
 
 # %%
 SMALL = os.environ.get("QUADSHANK_NOTEBOOK_SMALL") == "1"
-LEG, SEED, HIDDEN = "JM-left", 1, "potentiation"
+LEG, SEED, HIDDEN = "JM-left", 4, "potentiation"
 if SMALL:
     MINUTES, N_DRAWS, N_J_DRAWS, STRIDE = 0.75, 60, 10, 20
     CANDIDATES = ["potentiation", "fatigue"]
@@ -280,7 +280,7 @@ ranking_frame(again)
 # loop. From the command line the same loop is one command:
 #
 # ```sh
-# quadshank simulate --out DATA --legs JM-left --minutes 1 --seed 1 --effects potentiation --trials 1
+# quadshank simulate --out DATA --legs JM-left --minutes 1 --seed 4 --effects potentiation --trials 1
 # quadshank discover DATA --out loop --confirm   # ranking, rounds, NUTS confirmation, report.md
 # ```
 #

@@ -86,7 +86,7 @@ def test_demo_small(tmp_path, monkeypatch, capsys):
     """`quadshank demo` at a small size: the reproduction, a fit, its evaluation, a diagnosis and the
     report, each in its folder, and the command says where the report is."""
     from quadshank.commands import demo as _demo
-    monkeypatch.setattr(_demo, "DEMO_EFFECTS", ("potentiation",))  # one candidate keeps the test short
+    monkeypatch.setattr(_demo, "DEMO_EFFECTS", ("torque_angle_peak",))  # one candidate keeps the test short
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--minutes", "1", "--legs", "TN-left,OT-left",
                  "--chains", "1", "--warmup", "20", "--draws", "20", "--time-limit", "1"]) == 0
@@ -107,15 +107,15 @@ def test_demo_small(tmp_path, monkeypatch, capsys):
     ev = json.loads((out / "evaluate" / "summary.json").read_text())
     assert set(ev["J_legs"]["model3s"]) == {"TN-left", "OT-left"}
     diag = json.loads((out / "diagnose" / "summary.json").read_text())
-    assert [r["effect"] for r in diag["ranking"]] == ["potentiation"] and diag["verdict"] == s["verdict"]
-    # the loop is shown on legs simulated again with potentiation hidden; the reproduction stays the paper's
-    assert s["hidden"] == ["potentiation"] and s["found"] == (s["verdict"] == "potentiation")
-    assert json.loads((out / "loop-data" / "truth.json").read_text())["effects"] == ["potentiation"]
+    assert [r["effect"] for r in diag["ranking"]] == ["torque_angle_peak"] and diag["verdict"] == s["verdict"]
+    # the loop is shown on legs simulated again with torque_angle_peak hidden; the reproduction stays the paper's
+    assert s["hidden"] == ["torque_angle_peak"] and s["found"] == (s["verdict"] == "torque_angle_peak")
+    assert json.loads((out / "loop-data" / "truth.json").read_text())["effects"] == ["torque_angle_peak"]
     assert json.loads((out / "reproduce" / "data" / "truth.json").read_text())["effects"] == []
     assert fit["data"] == str((out / "loop-data").resolve())
-    assert "potentiation hidden in the legs fitted" in (out / "README.md").read_text()
+    assert "torque_angle_peak hidden in the legs fitted" in (out / "README.md").read_text()
     index = (out / "report" / "index.html").read_text()
-    assert "TN-left" in index and "OT-left" in index and "potentiation" in index
+    assert "TN-left" in index and "OT-left" in index and "torque_angle_peak" in index
     assert 'id="fit-warning"' in index  # the failed checks at the top of the page
     assert "report/index.html" in (out / "README.md").read_text()
 

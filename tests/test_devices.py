@@ -35,8 +35,8 @@ SCRIPT = textwrap.dedent(
     model = build_model("model1")
     out = {}
     for method in ("sequential", "parallel"):
-        # in double precision each device's program rounds as one device's does, so the draws are equal
-        # (at mixed precision the single-precision terms round differently and the chains part)
+        # in double precision each device's program rounds nearly as one device's does, so the draws
+        # agree to about 1e-5 (two chains differ by 1e-2; at mixed precision the chains part)
         settings = FitSettings(chains=2, warmup=20, draws=10, seed=5, chain_method=method, start="prior", precision="double")
         mcmc, _ = fit(cohort, model, settings, progress=False)
         out[method] = np.asarray(mcmc.get_samples(group_by_chain=True)["gain"])
@@ -73,10 +73,10 @@ def test_parallel_chains_on_two_devices_draw_what_one_device_draws(tmp_path):
     seq, par = got["sequential"], got["parallel"]
     assert par.shape[:2] == (2, 10)
     assert not np.allclose(par[0], par[1])  # each device ran its own chain, not one chain twice
-    np.testing.assert_allclose(par, seq, rtol=1e-7)
+    np.testing.assert_allclose(par, seq, rtol=1e-4)
     np.testing.assert_array_equal(got["parallel_steps"], got["sequential_steps"])
     # drawing to a target on devices: two blocks of 5 continue the chains as one run of 10
-    np.testing.assert_allclose(got["blocks"], par, rtol=1e-7)
+    np.testing.assert_allclose(got["blocks"], par, rtol=1e-4)
 
 
 def test_parallel_chains_without_a_device_each_run_one_after_another_and_say_so():

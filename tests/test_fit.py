@@ -638,9 +638,11 @@ def test_a_fit_jumps_between_the_delay_modes_its_evidence_weighs():
 
 
 def test_vectorized_and_sequential_chains_give_the_same_draws():
-    """In double precision the batched and the one-by-one programs round alike, and the chains
-    give the same draws.  (At mixed precision their single-precision terms round differently, and
-    the trajectories, each a chaotic map, part after a few draws: the same posterior, other draws.)"""
+    """In double precision the batched and the one-by-one programs round nearly alike, and the
+    chains give the same draws: a trajectory, a chaotic map, can carry a last-bit difference to
+    about 1e-5 of the gain within ten draws, against 1e-2 between two chains.  (At mixed precision
+    their single-precision terms round differently, and the chains part after a few draws: the same
+    posterior, other draws.)"""
     cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.3, seed=2, trials=(1,))
     draws = {}
     for method in ("vectorized", "sequential"):
@@ -649,7 +651,7 @@ def test_vectorized_and_sequential_chains_give_the_same_draws():
         draws[method] = np.asarray(mcmc.get_samples(group_by_chain=True)["gain"])
     assert draws["vectorized"].shape[:2] == (2, 10)
     assert not np.allclose(draws["vectorized"][0], draws["vectorized"][1])  # two chains, not one twice
-    np.testing.assert_allclose(draws["sequential"], draws["vectorized"], rtol=1e-9)
+    np.testing.assert_allclose(draws["sequential"], draws["vectorized"], rtol=1e-4)
 
 
 def test_auto_chain_method_runs_large_data_one_chain_after_another():

@@ -4,7 +4,7 @@ delay (see loop_cases.py; fatigue, potentiation and no hidden effect: test_loop_
 import math
 
 import pytest
-from loop_cases import HIDDEN, check_hidden_first, rankings
+from loop_cases import HIDDEN, LEG, baseline, check_hidden_first, rankings
 
 from quadshank.loop._diagnose import candidates
 from quadshank.inference._priors import build_model
@@ -45,7 +45,7 @@ def test_a_hidden_gravity_offset_is_found_by_the_rest_offset_candidates():
     cohort, _ = simulate_cohort(legs=["JM-left"], minutes=1.0, seed=1, trials=(1,), effects=["gravity_offset"])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        r = rank_effects(cohort, "model3s", n_draws=150, n_j_draws=30, n_starts=0,
+        r = rank_effects(cohort, baseline(), n_draws=150, n_j_draws=30, n_starts=0,
                          effects=("gravity_offset", "goniometer_offset", "torque_angle_peak"))
     rows = {x["effect"]: x for x in r.rows}
     assert {x["effect"] for x in r.rows[:2]} == {"gravity_offset", "goniometer_offset"} and r.verdict in rows
@@ -78,6 +78,47 @@ def test_a_hidden_end_of_range_in_extension_is_found_and_located():
     at_full_extension = truth["torque_deg_s2"] * math.exp((90.0 - truth["phi_limit_deg"]) / truth["width_deg"])
     assert found["limit_stiffness"] == pytest.approx(at_full_extension, rel=0.15)
     assert found["limit_width"] == pytest.approx(truth["width_deg"], rel=0.1)
+
+
+def test_the_knees_range_is_found_where_the_swings_meet_it():
+    """With nothing hidden, the simulated knee's own range: model3s, which has none, lacks it, and
+    ``extension_limit`` clears the bar (the loop's other tests start from a baseline with it)."""
+    import warnings
+
+    from quadshank.loop._diagnose import rank_effects
+
+    from quadshank.data._simulate import simulate_cohort
+
+    cohort, _ = simulate_cohort(legs=[LEG], minutes=1.0, seed=1, trials=(1,))
+    assert max(t.angle_deg.max() for t in cohort) > 85.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = rank_effects(cohort, "model3s", n_draws=150, n_j_draws=30, effects=("extension_limit",))
+    check_hidden_first(r, "extension_limit")
+    assert r.rows[0]["parameters"][LEG]["limit_stiffness"] > 100.0  # deg/s² at full extension: a stop
+
+
+def test_the_knees_range_is_found_before_potentiation_whose_swings_meet_it():
+    """Potentiation's larger twitches swing the simulated knee into its range (past 85°), which a
+    model without an end of range predicts it passes: with potentiation added J at 1 s rises, though
+    its evidence is the largest, and ``extension_limit``, which lowers J at every horizon, is the
+    verdict.  With the range in the baseline potentiation is found (loop_cases.py)."""
+    import warnings
+
+    from quadshank.data._simulate import simulate_cohort
+    from quadshank.loop._diagnose import rank_effects
+
+    cohort, _ = simulate_cohort(legs=["JM-left"], minutes=2.0, seed=1, trials=(1,), effects=["potentiation"])
+    assert max(t.angle_deg.max() for t in cohort) > 85.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = rank_effects(cohort, "model3s", n_draws=150, n_j_draws=30, effects=("extension_limit", "potentiation"))
+    rows = {x["effect"]: x for x in r.rows}
+    check_hidden_first(r, "extension_limit")
+    assert rows["extension_limit"]["J_lowered_at_ms"] == [100, 250, 500, 1000]
+    pot = rows["potentiation"]
+    assert pot["supported"] and pot["delta_elpd"] > rows["extension_limit"]["delta_elpd"]
+    assert 1000 in pot["J_raised_at_ms"] and not pot["clears_bar"]
 
 
 def test_output_candidates_are_screened_beside_an_accelerometer_response():

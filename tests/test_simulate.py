@@ -423,3 +423,29 @@ def test_twitch_variability_factors_have_mean_one_and_the_stated_spread():
     for a, b in zip(base, varied):
         np.testing.assert_array_equal(a.stimulation, b.stimulation)
     assert not np.array_equal(base.trials[0].angle_deg, varied.trials[0].angle_deg)
+
+
+# ----------------------------------------------------------------------------- the knee's range
+def test_the_knee_range_acts_only_at_the_ends_of_the_range():
+    import jax.numpy as jnp
+
+    from quadshank.data._simulate import KNEE_RANGE, _range_torque
+
+    inside = np.asarray(_range_torque(jnp.linspace(-55.0, 77.0, 1001)))
+    assert np.abs(inside).max() < 1.0  # deg/s², against gravity's 1650-1950 deg/s² at 90°
+    r = KNEE_RANGE
+    assert float(_range_torque(r["extension_deg"] + 4 * r["width_deg"])) > 50_000  # stops extension
+    assert float(_range_torque(r["flexion_deg"] - 4 * r["width_deg"])) < -50_000  # and flexion
+
+
+@pytest.mark.parametrize("effects", [(), *((e,) for e in EFFECTS)], ids=lambda e: e[0] if e else "default")
+def test_no_simulated_trial_leaves_the_anatomical_range(effects):
+    """Seed 1 at full length: without the knee's range its rare large swings had reached 155°
+    (the shank over the top with potentiation)."""
+    from quadshank.data._simulate import ANATOMICAL_RANGE_DEG
+
+    cohort, truth = simulate_cohort(minutes=5.0, seed=1, effects=effects, trials=(1, 2))
+    lo, hi = ANATOMICAL_RANGE_DEG
+    for t in cohort:
+        assert lo <= t.angle_deg.min() and t.angle_deg.max() <= hi, (t.key, t.trial, t.angle_deg.min(), t.angle_deg.max())
+    assert truth["knee_range"]["extension_deg"] == 88.0

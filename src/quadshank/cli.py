@@ -1023,9 +1023,9 @@ def build_parser() -> argparse.ArgumentParser:
                                     "diagnose, report (writes results/demo)")
     d.add_argument("--out", default="results/demo")
     sim_options(d, 1.5)
-    d.add_argument("--hide", default="potentiation", metavar="EFFECT[,EFFECT]",
+    d.add_argument("--hide", default="torque_angle_peak", metavar="EFFECT[,EFFECT]",
                    help="effects hidden in the legs the loop is shown on, which the diagnosis should find "
-                        "(default potentiation; none: nothing hidden)")
+                        "(default torque_angle_peak; none: nothing hidden)")
     d.add_argument("--chains", type=int, default=2)
     d.add_argument("--warmup", type=int, default=150)
     d.add_argument("--draws", type=int, default=100, help="draws per chain in each block (default 100)")

@@ -6,7 +6,7 @@ Five steps, each in its own folder under ``out``:
    identification, Table V) — :func:`quadshank.commands.reproduce.run_reproduce`;
 2. ``fit/``: a hierarchical NUTS fit of the loop's baseline ``model3s`` to trial 1
    of two legs of two subjects (so the report can show shrinkage), simulated again
-   with one effect hidden (``hidden``, potentiation by default; ``loop-data/``) that
+   with one effect hidden (``hidden``, a torque–angle maximum by default; ``loop-data/``) that
    ``model3s`` lacks;
 3. ``evaluate/``: J_φ,p over posterior draws, trials 1–3, with PSIS-LOO;
 4. ``diagnose/``: the modelling loop's question, which effect is missing, screened
@@ -95,7 +95,7 @@ def run_demo(
     minutes: float = 1.5,
     seed: int = 0,
     effects=(),
-    hidden=("potentiation",),
+    hidden=("torque_angle_peak",),
     legs=None,
     chains: int = 2,
     warmup: int = 150,

@@ -54,8 +54,8 @@ class PlanPrediction(Result):
 #: How far [deg] a start or a predicted median may leave the angles the fit saw before a warning
 #: says the model is extrapolated there.
 EXTRAPOLATION_MARGIN_DEG = 10.0
-#: A predicted angle beyond ± this [deg] has the shank over the top, where no knee goes: the
-#: models have no end of range, and a plan that drives them there is told so.
+#: A predicted angle beyond ± this [deg] has the shank over the top, where no knee goes: a model
+#: without an end of range (``extension_limit``) can get there, and a plan that drives it there is told so.
 KNEE_REACH_DEG = 180.0
 
 
@@ -168,7 +168,8 @@ def run_predict(
                           "angle_deg": None if angle is None else round(angle, 1)}
             warnings.warn(f"{leg}: the {what} passes ±{KNEE_REACH_DEG:g}° at {time_s[i]:.2f} s"
                           + (f" ({angle:.4g}°)" if angle is not None else "") + ": the shank over the top, where no "
-                          "knee goes. The model has no end of range; its angles from there say only that the plan "
+                          "knee goes. The model has no end of range that stops it (extension_limit describes one); its angles "
+                          "from there say only that the plan "
                           "would drive the knee to the end of its range", DataWarning, stacklevel=2)
             break  # the band passes wherever its median does
     seen = {leg: fitted_angle_range(fit.idata, leg) for leg in legs}

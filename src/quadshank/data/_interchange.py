@@ -746,7 +746,7 @@ def _rest_plausibility(trial: Trial) -> list[str]:
     if np.count_nonzero(quiet) * trial.sampling_period_s < 1.0:
         return []
     median = float(np.median(trial.angle_deg[quiet]))
-    # a shank that went over the top (a simulated knee without an end of range) hangs at 360°
+    # a shank that went over the top (a recording unwrapped through a full turn) hangs at 360°
     off = abs(median - 360.0 * round(median / 360.0))
     if off <= REST_OFFSET_DEG or (off <= REST_MEDIAN_DEG and
                                   np.count_nonzero(quiet) * trial.sampling_period_s < REST_OFFSET_QUIET_S):

@@ -17,16 +17,20 @@ Plant (continuous time, integrated with RK4 at 1 ms)
 ----------------------------------------------------
 Passive system, eq. (8) with φ in degrees (the sine takes φ·π/180)::
 
-    φ̈ = M/I − D'·φ̇ − G'·sin φ + k1'·(exp(−k2·φ) − 1)
+    φ̈ = M/I − D'·φ̇ − G'·sin φ + k1'·(exp(−k2·φ) − 1) − R(φ)
 
-The knee has no end of range in extension: the rare large swings of random
-stimulation are free to pass full extension (see the extremes below).  The models' passive part
-is eq. (8), and a steep passive stop in the data is a misfit every model shares: a stop past 85°
-(and below −60°) touches 14 of the 30 000 samples of a trial, which least squares over every quiet
-sample would let take JM-left's classical k1' to 1 instead of 20 (the identification leaves such
-samples out and names them), and in the cohort with hidden potentiation (0.25 % of samples) a model
-with potentiation predicts the stopped swings too large, so that the loop rejects the hidden
-effect although its evidence is the largest (docs/limits.md).
+R is the knee's range (always on, :data:`KNEE_RANGE`): towards full extension and deep flexion
+the passive torque rises steeply, as capsule, ligaments and stretched muscles stop a real knee::
+
+    R(φ) = K·exp((φ − φ_ext)/w) − K·exp((φ_flex − φ)/w),   K = 1000 deg/s², w = 1.5°,
+    φ_ext = 88°, φ_flex = −66°
+
+It is negligible within −55°…77° (below 1 deg/s²) and stops the rare large swings of random
+stimulation: every trial of the default and hidden-effect cohorts stays within the anatomical
+range :data:`ANATOMICAL_RANGE_DEG` (−75°…+100°: deep flexion of a seated knee to slight
+hyperextension).  The paper's models (eq. 8) have no such term; the model library's
+``extension_limit`` describes the extension side (the loop offers it), eq. (8)'s exponential
+elasticity the flexion side.
 
 Active system: every pulse j (time t_j, recruitment u_j) adds a twitch of
 equivalent acceleration ``u_j·A·h(t − t_j − τ)`` with
@@ -132,11 +136,11 @@ The swing saturates: longer or more frequent bursts mostly raise the mean
 angle, because the velocity dependence g removes energy (twitches during
 flexion are stronger than during extension) and f vanishes in extension for
 JM.  With seed 0 and 5-min trials the mean RMS angle is 23.7° (trial 1),
-24.7° (trial 2) and 18.8° (trial 3); per leg 21.9–26.4° at u = 1 and
+24.5° (trial 2) and 18.8° (trial 3); per leg 21.9–26.2° at u = 1 and
 15.8–22.5° at u = 0.5 (TN swings most).  99 % of the samples of trials 1–2
-lie within −44°…70° (2.6 % outside −40°…60°, 0.04 % beyond 90°); the
-extremes reach −67° and 110° (TN-left; seeds 1 and 2 have rare swings to
-155° and 111°, past full extension, which a real knee would stop).  Trial 1 has
+lie within −44°…70° (2.5 % outside −40°…60°, 0.03 % beyond 85°); the
+extremes reach −64° and 93° (TN-left), and −71° and 94° with seeds 1 and 2,
+where the knee's range stops the rare large swings.  Trial 1 has
 55 (OT-left) to 216 (TN-left) isolated twitches per leg, of 451–829 pulses.
 
 Sensors (always on)
@@ -179,9 +183,9 @@ Hidden effects (off by default, switched on by name)
     the elasticity about 0 as before, so the shank rests near 10°; each
     trial starts at that rest.
 ``extension_limit``
-    the knee meets the end of its range in extension: a passive torque
-    −1000·exp((φ − 75°)/5°) deg/s², so the shank no longer swings far
-    beyond 80°.
+    a range in extension that ends early (a contracture, say): a passive
+    torque −1000·exp((φ − 75°)/5°) deg/s² besides the knee's own range, so
+    the shank no longer swings far beyond 80°.
 ``twitch_variability``
     each pulse's twitch amplitude is multiplied by a log-normal factor with
     mean 1 and coefficient of variation 0.2, drawn per pulse from a stream
@@ -232,6 +236,8 @@ from ._paper import (
 __all__ = [
     "simulate_pendulum_test",
     "EFFECTS",
+    "KNEE_RANGE",
+    "ANATOMICAL_RANGE_DEG",
     "PASSIVE_TRUTH",
     "STIMULATION_DENSITY",
     "SENSOR",
@@ -463,6 +469,7 @@ def default_truth(legs: Sequence[str] = LEGS, effects: Iterable[str] = ()) -> di
         "effects": list(effects),
         "effect_parameters": {e: dict(EFFECT_PARAMETERS[e]) for e in effects},
         "legs": out_legs,
+        "knee_range": dict(KNEE_RANGE),
         "sensor": dict(SENSOR),
         "stimulation_density": {leg: json.loads(json.dumps(STIMULATION_DENSITY[leg])) for leg in legs},
         "isolation": {"quiet_before_s": ISOLATION_BEFORE_S, "quiet_after_s": ISOLATION_AFTER_S},
@@ -547,6 +554,20 @@ def _substeps(sampling_period_s: float) -> int:
     return k
 
 
+#: The knee's range (always on, module docs): past ``extension_deg`` and ``flexion_deg`` the passive
+#: torque rises by e every ``width_deg``, from ``torque_deg_s2`` at each of those angles.
+KNEE_RANGE = {"extension_deg": 88.0, "flexion_deg": -66.0, "width_deg": 1.5, "torque_deg_s2": 1000.0}
+#: Angles [deg] no simulated trial leaves: a seated knee's deep flexion to slight hyperextension.
+ANATOMICAL_RANGE_DEG = (-75.0, 100.0)
+
+
+def _range_torque(phi):
+    """R(φ): the knee range's torque at ``phi`` [deg], positive towards flexion (module docs)."""
+    r = KNEE_RANGE
+    return r["torque_deg_s2"] * (jnp.exp((phi - r["extension_deg"]) / r["width_deg"])
+                                 - jnp.exp((r["flexion_deg"] - phi) / r["width_deg"]))
+
+
 @functools.lru_cache(maxsize=None)
 def _chunk_runner(substeps: int):
     """Jitted, vmapped scan over one chunk of samples (built lazily, cached per sampling period).
@@ -589,7 +610,8 @@ def _chunk_runner(substeps: int):
             m = x2
             passive = (-p["damping"] * v - p["gravity"] * jnp.sin((phi - p["gravity_angle"]) * _DEG)
                        + p["k1"] * (jnp.exp(-p["k2"] * phi) - 1.0)
-                       - p["limit_torque"] * jnp.exp((phi - p["phi_limit"]) / p["limit_width"]))
+                       - p["limit_torque"] * jnp.exp((phi - p["phi_limit"]) / p["limit_width"])
+                       - _range_torque(phi))
             return m + passive, m
 
         def rhs(phi, v, z, zd, x2):
