@@ -102,14 +102,15 @@ def test_pulses_logged_late_are_told_apart_and_left(clean):
 
 
 def test_recordings_without_an_artefact_are_left_alone():
-    """The simulated cohort (five legs, three trials), at 1 and 5 ms, with varying twitches and an
-    accelerometer that rings: nothing is found, nothing repaired."""
+    """The simulated cohort (five legs, three trials, twitches varying from pulse to pulse), at 1
+    and 5 ms, with equal twitches and with an accelerometer that rings: nothing is found, nothing
+    repaired."""
     cohort, _ = simulate_cohort(minutes=1.0, seed=0)
-    ringing, _ = simulate_cohort(legs=["TN-left"], minutes=1.0, seed=1, trials=[1],
-                                 effects=("twitch_variability", "accel_resonance"))
+    ringing, _ = simulate_cohort(legs=["TN-left"], minutes=1.0, seed=1, trials=[1], effects=("accel_resonance",))
+    equal, _ = simulate_cohort(legs=["TN-left"], minutes=1.0, seed=1, trials=[1], twitch_cv=0.0)
     fine = [simulate_cohort(legs=["JM-left"], minutes=0.5, seed=2, trials=[1], sampling_period_s=dt)[0].trials[0]
             for dt in (0.001, 0.005)]
-    for t in (*cohort.trials, *ringing.trials, *fine):
+    for t in (*cohort.trials, *ringing.trials, *equal.trials, *fine):
         assert stimulation_artefacts(t) == {}, (t.key, t.trial, t.sampling_period_s)
     with warnings.catch_warnings():
         warnings.simplefilter("error", DataWarning)

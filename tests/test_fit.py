@@ -643,7 +643,8 @@ def test_vectorized_and_sequential_chains_give_the_same_draws():
     about 1e-5 of the gain within ten draws, against 1e-2 between two chains.  (At mixed precision
     their single-precision terms round differently, and the chains part after a few draws: the same
     posterior, other draws.)"""
-    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.3, seed=2, trials=(1,))
+    # equal twitches: a short, smooth posterior whose chains draw no divergence (the runs, not the data, are tested)
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.3, seed=2, trials=(1,), twitch_cv=0.0)
     draws = {}
     for method in ("vectorized", "sequential"):
         settings = FitSettings(chains=2, warmup=20, draws=10, seed=5, chain_method=method, start="prior", precision="double")
@@ -717,7 +718,9 @@ def test_the_noise_starts_at_the_fits_own_density_where_the_screen_held_a_thresh
     nuts_screen_start = nuts.screen_start
     monkeypatch.setattr(nuts, "_noise_at_the_fits_density", spy)
     monkeypatch.setattr(nuts, "screen_start", start_only)
-    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.5, seed=2, effects=["angle_delay"], trials=(1,))
+    # equal twitches: twitches that vary, with no noise term for them in the model, thicken the tails of
+    # the fit's density too
+    cohort, _ = simulate_cohort(legs=["TN-left"], minutes=0.5, seed=2, effects=["angle_delay"], trials=(1,), twitch_cv=0.0)
     with pytest.raises(Started):
         fit(cohort, build_model("model3s", ["angle_delay"]), FitSettings(chains=2, seed=2), progress=False)
     (start0, sd0), (start1, sd1) = seen["before"], seen["after"]  # columns: log σ, log ν

@@ -157,13 +157,14 @@ def test_float_noise_in_the_stimulation_is_named():
 
 
 def test_an_angle_that_falls_after_the_pulses_asks_about_the_sign():
-    """The quadriceps lifts the shank: on the simulated cohort (with varying twitches too) no trial
+    """The quadriceps lifts the shank: on the simulated cohort (with equal twitches too) no trial
     is named, while every one whose angle and acceleration are both flipped (so that they still
     agree with each other) is, with the number of pulses; a pendulum test has no pulses to judge."""
     from quadshank.data._simulate import simulate_cohort
 
-    for effects in ((), ("twitch_variability",)):
-        cohort, _ = simulate_cohort(legs=("TN-left", "JM-right"), minutes=1.0, seed=2, effects=effects)
+    for cv in (0.2, 0.0):
+        effects = f"twitch CV {cv:g}"
+        cohort, _ = simulate_cohort(legs=("TN-left", "JM-right"), minutes=1.0, seed=2, twitch_cv=cv)
         for t in cohort.trials:
             assert not any("falls after the pulses" in f for f in plausibility(t)), (effects, t.key, t.trial)
             flipped = t.replace(angle_deg=-t.angle_deg, acceleration_deg_s2=-t.acceleration_deg_s2)

@@ -41,7 +41,7 @@ def _nan_at(trial, i):
     (lambda t: {"leg": "Left"}, "JM-Left trial 1, column 'leg': 'Left' is not 'left' or 'right'"),
     (lambda t: {"trial": 0}, "JM-left trial 0, column 'trial': trial number 0"),
     (lambda t: {"subject": ""}, "column 'subject': subject '' is empty"),
-    (lambda t: {"angle_deg": np.radians(t.angle_deg)}, "column 'angle_deg', index 402: values look like radians"),
+    (lambda t: {"angle_deg": np.radians(t.angle_deg)}, "column 'angle_deg', index 404: values look like radians"),
 ])
 def test_a_trial_built_in_python_that_breaks_a_rule_is_refused_everywhere(trial, changes, said):
     cohort = _with(trial, **changes(trial))

@@ -57,11 +57,12 @@ def model3_factor(leg_truth, angle, velocity):
 _RUNS: dict = {}
 
 
-def run(legs=("JM-left",), minutes=0.5, seed=0, effects=(), trials=(1, 2, 3)):
+def run(legs=("JM-left",), minutes=0.5, seed=0, effects=(), trials=(1, 2, 3), twitch_cv=0.2):
     """Cached simulate_cohort (runs are deterministic)."""
-    key = (tuple(legs), minutes, seed, tuple(effects), tuple(trials))
+    key = (tuple(legs), minutes, seed, tuple(effects), tuple(trials), twitch_cv)
     if key not in _RUNS:
-        _RUNS[key] = simulate_cohort(legs=legs, minutes=minutes, seed=seed, effects=effects, trials=trials)
+        _RUNS[key] = simulate_cohort(legs=legs, minutes=minutes, seed=seed, effects=effects, trials=trials,
+                                     twitch_cv=twitch_cv)
     return _RUNS[key]
 
 
@@ -155,7 +156,8 @@ def test_same_seed_identical_different_seed_differs():
         np.testing.assert_array_equal(a.stimulation, b.stimulation)
         assert not np.array_equal(a.stimulation, c.stimulation)
         assert not np.array_equal(a.angle_deg, c.angle_deg)
-    assert c1.attrs == {"simulated": 1, "seed": 3, "minutes": 0.5, "effects": [], "truth_format": "quadshank-truth/1"}
+    assert c1.attrs == {"simulated": 1, "seed": 3, "minutes": 0.5, "effects": [], "twitch_cv": 0.2,
+                        "truth_format": "quadshank-truth/1"}
 
 
 def test_subset_of_legs_and_trials_reproduces_full_run():
@@ -410,16 +412,17 @@ def test_rms_angle_calibration():
 
 
 def test_twitch_variability_factors_have_mean_one_and_the_stated_spread():
-    from quadshank.data._simulate import EFFECT_PARAMETERS, twitch_variability
+    from quadshank.data._simulate import TWITCH_CV, twitch_variability
 
-    cv = EFFECT_PARAMETERS["twitch_variability"]["cv"]
+    cv = TWITCH_CV
     g = twitch_variability(np.random.default_rng(0), 200_000, cv)
     assert g.min() > 0
     assert g.mean() == pytest.approx(1.0, abs=0.003)
     assert g.std() / g.mean() == pytest.approx(cv, rel=0.02)
-    # switched on, only the twitch amplitudes change: same pulses, same sensor noise streams
-    base, _ = run(seed=2)
-    varied, _ = run(seed=2, effects=("twitch_variability",))
+    # by default, only the twitch amplitudes differ from equal twitches: same pulses, same sensor noise streams
+    base, _ = run(seed=2, twitch_cv=0.0)
+    varied, truth = run(seed=2)
+    assert truth["twitch_cv"] == cv and varied.attrs["twitch_cv"] == cv
     for a, b in zip(base, varied):
         np.testing.assert_array_equal(a.stimulation, b.stimulation)
     assert not np.array_equal(base.trials[0].angle_deg, varied.trials[0].angle_deg)

@@ -32,7 +32,7 @@ from .common._interrupt import handling_interrupts, interrupt_requested
 from .common._xla_cache import use_compilation_cache
 from .data._interchange import DataWarning, convert, load_cohort, write_interchange
 from .data._paper import LEGS
-from .data._simulate import TRIAL_RECRUITMENT, simulate_cohort, write_truth
+from .data._simulate import TRIAL_RECRUITMENT, TWITCH_CV, simulate_cohort, write_truth
 from .evaluation._posterior import PosteriorEvaluation, check_fit_legs, load_fits
 from .evaluation._prediction import Evaluation
 from .inference._fitio import FitResult, read_summary
@@ -330,7 +330,7 @@ def cmd_simulate(args) -> int:
                          "(their --trials)")
     cohort, truth = simulate_cohort(
         legs=legs, minutes=args.minutes, seed=args.seed, effects=effects, trials=trials, progress=not args.quiet,
-        sampling_period_s=args.sampling_period_ms / 1000.0,
+        sampling_period_s=args.sampling_period_ms / 1000.0, twitch_cv=args.twitch_cv,
     )
     out = Path(args.out)
     write_interchange(cohort, out, overwrite=True)  # the folder was checked before the work began
@@ -740,6 +740,7 @@ def cmd_reproduce(args, default_out: str | None = None) -> int:
         legs=_csv_list(args.legs, "--legs") if args.legs is not None else None,
         progress=not args.quiet,
         command=command,
+        twitch_cv=args.twitch_cv,
     )
     _say(
         args,
@@ -759,7 +760,7 @@ def cmd_demo(args) -> int:
     summary = run_demo(
         args.out, minutes=args.minutes, seed=args.seed,
         effects=_csv_list(args.effects, "--effects") if args.effects else (),
-        hidden=() if args.hide == "none" else _csv_list(args.hide, "--hide"),
+        hidden=() if args.hide == "none" else _csv_list(args.hide, "--hide"), twitch_cv=args.twitch_cv,
         legs=_csv_list(args.legs, "--legs") if args.legs is not None else None,
         chains=args.chains, warmup=args.warmup, draws=args.draws,
         max_tree_depth=args.max_tree_depth, target_ess=args.target_ess or None, time_limit_s=args.time_limit,
@@ -804,6 +805,9 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--minutes", type=float, default=minutes_default, help="length of each trial [min]")
         sp.add_argument("--seed", type=int, default=0)
         sp.add_argument("--effects", default="", help="hidden effects to switch on, comma-separated")
+        sp.add_argument("--twitch-cv", type=float, default=TWITCH_CV, metavar="CV",
+                        help=f"the twitches' coefficient of variation from pulse to pulse (default {TWITCH_CV:g}, "
+                             "the paper's Table IV; 0: equal twitches)")
         sp.add_argument("--legs", default=None, help="legs, comma-separated (default: the paper's five)")
 
     s = sub.add_parser("simulate", help="simulate the paper's cohort into the interchange format")

@@ -33,7 +33,7 @@ from ..common._io import atomic_write_text
 from ..common._results import Result
 from ..data._interchange import load_cohort, write_interchange
 from ..data._paper import LEGS
-from ..data._simulate import check_effects, simulate_cohort, write_truth
+from ..data._simulate import TWITCH_CV, check_effects, simulate_cohort, write_truth
 from ..inference._nuts import FitSettings
 from ..inference._priors import build_model
 from ..outputs._tables import markdown_table
@@ -69,6 +69,7 @@ class Demo(Result):
     folders: dict  # step -> folder
     seconds: dict  # step -> seconds
     report_pages: dict
+    twitch_cv: float | None = None  # the twitches' variation from pulse to pulse in the simulation
 
 #: Legs of the demo's fit: two subjects, so subject and population levels differ.
 DEMO_LEGS = ("TN-left", "JM-left")
@@ -105,6 +106,7 @@ def run_demo(
     time_limit_s: float = 150.0,
     progress: bool = False,
     command: str = "",
+    twitch_cv: float = TWITCH_CV,
 ) -> Demo:
     """Reproduce, fit, evaluate, diagnose, report; returns the summary (also ``out/summary.json``).
 
@@ -137,14 +139,15 @@ def run_demo(
 
     say(f"1/5 the paper's reproduction: {len(legs)} legs, {minutes:g} min per trial -> {out / 'reproduce'}")
     rep = run_reproduce(out / "reproduce", minutes=minutes, seed=seed, effects=effects, legs=legs,
-                        progress=progress, command=command)
+                        progress=progress, command=command, twitch_cv=twitch_cv)
     step("reproduce")
 
     data = out / "reproduce" / "data"
     hidden = tuple(h for h in hidden if h not in effects)
     if hidden:
         say(f"   the loop's legs {', '.join(fit_legs)} simulated again with {', '.join(hidden)} hidden -> {out / 'loop-data'}")
-        loop_cohort, truth = simulate_cohort(legs=fit_legs, minutes=minutes, seed=seed, effects=(*effects, *hidden))
+        loop_cohort, truth = simulate_cohort(legs=fit_legs, minutes=minutes, seed=seed, effects=(*effects, *hidden),
+                                             twitch_cv=twitch_cv)
         data = write_interchange(loop_cohort, out / "loop-data", overwrite=True)
         write_truth(truth, data / "truth.json")
     cohort = load_cohort(data)
@@ -181,15 +184,15 @@ def run_demo(
         fit_ok=bool(diagnostics["ok"]), fit_banner=fit.banner, verdict=diag.verdict, recovery_ok=rep.recovery_ok,
         report=str(out / "report" / "index.html"),
         folders={k: str(out / k) for k in ("reproduce", "fit", "evaluate", "diagnose", "report")},
-        seconds=seconds, report_pages=report.pages,
+        seconds=seconds, report_pages=report.pages, twitch_cv=float(twitch_cv),
     )
     lines = [
         "# quadshank demo",
         "",
         f"Made by: `{command}`" if command else "",
         "",
-        f"The built-in simulated cohort ({len(legs)} legs, {minutes:g} min per trial, seed {seed}, "
-        f"effects hidden in every leg: {', '.join(effects) or 'none'}).",
+        f"The built-in simulated cohort ({len(legs)} legs, {minutes:g} min per trial, seed {seed}, twitches varying "
+        f"by a CV of {twitch_cv:g} from pulse to pulse, effects hidden in every leg: {', '.join(effects) or 'none'}).",
         "",
         *markdown_table([{"step": k, "folder": f"`{k}/`", "seconds": f"{v:.0f}"} for k, v in seconds.items()]).splitlines(),
         "",

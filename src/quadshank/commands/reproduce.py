@@ -13,7 +13,7 @@ from ..common._io import atomic_write_text
 from ..common._results import Result
 from ..data._interchange import write_interchange
 from ..data._paper import LEGS
-from ..data._simulate import simulate_cohort, write_truth
+from ..data._simulate import TWITCH_CV, simulate_cohort, write_truth
 from .evaluate import run_evaluate
 from .identify import run_identify
 
@@ -39,6 +39,7 @@ class Reproduction(Result):
     J_sd: dict
     sign_tests: list
     seconds: dict  # per step
+    twitch_cv: float | None = None  # the twitches' variation from pulse to pulse in the simulation
 
 
 def run_reproduce(
@@ -50,13 +51,16 @@ def run_reproduce(
     legs=None,
     progress: bool = False,
     command: str = "",
+    twitch_cv: float = TWITCH_CV,
 ) -> Reproduction:
-    """Simulate the cohort, identify, evaluate; tables, figures and summary.json in ``out``."""
+    """Simulate the cohort (twitches varying by ``twitch_cv``), identify, evaluate; tables, figures
+    and summary.json in ``out``."""
 
     out = Path(out)
     legs = tuple(legs or LEGS)
     t0 = time.perf_counter()
-    cohort, truth = simulate_cohort(legs=legs, minutes=minutes, seed=seed, effects=tuple(effects), progress=progress)
+    cohort, truth = simulate_cohort(legs=legs, minutes=minutes, seed=seed, effects=tuple(effects), progress=progress,
+                                    twitch_cv=twitch_cv)
     write_interchange(cohort, out / "data", overwrite=True)  # the command's own data folder
     write_truth(truth, out / "data" / "truth.json")
     t_sim = time.perf_counter() - t0
@@ -71,7 +75,8 @@ def run_reproduce(
         for t in sorted({tr.trial for tr in cohort})
     }
     summary = Reproduction(
-        command=command, minutes=minutes, seed=seed, effects=list(effects), legs=list(legs), rms_angle_deg=rms,
+        command=command, minutes=minutes, seed=seed, effects=list(effects), twitch_cv=float(twitch_cv), legs=list(legs),
+        rms_angle_deg=rms,
         identification=ident.legs, recovery_ok=rec_ok, J=ev.J, J_sd=ev.J_sd, sign_tests=ev.sign_tests,
         seconds={"simulate": t_sim, "identify": t_id, "evaluate": t_ev},
     )
@@ -80,7 +85,8 @@ def run_reproduce(
         "",
         f"Made by: `{command}`" if command else "",
         "",
-        f"Legs: {', '.join(legs)}; {minutes:g} min per trial; seed {seed}; hidden effects: {', '.join(effects) or 'none'}.",
+        f"Legs: {', '.join(legs)}; {minutes:g} min per trial; seed {seed}; twitches varying by a CV of {twitch_cv:g} "
+        f"from pulse to pulse; hidden effects: {', '.join(effects) or 'none'}.",
         "",
         "Mean RMS knee angle per trial [deg]: "
         + ", ".join(f"trial {t}: {v:.1f}" for t, v in rms.items())

@@ -186,14 +186,16 @@ Hidden effects (off by default, switched on by name)
     a range in extension that ends early (a contracture, say): a passive
     torque −1000·exp((φ − 75°)/5°) deg/s² besides the knee's own range, so
     the shank no longer swings far beyond 80°.
-``twitch_variability``
-    each pulse's twitch amplitude is multiplied by a log-normal factor with
-    mean 1 and coefficient of variation 0.2, drawn per pulse from a stream
-    of its own (the IPIs and sensor noise are unchanged).  The paper's Table
-    IV shows that even model 3 leaves 12–29 % RMS error in the integrated
-    twitch responses, so real twitches vary from pulse to pulse far beyond
-    sensor noise; without this effect the simulated Table IV errors of
-    model 3 are 1–3 %, with it about 20 %.
+
+Twitches that vary (on by default)
+----------------------------------
+Each pulse's twitch amplitude is multiplied by a log-normal factor with mean 1 and coefficient
+of variation ``twitch_cv`` (:data:`TWITCH_CV`, 0.2), drawn per pulse from a stream of its own
+(the IPIs and sensor noise do not depend on it).  The paper's Table IV shows that even model 3
+leaves 12–29 % RMS error in the integrated twitch responses, so real twitches vary from pulse to
+pulse far beyond sensor noise: with CV 0.2 the simulated Table IV errors of model 3 are about
+20 %, with ``twitch_cv=0`` (equal twitches) 1–3 %.  The model effect ``twitch_variability`` is
+the likelihood's term for it.
 
 Randomness
 ----------
@@ -236,6 +238,7 @@ from ._paper import (
 __all__ = [
     "simulate_pendulum_test",
     "EFFECTS",
+    "TWITCH_CV",
     "KNEE_RANGE",
     "ANATOMICAL_RANGE_DEG",
     "PASSIVE_TRUTH",
@@ -273,7 +276,6 @@ EFFECTS = (
     "goniometer_offset",
     "gravity_offset",
     "extension_limit",
-    "twitch_variability",
 )
 
 #: Parameters of each hidden effect (the same for every leg).
@@ -287,8 +289,10 @@ EFFECT_PARAMETERS = {
     "goniometer_offset": {"offset_deg": 3.0},
     "gravity_offset": {"angle_deg": 10.0},
     "extension_limit": {"phi_limit_deg": 75.0, "width_deg": 5.0, "torque_deg_s2": 1000.0},
-    "twitch_variability": {"cv": 0.2},
 }
+
+#: Coefficient of variation of the twitches' amplitudes from pulse to pulse (module docs).
+TWITCH_CV = 0.2
 
 #: True passive parameters per leg: D' [1/s], G' [deg/s²], k1' [deg/s²], k2 [1/deg].
 PASSIVE_TRUTH = {
@@ -343,6 +347,9 @@ def check_effects(effects) -> tuple[str, ...]:
     if isinstance(effects, str):
         effects = (effects,)
     effects = tuple(effects or ())
+    if "twitch_variability" in effects:
+        raise ValueError(f"twitch_variability is not a hidden effect: the simulated twitches vary by default (CV "
+                         f"{TWITCH_CV:g}); set twitch_cv (--twitch-cv) for another variation, 0 for equal twitches")
     unknown = [e for e in effects if e not in EFFECTS]
     if unknown:
         raise ValueError(f"unknown effect(s) {', '.join(map(repr, unknown))}; known effects: {', '.join(EFFECTS)}")
@@ -776,9 +783,9 @@ def _pulse_gains(pulses: np.ndarray, effects: tuple[str, ...], n_start: float, s
 
 
 def plan_leg(leg: str, n_samples: int, seed: int, effects: tuple[str, ...],
-             sampling_period_s: float = SAMPLING_PERIOD_S) -> dict:
-    """IPIs, pulse gains and fatigue state for all protocol trials of a leg, in order (pulses
-    on the sample grid of ``sampling_period_s``)."""
+             sampling_period_s: float = SAMPLING_PERIOD_S, twitch_cv: float = TWITCH_CV) -> dict:
+    """IPIs, pulse gains (with the twitches' variation ``twitch_cv``) and fatigue state for all
+    protocol trials of a leg, in order (pulses on the sample grid of ``sampling_period_s``)."""
     plans = {}
     n_carry = 0.0
     fp = EFFECT_PARAMETERS["fatigue"]
@@ -788,8 +795,8 @@ def plan_leg(leg: str, n_samples: int, seed: int, effects: tuple[str, ...],
         pulses = stimulation_sequence(rng_ipi, n_samples, _density(leg, u), sampling_period_s)
         n_start = n_carry if "fatigue" in effects else 0.0
         gains = _pulse_gains(pulses, effects, n_start, sampling_period_s)
-        if "twitch_variability" in effects:
-            gains = gains * twitch_variability(rng_twitch, pulses.size, EFFECT_PARAMETERS["twitch_variability"]["cv"])
+        if twitch_cv > 0:
+            gains = gains * twitch_variability(rng_twitch, pulses.size, twitch_cv)
         plans[trial] = {
             "u": u,
             "pulses": pulses,
@@ -829,9 +836,12 @@ def simulate_cohort(
     trials: Sequence[int] = (1, 2, 3),
     progress: bool = False,
     sampling_period_s: float = SAMPLING_PERIOD_S,
+    twitch_cv: float = TWITCH_CV,
 ) -> tuple[Cohort, dict]:
     """Simulate the protocol for ``legs``; returns the cohort and the truth.
 
+    ``twitch_cv``: the coefficient of variation of the twitches' amplitudes from pulse to pulse
+    (0.2 by default, the paper's Table IV; 0: equal twitches).
     ``sampling_period_s``: the recording's sampling period, a whole number of the plant's 1-ms
     steps (the paper's 10 ms by default); pulses fall on its sample grid.  The physiology (delays,
     twitch shape and area) is the same at every period; the truth's per-sample figures (delay in
@@ -856,14 +866,17 @@ def simulate_cohort(
         raise ValueError(f"seed must be a whole number from 0 to {2**32 - 1}, not {seed!r}")
     if isinstance(minutes, (bool, str)) or not 0 < minutes <= MAX_MINUTES:
         raise ValueError(f"minutes must be positive and at most {MAX_MINUTES:g} (a day), got {minutes!r}")
+    if isinstance(twitch_cv, (bool, str)) or not 0 <= twitch_cv <= 2:
+        raise ValueError(f"twitch_cv must be a coefficient of variation from 0 (equal twitches) to 2, got {twitch_cv!r}")
     dt = float(sampling_period_s)
     _substeps(dt)  # checked before any work
     n = int(round(minutes * 60.0 / dt))
     truth = default_truth(legs, effects)
     truth["sampling_period_s"] = dt
+    truth["twitch_cv"] = float(twitch_cv)
     jobs = []
     for leg in legs:
-        plans = plan_leg(leg, n, seed, effects, dt)
+        plans = plan_leg(leg, n, seed, effects, dt, float(twitch_cv))
         G2 = TABLE_III[leg]["G2"]
         for trial in trials:
             plan = plans[trial]
@@ -912,6 +925,7 @@ def simulate_cohort(
         "seed": int(seed),
         "minutes": float(minutes),
         "effects": list(effects),
+        "twitch_cv": float(twitch_cv),
         "truth_format": TRUTH_FORMAT,
     }
     return mark_checked(Cohort(tuple(out_trials), attrs)), truth  # made within the rules (written and read back in its tests)
@@ -933,8 +947,8 @@ def simulate_response(
     and the noise-free truth at the sample instants: ``true_angle_deg``,
     ``true_velocity_deg_s``, ``true_acceleration_deg_s2``,
     ``equivalent_acceleration`` (M/I) and ``twitch_activation`` (M/I before
-    the f·g modulation).  ``twitch_variability`` draws its random factors
-    in the cohort's protocol only; here it is not applied.
+    the f·g modulation).  The twitches' variation from pulse to pulse (:data:`TWITCH_CV`) is drawn
+    in the cohort's protocol only; here the twitches are equal.
     """
     (leg,) = check_legs((leg,))
     effects = check_effects(effects)
