@@ -16,7 +16,7 @@
 #
 # The paper gave one number per parameter and leg. A hierarchical fit gives a
 # posterior: per leg, per subject and for the population, with the delay as a
-# discrete latent summed out exactly. This notebook fits the loop's baseline
+# discrete latent summed out exactly. This notebook fits
 # `model3s` (model 3's gain factors on model 2's DARMA twitch) with the
 # angle-dependent delay to simulated data in which the delay *is* one sample
 # shorter below −20°, and reads the fit the way one should before trusting it:
@@ -261,7 +261,7 @@ pd.DataFrame({
 # a combination of the two, not each alone. Where a leg's delay–angle curve
 # gives a change of delay a low probability although its data hide one, its
 # pulses below the threshold are too few to show it (in these 30 s TN-right
-# has 2 pulses below −20°, TN-left 5 and JM-left 12); longer recordings would.
+# has 2 pulses below −20°, TN-left 6 and JM-left 10); longer recordings would.
 # A fit to report runs on longer recordings with the `quadshank fit` defaults
 # (4 chains of 1000 after 1000) and must pass the checks first.
 

@@ -213,8 +213,10 @@ print(verdict_sentence(ranking))
 # %% [markdown]
 # ## 3. Add the leader
 #
-# The leader's screen is the extended model, and its parameters come out near
-# the simulator's (P = 0.8, τ_p = 60 ms):
+# The leader's screen is the extended model. Its parameters are the
+# simulator's kind (P = 0.8, τ_p = 60 ms), though P and τ_p trade against each
+# other: a smaller P with a longer τ_p enlarges the twitches after short
+# intervals by much the same:
 
 # %%
 leader = ranking.verdict if ranking.verdict != "none" else ranking.rows[0]["effect"]
@@ -283,9 +285,11 @@ print(verdict_sentence(again))
 ranking_frame(again)
 
 # %% [markdown]
-# At the default size the first round finds potentiation, and J at 1 s falls
-# to less than half. The second round's verdict is `none`, which ends the
-# loop. From the command line the same loop is one command:
+# At the default size the first round finds potentiation, the only candidate
+# that clears the bar, and J falls beyond its bands at 0.5 s and at 1 s. The
+# second round's verdict is `none`, which ends the loop. From the command
+# line the same loop is one command; it starts from `model3s` alone, so its
+# first round adds `twitch_variability`:
 #
 # ```sh
 # quadshank simulate --out DATA --legs JM-left --minutes 1 --seed 4 --effects potentiation --trials 1
