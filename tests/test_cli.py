@@ -105,8 +105,11 @@ def test_demo_small(tmp_path, monkeypatch, capsys):
     rep = json.loads((out / "reproduce" / "summary.json").read_text())
     assert set(rep["J"]) == {"model1", "model2", "model3"}
     ev = json.loads((out / "evaluate" / "summary.json").read_text())
-    assert set(ev["J_legs"]["model3s"]) == {"TN-left", "OT-left"}
     diag = json.loads((out / "diagnose" / "summary.json").read_text())
+    # the loop's baseline on twitches that vary: model3s with its noise term, fitted and diagnosed
+    assert s["fit_settings"]["model"] == "model3s+twitch_variability" == fit["model"]
+    assert set(ev["J_legs"]["model3s+twitch_variability"]) == {"TN-left", "OT-left"}
+    assert diag["model"] == "model3s+twitch_variability"
     assert [r["effect"] for r in diag["ranking"]] == ["torque_angle_peak"] and diag["verdict"] == s["verdict"]
     # the loop is shown on legs simulated again with torque_angle_peak hidden; the reproduction stays the paper's
     assert s["hidden"] == ["torque_angle_peak"] and s["found"] == (s["verdict"] == "torque_angle_peak")

@@ -4,7 +4,8 @@ Five steps, each in its own folder under ``out``:
 
 1. ``reproduce/``: the paper's section 7 (simulate the cohort, classical
    identification, Table V) — :func:`quadshank.commands.reproduce.run_reproduce`;
-2. ``fit/``: a hierarchical NUTS fit of the loop's baseline ``model3s`` to trial 1
+2. ``fit/``: a hierarchical NUTS fit of the loop's baseline (``model3s`` with the
+   noise term for twitches that vary from pulse to pulse, ``twitch_variability``) to trial 1
    of two legs of two subjects (so the report can show shrinkage), simulated again
    with one effect hidden (``hidden``, a torque–angle maximum by default; ``loop-data/``) that
    ``model3s`` lacks;
@@ -76,6 +77,8 @@ DEMO_LEGS = ("TN-left", "JM-left")
 #: Each extension's mode sought from the baseline's mode only (no prior draw besides the median:
 #: half the screen's work of ``discover``'s default); the loop's tests find each hidden effect this way.
 DEMO_N_STARTS = 0
+#: The model fitted and diagnosed: the loop's baseline on twitches that vary (the simulator's default).
+DEMO_BASELINE = ("model3s", ("twitch_variability",))
 #: Candidates screened by the demo's diagnosis: the effects the paper's discussion names.
 DEMO_EFFECTS = ("torque_angle_peak", "hill_velocity", "angle_delay", "fatigue", "potentiation")
 
@@ -152,8 +155,10 @@ def run_demo(
         write_truth(truth, data / "truth.json")
     cohort = load_cohort(data)
 
-    say(f"2/5 hierarchical NUTS fit of model3s to trial 1 of {', '.join(fit_legs)} -> {out / 'fit'}")
-    fit = run_fit(cohort, out / "fit", "model3s", (), settings, legs=fit_legs, progress=progress,
+    base_name, base_effects = DEMO_BASELINE
+    base_label = "+".join((base_name, *base_effects))
+    say(f"2/5 hierarchical NUTS fit of {base_label} to trial 1 of {', '.join(fit_legs)} -> {out / 'fit'}")
+    fit = run_fit(cohort, out / "fit", base_name, base_effects, settings, legs=fit_legs, progress=progress,
                   data_source=str(data.resolve()))
     step("fit")
 
@@ -165,7 +170,7 @@ def run_demo(
 
     say(f"4/5 which effect is missing: {', '.join(DEMO_EFFECTS)} screened"
         + (f" ({', '.join(hidden)} is hidden)" if hidden else "") + f" -> {out / 'diagnose'}")
-    diag = run_diagnose(fit_cohort, build_model("model3s", sampling_period_s=fit_cohort.sampling_period_s), out / "diagnose", legs=fit_legs, effects=DEMO_EFFECTS,
+    diag = run_diagnose(fit_cohort, build_model(base_name, base_effects, sampling_period_s=fit_cohort.sampling_period_s), out / "diagnose", legs=fit_legs, effects=DEMO_EFFECTS,
                         command=command, progress=progress, seed=seed, n_starts=DEMO_N_STARTS)
     step("diagnose")
 
@@ -178,7 +183,7 @@ def run_demo(
     summary = Demo(
         command=command, minutes=minutes, seed=seed, effects=list(effects), hidden=list(hidden),
         found=(diag.verdict in hidden) if hidden else None, legs=list(legs), fit_legs=list(fit_legs),
-        fit_settings={"model": "model3s", "chains": chains, "warmup": warmup, "draws": draws,
+        fit_settings={"model": base_label, "chains": chains, "warmup": warmup, "draws": draws,
                       "max_tree_depth": max_tree_depth, "trials": [1], "target_ess": target_ess,
                       "time_limit_s": time_limit_s},
         fit_ok=bool(diagnostics["ok"]), fit_banner=fit.banner, verdict=diag.verdict, recovery_ok=rep.recovery_ok,
@@ -198,7 +203,7 @@ def run_demo(
         "",
         f"- Reproduction: parameters within tolerance of the truth: {'yes' if rep.recovery_ok else 'NO'} "
         "(`reproduce/report.md`).",
-        f"- Fit: model3s on trial 1 of {', '.join(fit_legs)}, {chains} chains, {how_drawn(fit, warmup)} "
+        f"- Fit: {base_label} on trial 1 of {', '.join(fit_legs)}, {chains} chains, {how_drawn(fit, warmup)} "
         f"(tree depth {max_tree_depth}): "
         + ("passed its checks." if diagnostics["ok"] else f"**{fit.banner}** — chains this short are a demo, "
            "not a result; see the advice in `fit/summary.json`."),
