@@ -1,0 +1,128 @@
+"""The modelling loop against each effect the simulator can hide: found, and from how much data.
+
+For each hidden effect (and for none) one leg of the default simulated cohort (its twitches
+varying from pulse to pulse) is simulated, and ``quadshank discover`` runs on it as a user runs
+it: from ``model3s``, every registered candidate screened, up to three rounds.  Where the hidden
+effect is not added, the same is done on longer data (the lengths in turn), so that the table
+says at which length it is found.  Each dataset and loop is made by the package's commands:
+
+    quadshank simulate --out DATA --legs LEG --minutes M --trials 1 --seed SEED [--effects EFFECT]
+    quadshank -q discover DATA --out OUT
+
+    python benchmarks/loop_hidden.py [--effects a,b] [--minutes 1,2,4] [--leg JM-left] [--seed 4]
+        [--jobs 2] [--out results/loop-hidden.md] [--record results/loop_hidden.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shlex
+import sys
+import tempfile
+from concurrent.futures import ThreadPoolExecutor
+from datetime import date
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from results_md import discover_rounds, run_quadshank  # noqa: E402
+
+from quadshank.common._io import atomic_write_text, write_json  # noqa: E402
+
+from quadshank.data._simulate import EFFECTS  # noqa: E402
+
+#: The loop adds the noise effect for the twitches' variation, then the hidden effect, then ends.
+MAX_ROUNDS = 3
+
+
+def one(effect: str, minutes: float, leg: str, seed: int, work: Path) -> dict:
+    """Simulate, run the loop, and read each round's verdict and leader."""
+    data, out = work / f"{effect}-{minutes:g}min-data", work / f"{effect}-{minutes:g}min-loop"
+    sim = ["simulate", "--out", str(data), "--legs", leg, "--minutes", f"{minutes:g}", "--trials", "1",
+           "--seed", str(seed)] + ([] if effect == "none" else ["--effects", effect])
+    run_quadshank(*sim)
+    seconds = run_quadshank("discover", str(data), "--out", str(out), "--max-rounds", str(MAX_ROUNDS))
+    return loop_row(effect, minutes, out, seconds)
+
+
+def loop_row(effect: str, minutes: float, out: Path, seconds: float) -> dict:
+    """A ``discover`` folder's rounds (verdict and leader of each) and whether it found ``effect``:
+    added in some round, or for ``none`` nothing added but the noise term for varying twitches."""
+    rounds = []
+    for summary, top in discover_rounds(out):
+        rounds.append({"model": summary.get("model"), "verdict": summary.get("verdict"), "leader": top.get("effect"),
+                       "delta_elpd": top.get("delta_elpd"), "delta_elpd_se": top.get("delta_elpd_se")})
+    added = [r["verdict"] for r in rounds if r["verdict"] not in (None, "none")]
+    found = set(added) <= {"twitch_variability"} if effect == "none" else effect in added
+    return {"effect": effect, "minutes": minutes, "rounds": rounds, "added": added, "found": bool(found),
+            "seconds": seconds}
+
+
+def study(effect: str, lengths, leg: str, seed: int, work: Path) -> list[dict]:
+    """The loop at each length in turn until the hidden effect is found (for none, the first length only)."""
+    rows = []
+    for minutes in lengths:
+        rows.append(one(effect, minutes, leg, seed, work))
+        print(json.dumps(rows[-1]), flush=True)
+        if rows[-1]["found"] or effect == "none":
+            break
+    return rows
+
+
+def _round(r: dict) -> str:
+    if r["verdict"] in (None, "none"):
+        lead = f" (leader {r['leader']} {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f})" if r.get("leader") else ""
+        return f"none{lead}"
+    return f"`{r['verdict']}` ({r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f})"
+
+
+def render(record: dict) -> str:
+    lines = [
+                f"Command: `{record['command']}`",
+        "",
+        f"{record['leg']}, trial 1 of the default simulated cohort (seed {record['seed']}, twitches varying by a CV "
+        "of 0.2 from pulse to pulse) with one effect hidden: `quadshank simulate --out DATA --legs "
+        f"{record['leg']} --minutes M --trials 1 --seed {record['seed']} --effects EFFECT`, then `quadshank -q "
+        f"discover DATA --out OUT` (from `model3s`, every registered candidate, at most {MAX_ROUNDS} rounds). "
+        "Where the hidden effect is not added, the loop runs again on longer data. Each round's verdict, with "
+        "its ΔELPD ± SE on the screen; a round whose verdict is none names its leader.",
+        "",
+        "| hidden | minutes | found | round 1 | round 2 | round 3 | loop [s] |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for row in record["rows"]:
+        cells = [_round(r) for r in row["rounds"]] + [""] * (MAX_ROUNDS - len(row["rounds"]))
+        found = "yes" if row["found"] else "no"
+        lines.append(f"| {row['effect']} | {row['minutes']:g} | {found} | " + " | ".join(cells)
+                     + f" | {row['seconds']:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--effects", default=",".join(("none", *EFFECTS)))
+    ap.add_argument("--minutes", default="1,2,4", help="lengths tried in turn until the effect is found")
+    ap.add_argument("--leg", default="JM-left")
+    ap.add_argument("--seed", type=int, default=4)
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--out", default="results/loop-hidden.md")
+    ap.add_argument("--record", default="results/loop_hidden.json")
+    args = ap.parse_args(argv)
+    effects = [e for e in args.effects.split(",") if e]
+    lengths = [float(m) for m in args.minutes.split(",")]
+    with tempfile.TemporaryDirectory(prefix="loop-hidden-") as tmp, ThreadPoolExecutor(args.jobs) as pool:
+        studies = list(pool.map(lambda e: study(e, lengths, args.leg, args.seed, Path(tmp)), effects))
+    record = {"command": "python benchmarks/loop_hidden.py " + shlex.join(argv if argv is not None else sys.argv[1:]),
+              "leg": args.leg, "seed": args.seed, "lengths": lengths,
+              "rows": [row for rows in studies for row in rows]}
+    record.update(date=date.today().isoformat(), machine=f"{platform.machine()}, {os.cpu_count()} CPU cores")
+    write_json(args.record, record)
+    atomic_write_text(args.out, "# The modelling loop against hidden effects\n\n" + render(record))
+    print(render(record))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

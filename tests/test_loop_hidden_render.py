@@ -1,0 +1,45 @@
+"""The hidden-effects study reads each loop's rounds from its folder and says whether it found the effect."""
+
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import loop_hidden  # noqa: E402
+
+
+def _loop(tmp_path, name, rounds):
+    """A ``discover`` folder with one round per (verdict, leader, ΔELPD, SE)."""
+    out = tmp_path / name
+    for k, (verdict, leader, d, se) in enumerate(rounds, start=1):
+        (out / f"round-{k}").mkdir(parents=True)
+        ranking = [{"effect": leader, "delta_elpd": d, "delta_elpd_se": se}] if leader else []
+        (out / f"round-{k}" / "summary.json").write_text(json.dumps({"model": f"m{k}", "verdict": verdict,
+                                                                      "ranking": ranking}))
+    return out
+
+
+def test_found_means_added_and_none_allows_only_the_noise_term(tmp_path):
+    hidden = _loop(tmp_path, "a", [("twitch_variability", "twitch_variability", 865.0, 127.0),
+                                   ("fatigue", "fatigue", 102.0, 48.0), ("none", "hill_velocity", 9.0, 20.0)])
+    row = loop_hidden.loop_row("fatigue", 2.0, hidden, 300.0)
+    assert row["found"] and row["added"] == ["twitch_variability", "fatigue"]
+    assert not loop_hidden.loop_row("potentiation", 2.0, hidden, 300.0)["found"]  # a stand-in is not the effect
+    clean = _loop(tmp_path, "b", [("twitch_variability", "twitch_variability", 865.0, 127.0),
+                                  ("none", "hill_velocity", 23.0, 27.0)])
+    assert loop_hidden.loop_row("none", 1.0, clean, 200.0)["found"]
+    false_positive = _loop(tmp_path, "c", [("accel_resonance", "accel_resonance", 38.0, 8.0)])
+    assert not loop_hidden.loop_row("none", 1.0, false_positive, 200.0)["found"]
+
+
+def test_the_table_gives_each_round_and_names_the_leader_of_a_none(tmp_path):
+    out = _loop(tmp_path, "a", [("twitch_variability", "twitch_variability", 865.4, 126.6),
+                                ("none", "hill_velocity", 23.1, 26.9)])
+    record = {"command": "python benchmarks/loop_hidden.py", "leg": "JM-left", "seed": 4,
+              "rows": [loop_hidden.loop_row("potentiation", 1.0, out, 248.0)]}
+    text = loop_hidden.render(record)
+    row = next(line for line in text.splitlines() if line.startswith("| potentiation"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells == ["potentiation", "1", "no", "`twitch_variability` (865 ± 127)",
+                     "none (leader hill_velocity 23 ± 27)", "", "248"]
+    assert "python benchmarks/loop_hidden.py" in text and "seed 4" in text
