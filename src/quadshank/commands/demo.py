@@ -156,7 +156,7 @@ def run_demo(
     cohort = load_cohort(data)
 
     base_name, base_effects = DEMO_BASELINE
-    base_label = "+".join((base_name, *base_effects))
+    base_label = build_model(base_name, base_effects).name  # "model3s+twitch_variability"
     say(f"2/5 hierarchical NUTS fit of {base_label} to trial 1 of {', '.join(fit_legs)} -> {out / 'fit'}")
     fit = run_fit(cohort, out / "fit", base_name, base_effects, settings, legs=fit_legs, progress=progress,
                   data_source=str(data.resolve()))
