@@ -17,17 +17,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import shlex
 import sys
 import tempfile
 from concurrent.futures import ThreadPoolExecutor
-from datetime import date
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from results_md import discover_rounds, run_quadshank  # noqa: E402
+from results_md import discover_rounds, run_quadshank, stamp  # noqa: E402
 
 from quadshank.common._io import atomic_write_text, write_json  # noqa: E402
 
@@ -117,8 +114,7 @@ def main(argv=None) -> int:
     record = {"command": "python benchmarks/loop_hidden.py " + shlex.join(argv if argv is not None else sys.argv[1:]),
               "leg": args.leg, "seed": args.seed, "lengths": lengths,
               "rows": [row for rows in studies for row in rows]}
-    record.update(date=date.today().isoformat(), machine=f"{platform.machine()}, {os.cpu_count()} CPU cores")
-    write_json(args.record, record)
+    write_json(args.record, stamp(record))
     atomic_write_text(args.out, "# The modelling loop against hidden effects\n\n" + render(record))
     print(render(record))
     return 0

@@ -47,10 +47,15 @@ def run_quadshank(*args: str, env: dict | None = None) -> float:
     return seconds
 
 
+def stamp(record: dict) -> dict:
+    """``record`` with the date and the machine it was measured on."""
+    record.update(date=date.today().isoformat(), machine=f"{platform.machine()}, {os.cpu_count()} CPU cores")
+    return record
+
+
 def publish(record: dict, record_path: str | Path, md_path: str | Path, name: str, render) -> None:
     """Date and machine into ``record``, written as JSON, and its section ``render(record)`` into ``md_path``."""
-    record.update(date=date.today().isoformat(), machine=f"{platform.machine()}, {os.cpu_count()} CPU cores")
-    write_json(record_path, record)
+    write_json(record_path, stamp(record))
     write_section(md_path, name, render(record))
     print(render(record))
 

@@ -156,7 +156,8 @@ def run_demo(
     cohort = load_cohort(data)
 
     base_name, base_effects = DEMO_BASELINE
-    base_label = build_model(base_name, base_effects).name  # "model3s+twitch_variability"
+    baseline = build_model(base_name, base_effects, sampling_period_s=cohort.sampling_period_s)
+    base_label = baseline.name  # "model3s+twitch_variability"
     say(f"2/5 hierarchical NUTS fit of {base_label} to trial 1 of {', '.join(fit_legs)} -> {out / 'fit'}")
     fit = run_fit(cohort, out / "fit", base_name, base_effects, settings, legs=fit_legs, progress=progress,
                   data_source=str(data.resolve()))
@@ -170,7 +171,7 @@ def run_demo(
 
     say(f"4/5 which effect is missing: {', '.join(DEMO_EFFECTS)} screened"
         + (f" ({', '.join(hidden)} is hidden)" if hidden else "") + f" -> {out / 'diagnose'}")
-    diag = run_diagnose(fit_cohort, build_model(base_name, base_effects, sampling_period_s=fit_cohort.sampling_period_s), out / "diagnose", legs=fit_legs, effects=DEMO_EFFECTS,
+    diag = run_diagnose(fit_cohort, baseline, out / "diagnose", legs=fit_legs, effects=DEMO_EFFECTS,
                         command=command, progress=progress, seed=seed, n_starts=DEMO_N_STARTS)
     step("diagnose")
 
