@@ -7,10 +7,15 @@ effect is not added, the same is done on longer data (the lengths in turn), so t
 says at which length it is found.  Each dataset and loop is made by the package's commands:
 
     quadshank simulate --out DATA --legs LEG --minutes M --trials 1 --seed SEED [--effects EFFECT]
-    quadshank -q discover DATA --out OUT
+    quadshank -q discover DATA --out OUT [--confirm]
 
     python benchmarks/loop_hidden.py [--effects a,b] [--minutes 1,2,4] [--leg JM-left] [--seed 4]
-        [--jobs 2] [--out results/loop-hidden.md] [--record results/loop_hidden.json]
+        [--jobs 2] [--confirm] [--out results/loop-hidden.md] [--record results/loop_hidden.json]
+
+With ``--confirm`` each round's leader is also fitted by hierarchical NUTS (``discover --confirm``)
+and the table gives NUTS's ΔELPD and whether it clears the bar beside the screen's.  The rows of a
+run replace those of the same effect and length in the record (same leg and seed), so that the
+lengths at which the screen found each effect can be confirmed one run at a time.
 """
 
 from __future__ import annotations
@@ -34,13 +39,14 @@ from quadshank.data._simulate import EFFECTS  # noqa: E402
 MAX_ROUNDS = 3
 
 
-def one(effect: str, minutes: float, leg: str, seed: int, work: Path) -> dict:
+def one(effect: str, minutes: float, leg: str, seed: int, work: Path, confirm: bool = False) -> dict:
     """Simulate, run the loop, and read each round's verdict and leader."""
     data, out = work / f"{effect}-{minutes:g}min-data", work / f"{effect}-{minutes:g}min-loop"
     sim = ["simulate", "--out", str(data), "--legs", leg, "--minutes", f"{minutes:g}", "--trials", "1",
            "--seed", str(seed)] + ([] if effect == "none" else ["--effects", effect])
     run_quadshank(*sim)
-    seconds = run_quadshank("discover", str(data), "--out", str(out), "--max-rounds", str(MAX_ROUNDS))
+    seconds = run_quadshank("discover", str(data), "--out", str(out), "--max-rounds", str(MAX_ROUNDS),
+                            *(["--confirm"] if confirm else []))
     return loop_row(effect, minutes, out, seconds)
 
 
@@ -51,40 +57,67 @@ def loop_row(effect: str, minutes: float, out: Path, seconds: float) -> dict:
     for summary, top in discover_rounds(out):
         rounds.append({"model": summary.get("model"), "verdict": summary.get("verdict"), "leader": top.get("effect"),
                        "delta_elpd": top.get("delta_elpd"), "delta_elpd_se": top.get("delta_elpd_se")})
+        nuts = top.get("nuts")
+        if nuts is not None:  # discover --confirm: the leader's NUTS fit against the previous round's
+            rounds[-1].update(screen_verdict=summary.get("screen_verdict"), nuts={
+                k: nuts.get(k) for k in ("delta_elpd", "delta_elpd_se", "clears_bar", "banner")})
     added = [r["verdict"] for r in rounds if r["verdict"] not in (None, "none")]
     found = set(added) <= {"twitch_variability"} if effect == "none" else effect in added
     return {"effect": effect, "minutes": minutes, "rounds": rounds, "added": added, "found": bool(found),
             "seconds": seconds}
 
 
-def study(effect: str, lengths, leg: str, seed: int, work: Path) -> list[dict]:
+def study(effect: str, lengths, leg: str, seed: int, work: Path, confirm: bool = False) -> list[dict]:
     """The loop at each length in turn until the hidden effect is found (for none, the first length only)."""
     rows = []
     for minutes in lengths:
-        rows.append(one(effect, minutes, leg, seed, work))
+        rows.append(one(effect, minutes, leg, seed, work, confirm))
         print(json.dumps(rows[-1]), flush=True)
         if rows[-1]["found"] or effect == "none":
             break
     return rows
 
 
+def _nuts(n: dict) -> str:
+    said = "clears the bar" if n["clears_bar"] else "does not clear it"
+    failed = "; its fit failed its checks" if n.get("banner") else ""
+    return f"; NUTS {n['delta_elpd']:.0f} ± {n['delta_elpd_se']:.0f}, {said}{failed}"
+
+
 def _round(r: dict) -> str:
+    nuts = _nuts(r["nuts"]) if r.get("nuts") else ""
     if r["verdict"] in (None, "none"):
-        lead = f" (leader {r['leader']} {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f})" if r.get("leader") else ""
+        lead = f" (leader {r['leader']} {r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f}{nuts})" if r.get("leader") else ""
         return f"none{lead}"
-    return f"`{r['verdict']}` ({r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f})"
+    return f"`{r['verdict']}` ({r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f}{nuts})"
+
+
+def merged(old: dict | None, record: dict) -> dict:
+    """``record`` with the rows of ``old`` (an earlier record of the same leg and seed) that it
+    does not redo: a row is one effect at one length, and the new one replaces the old."""
+    if not old or (old.get("leg"), old.get("seed")) != (record["leg"], record["seed"]):
+        return record
+    new = {(r["effect"], r["minutes"]) for r in record["rows"]}
+    kept = [r for r in old["rows"] if (r["effect"], r["minutes"]) not in new]
+    order = {e: i for i, e in enumerate(dict.fromkeys(r["effect"] for r in old["rows"] + record["rows"]))}
+    rows = sorted(kept + record["rows"], key=lambda r: (order[r["effect"]], r["minutes"]))
+    commands = list(dict.fromkeys([*old.get("commands", [old["command"]]), record["command"]]))
+    return {**record, "rows": rows, "commands": commands, "command": commands[0]}
 
 
 def render(record: dict) -> str:
+    commands = record.get("commands", [record["command"]])
     lines = [
-                f"Command: `{record['command']}`",
+        ("Command: " if len(commands) == 1 else "Commands: ") + ", ".join(f"`{c}`" for c in commands),
         "",
         f"{record['leg']}, trial 1 of the default simulated cohort (seed {record['seed']}, twitches varying by a CV "
         "of 0.2 from pulse to pulse) with one effect hidden: `quadshank simulate --out DATA --legs "
         f"{record['leg']} --minutes M --trials 1 --seed {record['seed']} --effects EFFECT`, then `quadshank -q "
         f"discover DATA --out OUT` (from `model3s`, every registered candidate, at most {MAX_ROUNDS} rounds). "
         "Where the hidden effect is not added, the loop runs again on longer data. Each round's verdict, with "
-        "its ΔELPD ± SE on the screen; a round whose verdict is none names its leader.",
+        "its ΔELPD ± SE on the screen; a round whose verdict is none names its leader. Rows run with `--confirm` "
+        "give NUTS's ΔELPD ± SE of the same leader beside the screen's (`discover --confirm`: a hierarchical NUTS "
+        "fit of the leader against the previous round's), and the round's verdict is then NUTS's.",
         "",
         "| hidden | minutes | found | round 1 | round 2 | round 3 | loop [s] |",
         "|---|---|---|---|---|---|---|",
@@ -104,17 +137,20 @@ def main(argv=None) -> int:
     ap.add_argument("--leg", default="JM-left")
     ap.add_argument("--seed", type=int, default=4)
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--confirm", action="store_true", help="confirm each round's leader with NUTS (discover --confirm)")
     ap.add_argument("--out", default="results/loop-hidden.md")
     ap.add_argument("--record", default="results/loop_hidden.json")
     args = ap.parse_args(argv)
     effects = [e for e in args.effects.split(",") if e]
     lengths = [float(m) for m in args.minutes.split(",")]
     with tempfile.TemporaryDirectory(prefix="loop-hidden-") as tmp, ThreadPoolExecutor(args.jobs) as pool:
-        studies = list(pool.map(lambda e: study(e, lengths, args.leg, args.seed, Path(tmp)), effects))
+        studies = list(pool.map(lambda e: study(e, lengths, args.leg, args.seed, Path(tmp), args.confirm), effects))
     record = {"command": "python benchmarks/loop_hidden.py " + shlex.join(argv if argv is not None else sys.argv[1:]),
               "leg": args.leg, "seed": args.seed, "lengths": lengths,
               "rows": [row for rows in studies for row in rows]}
-    write_json(args.record, stamp(record))
+    old = json.loads(Path(args.record).read_text()) if Path(args.record).exists() else None
+    record = stamp(merged(old, record))
+    write_json(args.record, record)
     atomic_write_text(args.out, "# The modelling loop against hidden effects\n\n" + render(record))
     print(render(record))
     return 0

@@ -43,3 +43,38 @@ def test_the_table_gives_each_round_and_names_the_leader_of_a_none(tmp_path):
     assert cells == ["potentiation", "1", "no", "`twitch_variability` (865 ± 127)",
                      "none (leader hill_velocity 23 ± 27)", "", "248"]
     assert "python benchmarks/loop_hidden.py" in text and "seed 4" in text
+
+
+def test_a_confirmed_round_gives_nuts_beside_the_screen(tmp_path):
+    out = _loop(tmp_path, "a", [("twitch_variability", "twitch_variability", 1126.0, 153.0),
+                                ("none", "angle_delay", 40.0, 20.0)])
+    for k, nuts in ((1, {"delta_elpd": 1089.0, "delta_elpd_se": 150.0, "clears_bar": True, "banner": None}),
+                    (2, {"delta_elpd": 38.0, "delta_elpd_se": 21.0, "clears_bar": False, "banner": "R-hat 1.02"})):
+        path = out / f"round-{k}" / "summary.json"
+        summary = json.loads(path.read_text())
+        summary["ranking"][0]["nuts"] = nuts
+        summary["screen_verdict"] = summary["verdict"]
+        path.write_text(json.dumps(summary))
+    row = loop_hidden.loop_row("angle_delay", 1.0, out, 400.0)
+    assert row["rounds"][0]["nuts"]["clears_bar"] and not row["rounds"][1]["nuts"]["clears_bar"]
+    line = next(x for x in loop_hidden.render({"command": "c", "leg": "JM-left", "seed": 4, "rows": [row]}).splitlines()
+                if x.startswith("| angle_delay"))
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert cells[3] == "`twitch_variability` (1126 ± 153; NUTS 1089 ± 150, clears the bar)"
+    assert cells[4] == ("none (leader angle_delay 40 ± 20; NUTS 38 ± 21, does not clear it; "
+                        "its fit failed its checks)")
+
+
+def test_a_new_run_replaces_the_rows_it_redoes_and_keeps_the_others():
+    def row(effect, minutes, seconds):
+        return {"effect": effect, "minutes": minutes, "rounds": [], "added": [], "found": False, "seconds": seconds}
+
+    old = {"command": "a", "leg": "JM-left", "seed": 4,
+           "rows": [row("none", 1.0, 1), row("fatigue", 1.0, 2), row("fatigue", 2.0, 3), row("hill_velocity", 1.0, 4)]}
+    new = {"command": "b", "leg": "JM-left", "seed": 4, "rows": [row("fatigue", 2.0, 30)]}
+    out = loop_hidden.merged(old, new)
+    assert [(r["effect"], r["minutes"], r["seconds"]) for r in out["rows"]] == [
+        ("none", 1.0, 1), ("fatigue", 1.0, 2), ("fatigue", 2.0, 30), ("hill_velocity", 1.0, 4)]
+    assert out["commands"] == ["a", "b"] and "`a`, `b`" in loop_hidden.render(out)
+    other = {**new, "seed": 5}
+    assert loop_hidden.merged(old, other) is other  # another leg or seed: nothing of the old is kept
