@@ -15,7 +15,9 @@ identified four ways:
   error) and once with ``--likelihood acceleration`` (equation error).
 
 Each is judged by the angle: the free run from the measured state (``evaluation.free_run_error``)
-and J at 100 ms and 1 s (``evaluation.prediction_errors``), all on the samples not excluded.
+and J at 100 ms and 1 s (``evaluation.prediction_errors``), all on the samples not excluded.  The
+Bayesian fits are judged by their intervals too: how many of the truth's parameters (4 per test)
+lie in the reported 90 % interval.
 
     python benchmarks/bench_pendulum.py [--noise 0.2] [--chains 2] [--warmup 500] [--draws 500] [--out results/benchmarks.md]
 """
@@ -116,7 +118,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     methods["reference"] = {t.key: reference_output_error(t) for _, t in trials}
     seconds["reference"] = time.perf_counter() - t0
-    fits = {}
+    fits, covered = {}, {}
     for likelihood in ("angle", "acceleration"):
         name = f"Bayesian fit, {likelihood}"
         with tempfile.TemporaryDirectory() as tmp:
@@ -125,6 +127,8 @@ def main(argv=None) -> int:
                 chains=args.chains, warmup=args.warmup, draws=args.draws, likelihood=likelihood))
             seconds[name] = time.perf_counter() - t0
         methods[name] = {leg: {k: fit.legs[leg]["params"][k]["median"] for k in NAMES} for leg in fit.legs}
+        covered[name] = [fit.legs[t.key]["params"][k]["lo"] <= PASSIVE_TRUTH[leg][k] <= fit.legs[t.key]["params"][k]["hi"]
+                         for leg, t in trials for k in NAMES]
 
     scores = {name: {t.key: judge(p[t.key], t) for _, t in trials} for name, p in methods.items()}
     scores["truth"] = {t.key: judge(PASSIVE_TRUTH[leg], t) for leg, t in trials}
@@ -144,8 +148,9 @@ def main(argv=None) -> int:
         per = scores[name]
         mean = {m: float(np.mean([v[m] for v in per.values()])) for m in ("free_run_deg", "J_100ms", "J_1000ms")}
         worst = float(max(v["free_run_deg"] for v in per.values()))
+        inside = f"{sum(covered[name])} of {len(covered[name])}" if name in covered else "–"
         rows.append(f"| {labels[name]} | {mean['free_run_deg']:.3f} | {worst:.3f} | {mean['J_100ms']:.3f} | "
-                    f"{mean['J_1000ms']:.3f} | {seconds.get(name, float('nan')):.1f} |".replace("| nan |", "| – |"))
+                    f"{mean['J_1000ms']:.3f} | {seconds.get(name, float('nan')):.1f} | {inside} |".replace("| nan |", "| – |"))
     def worst_ratio(name):
         return max(scores[name][k]["free_run_deg"] / scores["reference"][k]["free_run_deg"] for k in scores["reference"])
 
@@ -159,17 +164,19 @@ def main(argv=None) -> int:
         f"accelerometer, the first {RELEASE_S:g} s excluded. Errors in degrees on the samples not excluded, the "
         "mean over the tests (and the largest free-run error); seconds for all tests together.",
         "",
-        "| identified by | free run (mean) | free run (largest) | J 100 ms | J 1 s | seconds |",
-        "|---|---|---|---|---|---|",
+        "| identified by | free run (mean) | free run (largest) | J 100 ms | J 1 s | seconds | truth in the 90 % interval |",
+        "|---|---|---|---|---|---|---|",
         *rows,
         "",
         "Against the reference, test by test, the free-run error of `identify` is at most "
         f"{worst_ratio('output error'):.3f} times the reference's, and that of `fit --model passive` (posterior "
-        f"medians, likelihood on the angle) at most {worst_ratio('Bayesian fit, angle'):.3f} times.",
+        f"medians, likelihood on the angle) at most {worst_ratio('Bayesian fit, angle'):.3f} times. A calibrated "
+        f"90 % interval holds the truth {0.9 * 4 * len(trials):.0f} times in {4 * len(trials)} on average.",
     ])
     write_section(args.out, "bench_pendulum", text)
     record = Path(args.out).with_name("bench_pendulum.json")
-    record.write_text(json.dumps({"command": command, "methods": methods, "scores": scores, "seconds": seconds},
+    record.write_text(json.dumps({"command": command, "methods": methods, "scores": scores, "seconds": seconds,
+                                  "covered": covered},
                                  indent=1, default=float) + "\n")
     print(text)
     return 0

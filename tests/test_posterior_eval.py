@@ -112,6 +112,19 @@ def test_cohort_j_is_the_per_draw_mean_over_legs():
     assert legs["m"]["B"]["2"]["100"]["median"] == pytest.approx(np.median(b[:, 0]))
 
 
+def test_a_diverging_draw_has_an_unbounded_j_that_the_band_orders_last(run):
+    models, trial = _draws(run, 5)
+    # one draw's elasticity so stiff that its predictions overflow: J +inf, not NaN
+    k2 = np.asarray(models.params()["k2"]).copy()
+    k2[0] = 50.0
+    J = pe.posterior_prediction_errors(models.with_params({"k2": k2}), trial, HORIZONS, start_stride=10)
+    assert np.isposinf(J[0]).all() and np.isfinite(J[1:]).all()
+    band = pe.interval(J[:, -1])
+    assert np.isfinite(band["lo"]) and np.isfinite(band["median"])
+    many = np.concatenate([np.full(10, np.inf), np.arange(10.0)])  # half diverge: the upper end is unbounded
+    assert pe.interval(many)["hi"] == np.inf and pe.interval(many)["lo"] == 0.0
+
+
 def test_sign_tests_on_posterior_medians(summary):
     tests = summary["sign_tests"]
     assert {t["horizon_ms"] for t in tests} == {100, 250, 500, 1000}

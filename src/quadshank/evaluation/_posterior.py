@@ -281,14 +281,18 @@ def window_predictions(models: Model, trial: Trial, horizons, window: tuple[floa
 
 def posterior_prediction_errors(models: Model, trial: Trial, horizons=None, start_stride: int = 1) -> np.ndarray:
     """J_φ,p [deg] (eq. 12) per draw and horizon [samples]: array (draws, len(horizons)); by default
-    the horizons of :data:`quadshank.data.HORIZONS_MS` at the trial's period."""
+    the horizons of :data:`quadshank.data.HORIZONS_MS` at the trial's period.  A draw whose
+    predictions diverge somewhere (a stiff elasticity far from the data's angles, say) has an
+    unbounded error: its J is +inf, so that a band's quantiles still order the draws (a NaN
+    would make every quantile NaN)."""
     models.check_period(trial.sampling_period_s, f"{trial.key} trial {trial.trial}")
     if horizons is None:
         horizons = tuple(horizon_samples(trial.sampling_period_s).values())
     starts = prediction_starts(trial, max(horizons), start_stride)
     target = trial.angle_deg[starts[:, None] + np.asarray(horizons)[None, :]]  # (S, H)
     chunks = _prediction_chunks(models, trial, starts, horizons)
-    return np.concatenate([np.sqrt(np.mean((target[None] - pred) ** 2, axis=1)) for pred in chunks])
+    J = np.concatenate([np.sqrt(np.mean((target[None] - pred) ** 2, axis=1)) for pred in chunks])
+    return np.where(np.isfinite(J), J, np.inf)
 
 
 def posterior_j(

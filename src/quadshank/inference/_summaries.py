@@ -23,7 +23,10 @@ def interval(draws, axis: int = 0) -> dict:
     the same draws, kept as arrays.
     """
     draws = np.asarray(draws)
-    lo, hi = np.quantile(draws, INTERVAL, axis=axis)
+    # draws of +inf (a J whose predictions diverged) are ordered last; interpolating between two of
+    # them would give inf − inf, so there each quantile is a draw's own value
+    method = "linear" if np.isfinite(draws).all() else "inverted_cdf"
+    lo, hi = np.quantile(draws, INTERVAL, axis=axis, method=method)
     return {"median": np.median(draws, axis=axis).tolist(), "lo": lo.tolist(), "hi": hi.tolist()}
 
 
