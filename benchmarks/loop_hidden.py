@@ -9,6 +9,8 @@ says at which length it is found.  Each dataset and loop is made by the package'
     quadshank simulate --out DATA --legs LEG --minutes M --trials 1 --seed SEED [--effects EFFECT]
     quadshank -q discover DATA --out OUT [--confirm]
 
+(for ``recruitment_power``, trials 1–3 simulated and ``--trials 1,3`` fitted: see :data:`TRIALS`)
+
     python benchmarks/loop_hidden.py [--effects a,b] [--minutes 1,2,4] [--leg JM-left] [--seed 4]
         [--jobs 2] [--confirm] [--out results/loop-hidden.md] [--record results/loop_hidden.json]
 
@@ -37,17 +39,22 @@ from quadshank.data._simulate import EFFECTS  # noqa: E402
 
 #: The loop adds the noise effect for the twitches' variation, then the hidden effect, then ends.
 MAX_ROUNDS = 3
+#: Trials simulated and fitted per hidden effect (default: trial 1 alone): a recruitment curve shows
+#: only between pulses of different levels, trial 1's (u = 1) and trial 3's (u = 0.5); a folder
+#: numbers its trials from 1, so trial 2 is simulated too and left out of the loop.
+TRIALS = {"recruitment_power": ("1,2,3", "1,3")}
 
 
 def one(effect: str, minutes: float, leg: str, seed: int, work: Path, confirm: bool = False) -> dict:
     """Simulate, run the loop, and read each round's verdict and leader."""
     data, out = work / f"{effect}-{minutes:g}min-data", work / f"{effect}-{minutes:g}min-loop"
-    sim = ["simulate", "--out", str(data), "--legs", leg, "--minutes", f"{minutes:g}", "--trials", "1",
+    simulated, trials = TRIALS.get(effect, ("1", "1"))
+    sim = ["simulate", "--out", str(data), "--legs", leg, "--minutes", f"{minutes:g}", "--trials", simulated,
            "--seed", str(seed)] + ([] if effect == "none" else ["--effects", effect])
     run_quadshank(*sim)
     seconds = run_quadshank("discover", str(data), "--out", str(out), "--max-rounds", str(MAX_ROUNDS),
-                            *(["--confirm"] if confirm else []))
-    return loop_row(effect, minutes, out, seconds)
+                            "--trials", trials, *(["--confirm"] if confirm else []))
+    return {**loop_row(effect, minutes, out, seconds), "trials": trials}
 
 
 def loop_row(effect: str, minutes: float, out: Path, seconds: float) -> dict:
@@ -114,7 +121,9 @@ def render(record: dict) -> str:
         "of 0.2 from pulse to pulse) with one effect hidden: `quadshank simulate --out DATA --legs "
         f"{record['leg']} --minutes M --trials 1 --seed {record['seed']} --effects EFFECT`, then `quadshank -q "
         f"discover DATA --out OUT` (from `model3s`, every registered candidate, at most {MAX_ROUNDS} rounds). "
-        "Where the hidden effect is not added, the loop runs again on longer data. Each round's verdict, with "
+        "For `recruitment_power` trials 1–3 are simulated and the loop fits trials 1 and 3 (`--trials 1,3`), whose "
+        "recruitment levels differ (1 and 0.5). Where the hidden effect is not added, the loop runs again on longer "
+        "data. Each round's verdict, with "
         "its ΔELPD ± SE on the screen; a round whose verdict is none names its leader. Rows run with `--confirm` "
         "give NUTS's ΔELPD ± SE of the same leader beside the screen's (`discover --confirm`: a hierarchical NUTS "
         "fit of the leader against the previous round's), and the round's verdict is then NUTS's.",

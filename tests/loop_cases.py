@@ -40,6 +40,14 @@ def cohort_with(effect):
     return cohort
 
 
+def screened(cohort, model=None, **kw):
+    """The loop's ranking of ``model`` (default :func:`baseline`) on ``cohort``, as these tests
+    screen: 150 Laplace draws, J from 30 of them, warnings off; ``kw`` to :func:`rank_effects`."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return rank_effects(cohort, baseline() if model is None else model, n_draws=150, n_j_draws=30, **kw)
+
+
 def rankings(effects) -> dict:
     """The baseline's ranking per dataset; with a hidden effect the five of HIDDEN are
     screened, with none every registered candidate (built-in and user-written).
@@ -51,11 +59,9 @@ def rankings(effects) -> dict:
     package's defaults, where more starts give each candidate its best chance to
     claim the data (a false positive is the failure there)."""
     out = {}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        for effect in effects:
-            kw = {"effects": None} if effect == "none" else {"effects": HIDDEN, "n_starts": 0}
-            out[effect] = rank_effects(cohort_with(effect), baseline(), n_draws=150, n_j_draws=30, **kw)
+    for effect in effects:
+        kw = {"effects": None} if effect == "none" else {"effects": HIDDEN, "n_starts": 0}
+        out[effect] = screened(cohort_with(effect), **kw)
     return out
 
 

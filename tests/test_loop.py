@@ -4,7 +4,7 @@ delay (see loop_cases.py; fatigue, potentiation and no hidden effect: test_loop_
 import math
 
 import pytest
-from loop_cases import HIDDEN, LEG, baseline, check_hidden_first, rankings
+from loop_cases import HIDDEN, LEG, check_hidden_first, rankings, screened
 
 from quadshank.loop._diagnose import candidates
 from quadshank.inference._priors import build_model
@@ -37,16 +37,10 @@ def test_a_hidden_gravity_offset_is_found_by_the_rest_offset_candidates():
     clear the bar, and ``gravity_offset`` finds the angle.  On stimulated trials of one minute the
     two explain the data about equally well (they differ only in where the elasticity and the gain
     factors act), so either may be first."""
-    import warnings
-
     from quadshank.data._simulate import EFFECT_PARAMETERS, simulate_cohort
-    from quadshank.loop._diagnose import rank_effects
 
     cohort, _ = simulate_cohort(legs=["JM-left"], minutes=1.0, seed=1, trials=(1,), effects=["gravity_offset"])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        r = rank_effects(cohort, baseline(), n_draws=150, n_j_draws=30, n_starts=0,
-                         effects=("gravity_offset", "goniometer_offset", "torque_angle_peak"))
+    r = screened(cohort, n_starts=0, effects=("gravity_offset", "goniometer_offset", "torque_angle_peak"))
     rows = {x["effect"]: x for x in r.rows}
     assert {x["effect"] for x in r.rows[:2]} == {"gravity_offset", "goniometer_offset"} and r.verdict in rows
     top = rows["gravity_offset"]
@@ -61,17 +55,11 @@ def test_a_hidden_end_of_range_in_extension_is_found_and_located():
     ``extension_limit`` first, past the bar, with the limit's torque and width the truth's.  With
     the package's default starts: from the prior median alone (a torque too small to matter at
     the angles these data reach) the optimiser does not find it."""
-    import warnings
-
     from quadshank.data._simulate import EFFECT_PARAMETERS, simulate_cohort
-    from quadshank.loop._diagnose import rank_effects
 
     cohort, _ = simulate_cohort(legs=["JM-left"], minutes=1.0, seed=1, trials=(1,), effects=["extension_limit"])
     assert max(t.angle_deg.max() for t in cohort) < 85.0  # no swing far beyond the end of the range
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        r = rank_effects(cohort, "model3s", n_draws=150, n_j_draws=30,
-                         effects=("extension_limit", "torque_angle_peak", "gravity_offset", "hill_velocity"))
+    r = screened(cohort, "model3s", effects=("extension_limit", "torque_angle_peak", "gravity_offset", "hill_velocity"))
     check_hidden_first(r, "extension_limit")
     truth = EFFECT_PARAMETERS["extension_limit"]
     found = r.rows[0]["parameters"]["JM-left"]
@@ -83,17 +71,11 @@ def test_a_hidden_end_of_range_in_extension_is_found_and_located():
 def test_the_knees_range_is_found_where_the_swings_meet_it():
     """With nothing hidden, the simulated knee's own range: the baseline, which has none, lacks it,
     and ``extension_limit`` clears the bar."""
-    import warnings
-
-    from quadshank.loop._diagnose import rank_effects
-
     from quadshank.data._simulate import simulate_cohort
 
     cohort, _ = simulate_cohort(legs=[LEG], minutes=1.0, seed=1, trials=(1,))
     assert max(t.angle_deg.max() for t in cohort) > 85.0
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        r = rank_effects(cohort, baseline(), n_draws=150, n_j_draws=30, effects=("extension_limit",))
+    r = screened(cohort, effects=("extension_limit",))
     check_hidden_first(r, "extension_limit")
     assert r.rows[0]["parameters"][LEG]["limit_stiffness"] > 100.0  # deg/s² at full extension: a stop
 
@@ -103,16 +85,11 @@ def test_the_knees_range_is_found_before_potentiation_whose_swings_meet_it():
     model without an end of range predicts it passes: with potentiation added J at 1 s rises, though
     the evidence supports it, and ``extension_limit``, which lowers J at every horizon, is the
     verdict.  Where the swings stay short of the range, potentiation is found (loop_cases.py)."""
-    import warnings
-
     from quadshank.data._simulate import simulate_cohort
-    from quadshank.loop._diagnose import rank_effects
 
     cohort, _ = simulate_cohort(legs=["JM-left"], minutes=2.0, seed=1, trials=(1,), effects=["potentiation"])
     assert max(t.angle_deg.max() for t in cohort) > 85.0
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        r = rank_effects(cohort, baseline(), n_draws=150, n_j_draws=30, effects=("extension_limit", "potentiation"))
+    r = screened(cohort, effects=("extension_limit", "potentiation"))
     rows = {x["effect"]: x for x in r.rows}
     check_hidden_first(r, "extension_limit")
     assert rows["extension_limit"]["J_lowered_at_ms"] == [100, 250, 500, 1000]
