@@ -494,8 +494,7 @@ def prepare(cohort: Cohort, model: Model, trials=(1,), legs=None, objective: str
             shoot_start = np.zeros((L, _bucket(int(counts.max()))), np.int64)  # spare runs start at 0, unread
             for i in range(L):
                 shoot_start[i, : counts[i]] = np.flatnonzero(reset[i])
-            sample_mask = sample_mask & ~reset  # a run's first sample is its measured state
-        # (the pendulum alone fits each run's start, _fitted_starts: its first sample is compared too)
+        sample_mask = sample_mask & ~reset
     starts = pad("start", True, bool)
     sample_segment = pad("segment", -1, np.int64)
 
@@ -750,19 +749,15 @@ def step_tables(angle, pulse_sample, pulse_u, touch_valid, touch_pos, RK: int) -
 # ============================================================================ JAX side
 
 
-def free_run_angles(model: Model, x: dict, noise: dict | None = None):
+def free_run_angles(model: Model, x: dict):
     """The goniometer reading that ``model``'s free run predicts at every sample of one leg: a run
     starts afresh from the measured angle and velocity at each ``x["reset"]`` sample and steps
     by RK4 until the next: eq. (8)'s passive system alone, or, for a model with a muscle
-    (``x["begin"]`` present), the whole model at its delay (:func:`_shooting_run`).  For the
-    passive system, with ``noise`` (σ, ν) each run starts instead where its samples put it
-    (:func:`_fitted_starts`).  Differentiable in the model's parameters (not in the data)."""
+    (``x["begin"]`` present), the whole model at its delay (:func:`_shooting_run`).
+    Differentiable in the model's parameters (not in the data)."""
     if "begin" in x:
         return _shooting_run(model, x)
-    if noise is None:
-        zeros = jnp.zeros(x["angle"].shape, _run_dtype(model, x["angle"]))
-        return _free_run(model, x["angle"], x["velocity"], x["reset"], zeros, zeros)
-    return _free_run(model, x["angle"], x["velocity"], x["reset"], *_fitted_starts(model, noise, x))
+    return _free_run(model, x["angle"], x["velocity"], x["reset"])
 
 
 def _shooting_run(model: Model, x: dict):
@@ -820,85 +815,19 @@ def _at_delay(model: Model, x: dict, d):
     return model.with_params(delay=d) if "begin" in x else model
 
 
-def _free_run_plain(model: Model, angle, velocity, reset, start_angle=0.0, start_velocity=0.0):
-    """The free run of the passive system restarted at each ``reset`` sample from the measured
-    state plus ``start_angle`` [deg] and ``start_velocity`` [deg/s] (per sample, read at the
-    resets: each run's fitted start, :func:`_fitted_starts`)."""
+def _free_run_plain(model: Model, angle, velocity, reset):
     dt = model.sampling_period_s
     dtype = _run_dtype(model, angle)
     true, velocity = true_angle(model, angle.astype(dtype)), velocity.astype(dtype)
-    start_angle = jnp.broadcast_to(jnp.asarray(start_angle, dtype), true.shape)
-    start_velocity = jnp.broadcast_to(jnp.asarray(start_velocity, dtype), true.shape)
 
     def body(state, inputs):
-        start, a_meas, v_meas, da, dv = inputs
-        a = jnp.where(start, a_meas + da, state[0])
-        v = jnp.where(start, v_meas + dv, state[1])
+        start, a_meas, v_meas = inputs
+        a = jnp.where(start, a_meas, state[0])
+        v = jnp.where(start, v_meas, state[1])
         return _rk4(model, a, v, 0.0, dt), a
 
-    _, predicted = jax.lax.scan(body, (true[0], velocity[0]), (reset, true, velocity, start_angle, start_velocity))
+    _, predicted = jax.lax.scan(body, (true[0], velocity[0]), (reset, true, velocity))
     return measured_angle(model, predicted)
-
-
-#: Prior sds of a free run's start about the measured state [deg, deg/s] (a ridge on the
-#: Gauss–Newton steps of :func:`_fitted_starts`), and how many steps are taken: each takes about
-#: a tenth of the distance left, and the gradient (that at the fitted start) is then within about
-#: 1 % of the computed likelihood's (6 % after two steps).
-START_PRIOR_SD = (5.0, 50.0)
-START_STEPS = 3
-
-
-def _fitted_starts(model: Model, noise: dict, x: dict):
-    """Each free run's start (angle and velocity offsets from the measured state, per sample,
-    read at the resets) that the run's compared samples favour: :data:`START_STEPS` Gauss–Newton
-    steps of the Student-t misfit (weights of iteratively reweighted least squares) from the
-    measured state, with the ridge :data:`START_PRIOR_SD`.
-
-    The measured state is one noisy sample and a derivative at the edge of a stretch, where a
-    Savitzky–Golay velocity extrapolates: started there, a run's error in amplitude and phase is
-    taken up by the passive parameters (damping by 1–2 % on simulated pendulum tests with 0.2°
-    goniometer noise, against posterior sds of 0.1 %).  Fitted, the start is profiled out: the
-    likelihood is that of the best start for the given parameters.  Its gradient in the parameters
-    is that at the fitted start (envelope theorem: the start's own derivative vanishes at its
-    optimum), so the steps are taken on values (stop_gradient), not differentiated."""
-    model = jax.tree_util.tree_map(jax.lax.stop_gradient, model)
-    sigma, nu = jax.lax.stop_gradient(noise["sigma"]), jax.lax.stop_gradient(noise["nu"])
-    angle, velocity, reset, mask = x["angle"], x["velocity"], x["reset"], x["sample_mask"]
-    n = angle.shape[0]
-    run = jnp.clip(jnp.cumsum(reset) - 1, 0, n - 1)  # the run each sample belongs to
-    dtype = _run_dtype(model, angle)
-    ridge = (sigma / jnp.asarray(START_PRIOR_SD, dtype)) ** 2
-
-    def step(carry, _):
-        da, dv = carry
-
-        def shifted(e):  # a run's sensitivity to its own start: runs are independent, so one shift serves all
-            out = _free_run_plain(model, angle, velocity, reset, da + e[0], dv + e[1])
-            return out, out
-
-        sens, pred = jax.jacfwd(shifted, has_aux=True)(jnp.zeros(2, dtype))  # (n, 2): one run, two tangents
-        sa, sv = sens[:, 0], sens[:, 1]
-        r = angle - pred
-        w = jnp.where(mask, (nu + 1.0) / (nu + (r / sigma) ** 2), 0.0)
-
-        def per_run(v):
-            return jax.ops.segment_sum(jnp.where(mask, w * v, 0.0), run, num_segments=n)
-
-        haa, hav, hvv = per_run(sa * sa) + ridge[0], per_run(sa * sv), per_run(sv * sv) + ridge[1]
-        # the ridge pulls the start, not its step, towards the measured state
-        ga, gv = per_run(sa * r) - ridge[0] * da[run0], per_run(sv * r) - ridge[1] * dv[run0]
-        det = haa * hvv - hav * hav
-        sa_, sv_ = (hvv * ga - hav * gv) / det, (haa * gv - hav * ga) / det
-        ok = jnp.isfinite(sa_) & jnp.isfinite(sv_)
-        step_a = jnp.clip(jnp.where(ok, sa_, 0.0), -3 * START_PRIOR_SD[0], 3 * START_PRIOR_SD[0])
-        step_v = jnp.clip(jnp.where(ok, sv_, 0.0), -3 * START_PRIOR_SD[1], 3 * START_PRIOR_SD[1])
-        return ((da + step_a[run]).astype(dtype), (dv + step_v[run]).astype(dtype)), None
-
-    # the start of run k as held at its reset sample; any sample of the run holds the same
-    run0 = jnp.clip(jax.ops.segment_max(jnp.where(reset, jnp.arange(n), -1), run, num_segments=n), 0, n - 1)
-    zeros = jnp.zeros(n, dtype)
-    (da, dv), _ = jax.lax.scan(step, (zeros, zeros), None, length=START_STEPS)
-    return da, dv
 
 
 def _float_leaves(model: Model):
@@ -922,29 +851,28 @@ def _with_floats(leaves, tree, at, floats):
 # sample costs about six forward runs, while the handful of parameters of the pendulum alone ride
 # along a single forward run as tangents (jacfwd), and J^T g is then one product.
 @jax.custom_vjp
-def _free_run(model: Model, angle, velocity, reset, start_angle, start_velocity):
-    return _free_run_plain(model, angle, velocity, reset, start_angle, start_velocity)
+def _free_run(model: Model, angle, velocity, reset):
+    return _free_run_plain(model, angle, velocity, reset)
 
 
-def _free_run_fwd(model, angle, velocity, reset, start_angle, start_velocity):
+def _free_run_fwd(model, angle, velocity, reset):
     leaves, tree, at, flat, unravel = _float_leaves(model)
 
     def run(v):
-        out = _free_run_plain(_with_floats(leaves, tree, at, unravel(v)), angle, velocity, reset, start_angle,
-                              start_velocity)
+        out = _free_run_plain(_with_floats(leaves, tree, at, unravel(v)), angle, velocity, reset)
         return out, out
 
     jac, predicted = jax.jacfwd(run, has_aux=True)(flat)  # (N, parameters)
-    return predicted, (model, jac, angle, velocity, reset, start_angle, start_velocity)
+    return predicted, (model, jac, angle, velocity, reset)
 
 
 def _free_run_bwd(res, g):
-    model, jac, angle, velocity, reset, start_angle, start_velocity = res
+    model, jac, angle, velocity, reset = res
     leaves, tree, at, _, unravel = _float_leaves(model)
     zeros = [np.zeros(np.shape(v), jax.dtypes.float0) for v in leaves]
-    # the data are measured, not differentiated; the starts are profiled out (_fitted_starts)
+    # the data are measured, not differentiated
     return (_with_floats(zeros, tree, at, unravel(g @ jac)), jnp.zeros_like(angle), jnp.zeros_like(velocity),
-            np.zeros(np.shape(reset), jax.dtypes.float0), jnp.zeros_like(start_angle), jnp.zeros_like(start_velocity))
+            np.zeros(np.shape(reset), jax.dtypes.float0))
 
 
 _free_run.defvjp(_free_run_fwd, _free_run_bwd)
@@ -953,7 +881,7 @@ _free_run.defvjp(_free_run_fwd, _free_run_bwd)
 def _angle_logpdf(model: Model, noise: dict, x: dict):
     """Student-t log density (σ and ν in degrees) of each compared sample's measured angle about
     its free run's (:func:`free_run_angles`), 0 where not compared."""
-    r = x["angle"] - free_run_angles(model, x, noise)
+    r = x["angle"] - free_run_angles(model, x)
     return jnp.where(x["sample_mask"], student_t_logpdf(r, noise["nu"], noise["sigma"]), 0.0)
 
 
@@ -1530,7 +1458,7 @@ def leg_window_cdf(model: Model, noise: dict, x: dict, d_index, R: int, K: int =
     (θ, d, shift): P(E_rep ≤ E | θ) under the Student-t noise model (the LOO-PIT's ingredient).
     With the angle objective, of each compared sample's angle (its one-sample window)."""
     if "reset" in x:
-        z = (x["angle"] - free_run_angles(_at_delay(model, x, d_index), x, noise)) / noise["sigma"]
+        z = (x["angle"] - free_run_angles(_at_delay(model, x, d_index), x)) / noise["sigma"]
         cdf = jnp.where(x["sample_mask"], student_t_cdf(z, noise["nu"]), 0.0)
         return jax.ops.segment_sum(cdf, x["window"], num_segments=x["window_mask"].shape[-1])
     x = _sensed(model, x)
