@@ -10,6 +10,7 @@ import pytest
 
 from quadshank.data._paper import LEGS, RMS_ANGLE, SAMPLING_PERIOD_S, TABLE_I, TABLE_III
 from quadshank.data._simulate import (
+    EFFECT_PARAMETERS,
     EFFECTS,
     PASSIVE_TRUTH,
     SENSOR,
@@ -229,6 +230,18 @@ def test_unmodulated_twitch_sums_to_G2_with_fractional_delay(leg):
     assert np.all(act[: 20 + math.floor(truth["delay_samples"]) + 1] == 0)
     expected = _sampled_twitch(truth["G2"], truth["twitch_tc_s"], truth["delay_samples"], n=180)
     np.testing.assert_allclose(act[20:], expected, rtol=1e-6, atol=1e-6 * truth["G2"])
+
+
+def test_a_hidden_recruitment_curve_shrinks_a_half_level_pulse_to_its_power():
+    stim = np.zeros(200)
+    stim[20] = 0.5
+    linear = simulate_response("JM-left", stim)["twitch_activation"].sum()
+    curved = simulate_response("JM-left", stim, effects=("recruitment_power",))["twitch_activation"].sum()
+    kappa = EFFECT_PARAMETERS["recruitment_power"]["kappa"]
+    assert curved / linear == pytest.approx(0.5 ** (kappa - 1.0), rel=1e-9)
+    stim[20] = 1.0  # a full-level pulse recruits the whole muscle either way
+    assert simulate_response("JM-left", stim, effects=("recruitment_power",))["twitch_activation"].sum() == \
+        pytest.approx(simulate_response("JM-left", stim)["twitch_activation"].sum(), rel=1e-12)
 
 
 def test_equivalent_acceleration_of_twitch_from_rest():
