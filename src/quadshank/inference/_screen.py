@@ -381,42 +381,36 @@ def _laplace_fit(
     dim = sum(s.size for s in specs) + 2
     rng = np.random.default_rng(seed)  # the root seed's own stream: the starts and the Laplace draws
 
-    # A pendulum model's screen started from another's also starts from the classical
-    # identification (a fraction of a second for the pendulum alone): where the model it starts from
-    # misses the data (a rest off the vertical, fitted without its offset), that model's mode and
-    # metric can hold L-BFGS in a misfit the candidate does not need.
-    classical = None
-    if start is None or model.activation.name == "no_muscle":
+    if start is None:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             classical = classical_start(cohort, model, data, tuple(trials)[0])
-    sizes = {sp.name: sp.size for sp in specs}
     modes, nlp, all_draws, log_q, covs = [], [], [], [], []
     for i, leg in enumerate(data.legs):
         x = {k: v[i] for k, v in arrays.items()}
-        begin = []  # (known values, log σ, log ν, the coordinates L-BFGS seeks in)
+        S = np.eye(dim)
         if start is not None and leg in start.legs:
             known = {k: v for k, v in start.z_values(leg).items() if any(s.name == k for s in specs)}
             zs = start.z_values(leg)
             log_sigma, log_nu = float(zs["log_sigma"]), float(zs["log_nu"])
-            S = np.eye(dim)
             if start.data.objective != data.objective:  # σ in other units, a curvature of another scale
                 log_sigma, log_nu = SIGMA_PRIORS[data.objective][0], math.log(10.0)
             elif WHITEN_FROM_START and whiten:
                 S = _start_whitening(start, leg, specs)
-            begin.append((known, log_sigma, log_nu, S))
-        if classical is not None and (not begin or model.activation.name == "no_muscle"):
+        else:
             known = {k[: -len("_s_leg")]: (v[..., i] if np.ndim(v) > 1 else v[i]) for k, v in classical.items()}
+            sizes = {sp.name: sp.size for sp in specs}
             known = {k: v for k, v in known.items() if np.size(v) == sizes.get(k)}  # e.g. not a DARMA of another order
-            begin.append((known, SIGMA_PRIORS[data.objective][0], math.log(10.0), np.eye(dim)))
+            log_sigma, log_nu = SIGMA_PRIORS[data.objective][0], math.log(10.0)
+        unknown = [s for s in specs if s.name not in known]
+        n_try = 1 + (n_starts if unknown else 0)
         best = None
-        for known, log_sigma, log_nu, S in begin:
-            unknown = [s for s in specs if s.name not in known]
-            for j in range(1 + (n_starts if unknown else 0)):
-                v0 = _start_vector(specs, known, log_sigma, log_nu, rng, draw_unknown=j > 0)
-                res, v = _minimize_from(value_and_grad, v0, S, x, max_iter)
-                if np.isfinite(res.fun) and (best is None or res.fun < best[0].fun):
-                    best = (res, v)
+        for j in range(n_try):
+            v0 = _start_vector(specs, known, log_sigma, log_nu, rng, draw_unknown=j > 0)
+
+            res, v = _minimize_from(value_and_grad, v0, S, x, max_iter)
+            if np.isfinite(res.fun) and (best is None or res.fun < best[0].fun):
+                best = (res, v)
         if best is None:
             own = user_effects(model.effects)
             raise FloatingPointError(
