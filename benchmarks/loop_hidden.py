@@ -99,6 +99,11 @@ def _round(r: dict) -> str:
     return f"`{r['verdict']}` ({r['delta_elpd']:.0f} ± {r['delta_elpd_se']:.0f}{nuts})"
 
 
+def _commands(record: dict) -> list[str]:
+    """The commands behind ``record``'s rows (one, or several where runs were merged)."""
+    return record.get("commands", [record["command"]])
+
+
 def merged(old: dict | None, record: dict) -> dict:
     """``record`` with the rows of ``old`` (an earlier record of the same leg and seed) that it
     does not redo: a row is one effect at one length, and the new one replaces the old."""
@@ -108,12 +113,12 @@ def merged(old: dict | None, record: dict) -> dict:
     kept = [r for r in old["rows"] if (r["effect"], r["minutes"]) not in new]
     order = {e: i for i, e in enumerate(dict.fromkeys(r["effect"] for r in old["rows"] + record["rows"]))}
     rows = sorted(kept + record["rows"], key=lambda r: (order[r["effect"]], r["minutes"]))
-    commands = list(dict.fromkeys([*old.get("commands", [old["command"]]), record["command"]]))
+    commands = list(dict.fromkeys([*_commands(old), record["command"]]))
     return {**record, "rows": rows, "commands": commands, "command": commands[0]}
 
 
 def render(record: dict) -> str:
-    commands = record.get("commands", [record["command"]])
+    commands = _commands(record)
     lines = [
         ("Command: " if len(commands) == 1 else "Commands: ") + ", ".join(f"`{c}`" for c in commands),
         "",
