@@ -193,6 +193,23 @@ def test_the_angle_objective_follows_the_swing_as_the_truth_does(seed):
     assert identify_cohort(Cohort((t,)))["PT-left"].passive_objective == "angle"
 
 
+def test_a_knee_without_elasticity_keeps_its_terms_within_bounds():
+    """A swing that holds no elasticity leaves k1'·(exp(-k2·φ) - 1) free to vanish in either factor:
+    the free-run fit keeps k1' and k2 within its bounds, with finite standard errors, and the
+    damping and gravity are still the swing's."""
+    from quadshank.inference._identify import FREE_RUN_LOWER, FREE_RUN_UPPER_K2
+
+    truth = {**PASSIVE, "k1": 1e-9}
+    t = _realistic(truth, 4)
+    r = identify_cohort(Cohort((t,)))["PT-left"]
+    assert r.passive_objective == "angle"
+    assert FREE_RUN_LOWER["k2"] * 0.999 <= r.passive["k2"] <= FREE_RUN_UPPER_K2 * 1.001
+    assert r.passive["k1"] < 1e6
+    assert all(np.isfinite(v) for v in r.passive_se.values()), r.passive_se
+    assert r.passive["damping"] == pytest.approx(truth["damping"], rel=DAMPING_TOLERANCE)
+    _assert_passive_recovered(r.passive, truth, t.angle_deg)
+
+
 def test_a_shank_resting_off_the_vertical_is_identified_with_the_gravity_offset(tmp_path):
     t = _realistic(PASSIVE, 3, gravity_angle=15.0)
     data = write_interchange(Cohort((t,)), tmp_path / "data")

@@ -557,10 +557,27 @@ def _free_run_residuals(params, segments, dt: float):
     return jnp.concatenate(out)
 
 
+#: Bounds of the free-run fit's D', G', k1' (below) and k2 (both sides), as the equation error's:
+#: where the swing holds no elasticity, k1'·(exp(-k2·φ) - 1) vanishes as k2 → 0 and k1' is then free,
+#: so unbounded logarithms would wander off to values no knee has.
+FREE_RUN_LOWER = {"damping": 1e-6, "gravity": 1e-6, "k1": 1e-6, "k2": 1e-4}
+FREE_RUN_UPPER_K2 = 1.0
+
+
+def _free_run_bounds(gravity_offset: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of the free-run fit's parameter vector (:func:`_free_run_start`)."""
+    lower = np.log([FREE_RUN_LOWER[k] for k in _PASSIVE_NAMES])
+    upper = np.array([np.inf, np.inf, np.inf, np.log(FREE_RUN_UPPER_K2)])
+    if gravity_offset:
+        lower, upper = np.append(lower, -np.inf), np.append(upper, np.inf)
+    return lower, upper
+
+
 def _free_run_start(start: dict, gravity_offset: bool) -> np.ndarray:
     """The free-run fit's parameter vector (logarithms of D', G', k1', k2, then the gravity angle)
-    at the passive parameters ``start``."""
-    x0 = np.log([max(float(start[k]), 1e-6) for k in _PASSIVE_NAMES])
+    at the passive parameters ``start``, moved inside :func:`_free_run_bounds`."""
+    lower, upper = _free_run_bounds(False)
+    x0 = np.clip(np.log([max(float(start[k]), 1e-300) for k in _PASSIVE_NAMES]), lower, upper)
     return np.append(x0, float(start.get("gravity_angle", 0.0))) if gravity_offset else x0
 
 
@@ -635,7 +652,7 @@ def _passive_free_run(trials, start: dict | None = None, gravity_offset: bool = 
             with np.errstate(over="ignore", invalid="ignore"):
                 try:
                     this = least_squares(lambda p: np.asarray(resid(jnp.asarray(p))), x0, jac=jacobian,
-                                         method="trf", x_scale="jac")
+                                         method="trf", x_scale="jac", bounds=_free_run_bounds(gravity_offset))
                 except (ValueError, np.linalg.LinAlgError) as exc:
                     failed.append(str(exc))
                     continue
@@ -659,7 +676,7 @@ def _passive_free_run(trials, start: dict | None = None, gravity_offset: bool = 
                 with np.errstate(over="ignore", invalid="ignore"):
                     try:  # from every start again: the samples left out may have held the fit in the valley
                         this = least_squares(lambda p: np.asarray(resid(jnp.asarray(p))), x0, jac=jacobian,
-                                             method="trf", x_scale="jac")
+                                             method="trf", x_scale="jac", bounds=_free_run_bounds(gravity_offset))
                     except (ValueError, np.linalg.LinAlgError):
                         continue
                 if np.isfinite(this.cost) and (again is None or this.cost < again.cost):
