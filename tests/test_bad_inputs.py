@@ -1237,7 +1237,8 @@ def _fit_summary_at(folder: Path, period_s: float) -> Path:
     (["discover", "DATA", "--effects", " , "], "--effects: ' , ' names nothing"),
     (["discover", "DATA", "--max-rounds", "0"], "--max-rounds must be at least 1, not 0"),
     (["predict", "FIT", "--stimulation", "DATA", "--angle0", "nan"], "--angle0 must be a knee angle in degrees"),
-    (["predict", "FIT", "--stimulation", "DATA", "--velocity0", "1e9"], "--velocity0 must be an angular velocity"),
+    (["predict", "FIT", "--stimulation", "DATA", "--angle0", "0", "--velocity0", "1e9"],
+     "--velocity0 must be an angular velocity"),
     (["fit", "DATA", "--delay-from", "FIT20"], "that fit ran at 20 ms and these data are at 10 ms"),
     (["simulate", "--trials", "2", "--minutes", "0.1"], "--trials 2: a folder of recordings numbers each leg's trials "
                                                         "from 1, and trial(s) 1 would be missing"),
@@ -1256,6 +1257,7 @@ def test_lists_and_values_that_make_no_sense_are_refused_before_any_work(base, t
     (["fit", "DATA", "--time-limit", "60"], "--time-limit acts only with --target-ess"),
     (["fit", "DATA", "--time=60"], "--time-limit acts only with --target-ess"),  # argparse's prefix of it
     (["evaluate", "DATA", "--draws", "50"], "--draws acts only with --fit"),
+    (["predict", "FIT", "--stimulation", "DATA", "--velocity0", "5"], "--velocity0 acts only with --angle0"),
     (["evaluate", "DATA", "--start-stride", "5"], "--start-stride acts only with --fit"),
     (["evaluate", "DATA", "--fit", "FIT", "--band-mcse", "0.1", "--draws", "50"], "--draws is chosen by --band-mcse"),
     (["discover", "DATA", "--chains", "4"], "--chains acts only with --confirm"),

@@ -558,3 +558,26 @@ def test_two_drops_and_a_trembling_hold_in_one_recording_are_each_found(tmp_path
                                          r"5\d\.\d° until .* the lifts, the holds and 350 ms after each release"):
         read = load_cohort(tmp_path / "pt")
     _assert_passive_recovered(identify_cohort(read)["PT-left"].passive, PASSIVE, first.angle_deg)
+
+
+def test_a_plan_starts_by_default_where_each_draw_comes_to_rest():
+    """A shank resting off the vertical (gravity about -20°, or about -12° for another draw) starts a
+    plan at its own rest, not at angle 0: without pulses its prediction stays there."""
+    import jax
+    import jax.numpy as jnp
+
+    from quadshank.evaluation import plan_predictions, rest_states
+
+    draws = [passive_model({**PASSIVE, "gravity_angle": g}, DT) for g in (-20.0, -12.0)]
+    models = jax.tree.map(lambda *leaves: jnp.stack([jnp.asarray(x) for x in leaves]), *draws)
+    angle, velocity = rest_states(models)
+    # where gravity balances the elasticity: -G' sin(φ - g) + k1' (exp(-k2 φ) - 1) = 0
+    for g, a in zip((-20.0, -12.0), angle):
+        assert -PASSIVE["gravity"] * np.sin(np.deg2rad(a - g)) + PASSIVE["k1"] * np.expm1(-PASSIVE["k2"] * a) == (
+            pytest.approx(0.0, abs=0.05))
+        assert g < a < 0.0
+    assert np.all(np.abs(velocity) < 0.01)
+    still = plan_predictions(models, np.zeros(200), None)
+    np.testing.assert_allclose(still, np.repeat(angle[:, None], 200, axis=1), atol=0.01)
+    from_zero = plan_predictions(models, np.zeros(200), 0.0)
+    assert np.all(np.abs(from_zero[:, 0]) < 1e-6) and np.all(np.ptp(from_zero, axis=1) > 5.0)

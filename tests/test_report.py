@@ -508,7 +508,7 @@ def test_draws_that_run_off_and_a_shank_over_the_top_are_named_not_averaged_into
 
     def rollouts(models, levels, angle0, velocity0):  # half the draws climb past the top, two overflow
         n, t = 20, np.arange(len(levels), dtype=float)  # --draws 20
-        out = np.tile(angle0 + t, (n, 1)) + np.arange(n)[:, None] * 1e-3
+        out = np.tile((angle0 or 0.0) + t, (n, 1)) + np.arange(n)[:, None] * 1e-3  # None: at rest, here 0
         out[::2] += 2.0 * t  # the median's draws climb too
         out[:2, 250:] = np.nan
         return out

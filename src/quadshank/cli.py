@@ -79,6 +79,8 @@ NEEDS_PARTNER = {
     ],
     "report": [("--start-stride", lambda a: not a.evaluation,
                 "acts only where report computes J: with --evaluation, J's bands are that evaluation's")],
+    "predict": [("--velocity0", lambda a: a.angle0 is not None,
+                 "acts only with --angle0 (without it each draw starts at its rest, where the shank is still)")],
     "demo": [("--time-limit", lambda a: a.target_ess != 0,
               "acts only with --target-ess above 0 (a fit of fixed length runs to its end)")],
 }
@@ -720,8 +722,11 @@ def cmd_predict(args) -> int:
             return "no finite angle"
         return f"{x:.1f}°" if abs(x) <= 180.0 else ("beyond +180°" if x > 0 else "beyond -180°")
 
-    start = f"{args.angle0:g}°" + (f" at {args.velocity0:g} deg/s" if args.velocity0 else "")
     for leg, e in summary.extremes.items():
+        if args.angle0 is None:
+            start = f"rest ({deg(summary.rest_deg[leg]['median'])})"
+        else:
+            start = f"{args.angle0:g}°" + (f" at {args.velocity0:g} deg/s" if args.velocity0 else "")
         _say(args, f"{leg}: from {start} the angle ranges over [{deg(e['min_deg'])}, {deg(e['max_deg'])}] "
                    f"(90 % band) and ends at {deg(e['end']['median'])} [{deg(e['end']['lo'])}, {deg(e['end']['hi'])}]")
     _say(args, f"predictions.csv and predictions.png in {args.out}")
@@ -1015,8 +1020,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the plan: a CSV with time_s,stimulation at the fit's sampling period, or with "
                          "time_s and the stimulator's columns (pulse_width_us and/or current_mA) of legs "
                          "fitted on them")
-    pr.add_argument("--angle0", type=float, default=0.0, help="start angle [deg] as the goniometer reads it (default 0: rest)")
-    pr.add_argument("--velocity0", type=float, default=0.0, help="start velocity [deg/s] (default 0)")
+    pr.add_argument("--angle0", type=float, default=None,
+                    help="start angle [deg] as the goniometer reads it (default: each posterior draw's rest, where "
+                         "its shank settles without stimulation)")
+    pr.add_argument("--velocity0", type=float, default=0.0, help="start velocity [deg/s] (default 0; with --angle0)")
     pr.add_argument("--legs", default=None, help="legs, comma-separated (default: every fitted leg)")
     pr.add_argument("--draws", type=int, default=200, help="posterior draws (default 200)")
     pr.add_argument("--seed", type=int, default=0)

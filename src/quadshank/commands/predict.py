@@ -35,7 +35,7 @@ class PlanPrediction(Result):
     model: str
     plan: str  # the stimulation plan's file
     legs: list
-    angle0_deg: float
+    angle0_deg: float | None  # None: each draw started at its own rest (``rest_deg`` gives it per leg)
     velocity0_deg_s: float
     n_draws: int
     interval: list
@@ -49,6 +49,7 @@ class PlanPrediction(Result):
     diverged_draws: dict | None = None  # leg -> {"draws", "first_s"}: draws whose run left the numbers, left out from there
     beyond_reach: dict | None = None  # leg -> {"what", "time_s", "angle_deg"}: where the median (else band) passes ±180°
     seed: int = 0  # which posterior draws were rolled out
+    rest_deg: dict | None = None  # with angle0 None: leg -> median, lo, hi of the draws' rest as the goniometer reads it
 
 
 #: How far [deg] a start or a predicted median may leave the angles the fit saw before a warning
@@ -107,12 +108,15 @@ def _beyond(angle0: float, band: dict, seen: tuple[float, float]) -> dict | None
 
 
 def run_predict(
-    fit_dir, plan, out, *, legs=None, angle0: float = 0.0, velocity0: float = 0.0, n_draws: int = 200, seed: int = 0,
+    fit_dir, plan, out, *, legs=None, angle0: float | None = None, velocity0: float = 0.0, n_draws: int = 200,
+    seed: int = 0,
 ) -> PlanPrediction:
     """Roll each fitted leg's posterior draws through the stimulation ``plan`` (a CSV with
     time_s,stimulation at the fit's period, or time_s and the stimulator's columns the fitted
     data gave, :func:`~quadshank.data.read_plan`) from the start state (``angle0`` [deg] as the
-    goniometer reads it, ``velocity0`` [deg/s], the muscle at rest); write ``predictions.csv``
+    goniometer reads it, ``velocity0`` [deg/s], the muscle at rest; ``angle0`` None, the default:
+    each draw at its own rest, where its shank settles without stimulation, which is not angle 0
+    where a gravity or goniometer offset was fitted); write ``predictions.csv``
     (time, the plan's column(s), each leg's level where it differs, and per leg median, lo, hi),
     ``predictions.png`` and, last, ``summary.json``."""
     if n_draws < 1:
@@ -120,10 +124,13 @@ def run_predict(
     if isinstance(seed, bool) or not float(seed).is_integer() or not 0 <= int(seed) < 2**32:
         raise ValueError(f"--seed must be a whole number from 0 to {2**32 - 1}, not {seed}")
     # a knee's angle lies within a turn of its rest, its speed within a few thousand deg/s
-    if not (math.isfinite(angle0) and abs(angle0) <= 360.0):
+    if angle0 is not None and not (math.isfinite(angle0) and abs(angle0) <= 360.0):
         raise ValueError(f"--angle0 must be a knee angle in degrees, within ±360, not {angle0}")
     if not (math.isfinite(velocity0) and abs(velocity0) <= 5000.0):
         raise ValueError(f"--velocity0 must be an angular velocity in deg/s, within ±5000, not {velocity0}")
+    if angle0 is None and velocity0 != 0.0:
+        raise ValueError("--velocity0 acts only with --angle0 (without it each draw starts at its rest, where the "
+                         "shank is still)")
     fit_dir, out = Path(fit_dir), Path(out)
     (fit,) = load_fits([fit_dir])
     planned = read_plan(plan, fit.model.sampling_period_s)
@@ -175,7 +182,8 @@ def run_predict(
     seen = {leg: fitted_angle_range(fit.idata, leg) for leg in legs}
     beyond = {}
     for leg, r in seen.items():
-        far = _beyond(angle0, bands[leg], r) if r is not None else None
+        start = float(bands[leg]["median"][0]) if angle0 is None else angle0
+        far = _beyond(start, bands[leg], r) if r is not None else None
         if far:
             beyond[leg] = far
             names = {"start": "the start", "prediction": "the median prediction", "band": "the 90 % band"}
@@ -205,7 +213,7 @@ def run_predict(
                 out / "predictions.png")
     used = min(n_draws, available)
     result = PlanPrediction(
-        fit=str(fit_dir), model=fit.label, plan=str(plan), legs=legs, angle0_deg=float(angle0),
+        fit=str(fit_dir), model=fit.label, plan=str(plan), legs=legs, angle0_deg=None if angle0 is None else float(angle0),
         velocity0_deg_s=float(velocity0), n_draws=used, interval=list(INTERVAL), samples=int(time_s.size),
         files=["predictions.csv", "predictions.png"], plan_columns=list(planned.columns) or None,
         extremes={leg: {"end": {k: _finite_or_none(b[k][-1]) for k in ("median", "lo", "hi")},
@@ -218,6 +226,8 @@ def run_predict(
         diverged_draws=diverged or None,
         beyond_reach=reach or None,
         seed=int(seed),
+        rest_deg=None if angle0 is not None else {
+            leg: {k: _finite_or_none(b[k][0]) for k in ("median", "lo", "hi")} for leg, b in bands.items()},
     )
     result.write(out)
     return result

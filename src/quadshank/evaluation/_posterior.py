@@ -216,14 +216,55 @@ def _plan_rollouts(models, stimulation, angle0, velocity0):
     return jax.vmap(one)(models)
 
 
-def plan_predictions(models: Model, stimulation, angle0: float = 0.0, velocity0: float = 0.0) -> np.ndarray:
+#: How long [s] a draw's shank is left to swing without stimulation from the gravity vertical to
+#: find its rest (:func:`rest_states`): a passive swing decays as exp(-D'·t/2), so 60 s take an
+#: offset of tens of degrees to well under 0.01° for any damping above 0.3 /s.
+REST_SETTLE_S = 60.0
+
+
+@functools.partial(jax.jit, static_argnames=("samples",))
+def _rest_states(models, samples: int):
+    def one(m):
+        angle, velocity, _ = simulate_angles(m, jnp.zeros(samples, jnp.float32), jnp.float32(0.0), jnp.float32(0.0))
+        return angle[-1], velocity[-1]
+
+    return jax.vmap(one)(models)
+
+
+def rest_states(models: Model) -> tuple[np.ndarray, np.ndarray]:
+    """Each draw's rest: the true angle [deg] and velocity [deg/s] its model comes to after
+    :data:`REST_SETTLE_S` without stimulation, released at rest from the gravity vertical.  Angle 0
+    where eq. (8) alone acts; elsewhere where a gravity offset, an end of range or a user's passive
+    effect balances gravity (a settle run rather than a root of the passive acceleration, so that
+    every effect that acts without stimulation counts)."""
+    samples = max(2, int(round(REST_SETTLE_S / float(models.sampling_period_s))))
+    angle, velocity = _rest_states(models, samples)
+    return np.asarray(angle, dtype=float), np.asarray(velocity, dtype=float)
+
+
+def plan_predictions(models: Model, stimulation, angle0: float | None = 0.0, velocity0: float = 0.0) -> np.ndarray:
     """The angle [deg] a planned stimulation sequence would produce, per draw: array (draws,
     samples), sample 0 being the start state (``angle0`` as the goniometer reads it,
-    ``velocity0``); free-run from there, the muscle at rest before the first sample.  These are
-    the rollouts of :func:`posterior_predictions` from a start with no pulse before it."""
+    ``velocity0``; ``angle0`` None: each draw at its own rest, :func:`rest_states`, and
+    ``velocity0`` unused); free-run from there, the muscle at rest before the first sample.  These
+    are the rollouts of :func:`posterior_predictions` from a start with no pulse before it."""
     stim = jnp.asarray(stimulation, jnp.float32)
-    out = _plan_rollouts(models, stim, jnp.float32(angle0), jnp.float32(velocity0))
+    if angle0 is None:
+        angle, velocity = rest_states(models)
+        out = _plan_rollouts_from(models, stim, jnp.asarray(angle, jnp.float32), jnp.asarray(velocity, jnp.float32))
+    else:
+        out = _plan_rollouts(models, stim, jnp.float32(angle0), jnp.float32(velocity0))
     return np.asarray(out, dtype=float)
+
+
+@jax.jit
+def _plan_rollouts_from(models, stimulation, angle, velocity):
+    """:func:`_plan_rollouts` from each draw's own true state (``angle``, ``velocity``: one per draw)."""
+    def one(m, a0, v0):
+        angle, _, _ = simulate_angles(m, stimulation, a0, v0)
+        return measured_angle(m, angle)
+
+    return jax.vmap(one)(models, angle, velocity)
 
 
 def _n_draws(models: Model) -> int:
