@@ -494,7 +494,9 @@ def cmd_fit(args) -> int:
     )
     if summary.target is not None:
         t = summary.target
-        _say(args, f"target ESS {t['target_ess']}: {t['stopped']}, after {t['blocks']} block(s), "
+        floor = t.get("ess_needed", t["target_ess"])  # the fit's checks ask at least 100 per chain
+        target = f"{t['target_ess']}" + (f" (drawn to {floor:g}, what the fit's checks ask)" if floor > t["target_ess"] else "")
+        _say(args, f"target ESS {target}: {t['stopped']}, after {t['blocks']} block(s), "
                    f"{t['draws_per_chain']} draws per chain, {t['seconds']:.0f} s from the start")
     for w in diag.get("warnings", []):
         print(f"quadshank: warning: {w}", file=sys.stderr)
