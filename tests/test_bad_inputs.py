@@ -331,7 +331,7 @@ CSV_CASES = {
     "a stimulation left empty where no pulse": lambda folder: cell(T1, "stimulation", 3, "")(folder)
     + ["write 0 where no pulse was delivered"],
     "the stimulation column under another name": lambda folder: _rename_column(folder / T1, "stimulation", "stim")
-    + [T1, "'stim'", "if it holds stimulation, name it so"],
+    + [T1, "'stim'", "did you mean 'stimulation'?"],
     "a spreadsheet's #N/A": lambda folder: cell(T1, "angle_deg", 5, "#N/A")(folder) + ["'#N/A'"],
     "a spreadsheet's #N/A first in its row": lambda folder: cell(T1, "time_s", 5, "#N/A")(folder) + ["'#N/A'"],
     "a word for false": lambda folder: cell(T1, "stimulation", 7, "FALSE")(folder) + ["write 1 or 0"],

@@ -412,6 +412,17 @@ def test_trial_missing_column(folder):
     assert_problem(problems_of(folder), TN2, "stimulation", 1, "missing column")
 
 
+def test_a_loggers_column_names_are_matched_to_the_formats_by_their_first_word(folder):
+    rows = read_rows(folder / TN2)
+    names = {"time_s": "Time (s)", "angle_deg": "Angle (deg)", "stimulation": "Stim", "acceleration_deg_s2": "Accel"}
+    rows[0] = [names.get(c, c) for c in rows[0]]
+    write_rows(folder / TN2, rows)
+    err = problems_of(folder)
+    for ours, theirs in names.items():
+        if theirs in rows[0]:
+            assert_problem(err, TN2, theirs, 1, f"did you mean {ours!r}?")
+
+
 def test_without_an_accelerometer_the_acceleration_is_derived_and_not_written_back(folder, tmp_path):
     drop_column(folder / TN2, "acceleration_deg_s2")
     cohort = read_interchange(folder)

@@ -994,7 +994,7 @@ def _read_table(
         if name in columns:
             problems.append(Problem(file, name, header_line, "duplicated column"))
         elif name not in known:
-            hint = difflib.get_close_matches(name, known, n=1) or [
+            hint = _prefixed(name, known) or difflib.get_close_matches(name, known, n=1) or [
                 by_case[m] for m in difflib.get_close_matches(name.lower(), list(by_case), n=1)]
             label = "unnamed column" if not name else "unknown column"
             msg = f"{label} (position {i + 1}); expected {', '.join(known)}"
@@ -1076,6 +1076,15 @@ _ARCHIVES = (
     (b"\x89HDF", "an HDF5 file (a MATLAB v7.3 .mat or NetCDF-4 file?)"),
     (b"MATLAB", "a MATLAB .mat file"),
 )
+
+
+def _prefixed(name: str, known: Sequence[str]) -> list[str]:
+    """The one known column whose name begins with ``name``'s first word (a logger's abbreviation:
+    'Stim' for stimulation, 'Accel (deg/s2)' for acceleration_deg_s2), as a list; else empty.
+    difflib's similarity ranks such short names after longer look-alikes ('Stim' nearer 'time_s')."""
+    word = re.split(r"[^a-z]+", name.lower().strip())[0] if name.strip() else ""
+    found = [k for k in known if len(word) >= 3 and k.lower().startswith(word)]
+    return found if len(found) == 1 else []
 
 
 def _archive_kind(path: Path) -> str | None:
