@@ -25,7 +25,6 @@ lie in the reported 90 % interval.
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 import sys
 import tempfile
@@ -40,6 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from results_md import write_section  # noqa: E402
 
 from quadshank.commands.fit import run_fit  # noqa: E402
+from quadshank.common._io import write_json  # noqa: E402
 from quadshank.data import Cohort, simulate_pendulum_test  # noqa: E402
 from quadshank.data._simulate import PASSIVE_TRUTH  # noqa: E402
 from quadshank.evaluation import free_run_error, horizon_samples, prediction_errors  # noqa: E402
@@ -175,9 +175,8 @@ def main(argv=None) -> int:
     ])
     write_section(args.out, "bench_pendulum", text)
     record = Path(args.out).with_name("bench_pendulum.json")
-    record.write_text(json.dumps({"command": command, "methods": methods, "scores": scores, "seconds": seconds,
-                                  "covered": covered},
-                                 indent=1, default=float) + "\n")
+    write_json(record, {"command": command, "methods": methods, "scores": scores, "seconds": seconds,
+                        "covered": covered})
     print(text)
     return 0
 
