@@ -208,12 +208,20 @@ def _rollouts(models, angle, velocity, stimulation, starts, horizon, columns):
 
 
 @jax.jit
-def _plan_rollouts(models, stimulation, angle0, velocity0):
-    def one(m):
-        angle, _, _ = simulate_angles(m, stimulation, true_angle(m, angle0), velocity0)
-        return measured_angle(m, angle)
+def _plan_rollouts(models, stimulation, angle, velocity):
+    """The goniometer's angle of each draw's run through ``stimulation`` from its own true state
+    (``angle``, ``velocity``: one per draw)."""
+    def one(m, a0, v0):
+        run, _, _ = simulate_angles(m, stimulation, a0, v0)
+        return measured_angle(m, run)
 
-    return jax.vmap(one)(models)
+    return jax.vmap(one)(models, angle, velocity)
+
+
+@jax.jit
+def _true_starts(models, angle0):
+    """Each draw's true angle where the goniometer reads ``angle0``."""
+    return jax.vmap(lambda m: true_angle(m, angle0))(models)
 
 
 #: How long [s] a draw's shank is left to swing without stimulation from the gravity vertical to
@@ -251,20 +259,11 @@ def plan_predictions(models: Model, stimulation, angle0: float | None = 0.0, vel
     stim = jnp.asarray(stimulation, jnp.float32)
     if angle0 is None:
         angle, velocity = rest_states(models)
-        out = _plan_rollouts_from(models, stim, jnp.asarray(angle, jnp.float32), jnp.asarray(velocity, jnp.float32))
     else:
-        out = _plan_rollouts(models, stim, jnp.float32(angle0), jnp.float32(velocity0))
+        angle = _true_starts(models, jnp.float32(angle0))
+        velocity = np.full(_n_draws(models), velocity0)
+    out = _plan_rollouts(models, stim, jnp.asarray(angle, jnp.float32), jnp.asarray(velocity, jnp.float32))
     return np.asarray(out, dtype=float)
-
-
-@jax.jit
-def _plan_rollouts_from(models, stimulation, angle, velocity):
-    """:func:`_plan_rollouts` from each draw's own true state (``angle``, ``velocity``: one per draw)."""
-    def one(m, a0, v0):
-        angle, _, _ = simulate_angles(m, stimulation, a0, v0)
-        return measured_angle(m, angle)
-
-    return jax.vmap(one)(models, angle, velocity)
 
 
 def _n_draws(models: Model) -> int:

@@ -643,6 +643,7 @@ def _passive_free_run(trials, start: dict | None = None, gravity_offset: bool = 
             return resid, jacobian
 
         resid, jacobian = fitting(kept)
+        bounds = _free_run_bounds(gravity_offset)
         fit, failed = None, []
         for s0 in starts:  # the lowest of the local minima along the valley
             x0 = _free_run_start(s0, gravity_offset)
@@ -652,7 +653,7 @@ def _passive_free_run(trials, start: dict | None = None, gravity_offset: bool = 
             with np.errstate(over="ignore", invalid="ignore"):
                 try:
                     this = least_squares(lambda p: np.asarray(resid(jnp.asarray(p))), x0, jac=jacobian,
-                                         method="trf", x_scale="jac", bounds=_free_run_bounds(gravity_offset))
+                                         method="trf", x_scale="jac", bounds=bounds)
                 except (ValueError, np.linalg.LinAlgError) as exc:
                     failed.append(str(exc))
                     continue
@@ -676,7 +677,7 @@ def _passive_free_run(trials, start: dict | None = None, gravity_offset: bool = 
                 with np.errstate(over="ignore", invalid="ignore"):
                     try:  # from every start again: the samples left out may have held the fit in the valley
                         this = least_squares(lambda p: np.asarray(resid(jnp.asarray(p))), x0, jac=jacobian,
-                                             method="trf", x_scale="jac", bounds=_free_run_bounds(gravity_offset))
+                                             method="trf", x_scale="jac", bounds=bounds)
                     except (ValueError, np.linalg.LinAlgError):
                         continue
                 if np.isfinite(this.cost) and (again is None or this.cost < again.cost):
