@@ -7,15 +7,17 @@ effect is not added, the same is done on longer data (the lengths in turn), so t
 says at which length it is found.  Each dataset and loop is made by the package's commands:
 
     quadshank simulate --out DATA --legs LEG --minutes M --trials 1 --seed SEED [--effects EFFECT]
-    quadshank -q discover DATA --out OUT [--confirm]
+    quadshank -q discover DATA --out OUT [--confirm [--target-accept P]]
 
 (for ``recruitment_power``, trials 1–3 simulated and ``--trials 1,3`` fitted: see :data:`TRIALS`)
 
     python benchmarks/loop_hidden.py [--effects a,b] [--minutes 1,2,4] [--leg JM-left] [--seed 4]
-        [--jobs 2] [--confirm] [--out results/loop-hidden.md] [--record results/loop_hidden.json]
+        [--jobs 2] [--confirm [--target-accept P]] [--out results/loop-hidden.md]
+        [--record results/loop_hidden.json]
 
 With ``--confirm`` each round's leader is also fitted by hierarchical NUTS (``discover --confirm``)
-and the table gives NUTS's ΔELPD and whether it clears the bar beside the screen's.  The rows of a
+and the table gives NUTS's ΔELPD and whether it clears the bar beside the screen's; ``--target-accept``
+is passed on to those fits (a higher one for a fit that stopped at a divergent transition).  The rows of a
 run replace those of the same effect and length in the record (same leg and seed), so that the
 lengths at which the screen found each effect can be confirmed one run at a time.
 """
@@ -45,15 +47,16 @@ MAX_ROUNDS = 3
 TRIALS = {"recruitment_power": ("1,2,3", "1,3")}
 
 
-def one(effect: str, minutes: float, leg: str, seed: int, work: Path, confirm: bool = False) -> dict:
-    """Simulate, run the loop, and read each round's verdict and leader."""
+def one(effect: str, minutes: float, leg: str, seed: int, work: Path, confirm: tuple[str, ...] = ()) -> dict:
+    """Simulate, run the loop, and read each round's verdict and leader; ``confirm``: the options
+    of ``discover --confirm`` (empty: the screen alone)."""
     data, out = work / f"{effect}-{minutes:g}min-data", work / f"{effect}-{minutes:g}min-loop"
     simulated, trials = TRIALS.get(effect, ("1", "1"))
     sim = ["simulate", "--out", str(data), "--legs", leg, "--minutes", f"{minutes:g}", "--trials", simulated,
            "--seed", str(seed)] + ([] if effect == "none" else ["--effects", effect])
     run_quadshank(*sim)
     seconds = run_quadshank("discover", str(data), "--out", str(out), "--max-rounds", str(MAX_ROUNDS),
-                            "--trials", trials, *(["--confirm"] if confirm else []))
+                            "--trials", trials, *confirm)
     return {**loop_row(effect, minutes, out, seconds), "trials": trials}
 
 
@@ -74,7 +77,7 @@ def loop_row(effect: str, minutes: float, out: Path, seconds: float) -> dict:
             "seconds": seconds}
 
 
-def study(effect: str, lengths, leg: str, seed: int, work: Path, confirm: bool = False) -> list[dict]:
+def study(effect: str, lengths, leg: str, seed: int, work: Path, confirm: tuple[str, ...] = ()) -> list[dict]:
     """The loop at each length in turn until the hidden effect is found (for none, the first length only)."""
     rows = []
     for minutes in lengths:
@@ -152,13 +155,19 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=4)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--confirm", action="store_true", help="confirm each round's leader with NUTS (discover --confirm)")
+    ap.add_argument("--target-accept", type=float, default=None, metavar="P",
+                    help="with --confirm: NUTS's target acceptance probability (discover's default without it)")
     ap.add_argument("--out", default="results/loop-hidden.md")
     ap.add_argument("--record", default="results/loop_hidden.json")
     args = ap.parse_args(argv)
     effects = [e for e in args.effects.split(",") if e]
     lengths = [float(m) for m in args.minutes.split(",")]
+    if args.target_accept is not None and not args.confirm:
+        ap.error("--target-accept acts only with --confirm (the NUTS fits)")
+    confirm = (("--confirm",) + (("--target-accept", str(args.target_accept)) if args.target_accept else ())
+               if args.confirm else ())
     with tempfile.TemporaryDirectory(prefix="loop-hidden-") as tmp, ThreadPoolExecutor(args.jobs) as pool:
-        studies = list(pool.map(lambda e: study(e, lengths, args.leg, args.seed, Path(tmp), args.confirm), effects))
+        studies = list(pool.map(lambda e: study(e, lengths, args.leg, args.seed, Path(tmp), confirm), effects))
     record = {"command": "python benchmarks/loop_hidden.py " + shlex.join(argv if argv is not None else sys.argv[1:]),
               "leg": args.leg, "seed": args.seed, "lengths": lengths,
               "rows": [row for rows in studies for row in rows]}

@@ -1261,6 +1261,7 @@ def test_lists_and_values_that_make_no_sense_are_refused_before_any_work(base, t
     (["evaluate", "DATA", "--start-stride", "5"], "--start-stride acts only with --fit"),
     (["evaluate", "DATA", "--fit", "FIT", "--band-mcse", "0.1", "--draws", "50"], "--draws is chosen by --band-mcse"),
     (["discover", "DATA", "--chains", "4"], "--chains acts only with --confirm"),
+    (["discover", "DATA", "--target-accept", "0.95"], "--target-accept acts only with --confirm"),
     (["discover", "DATA", "--confirm", "--target-ess", "0", "--time-limit", "60"],
      "--time-limit acts only with --target-ess above 0"),
     (["report", "FIT", "--evaluation", "FIT", "--start-stride", "5"], "--start-stride acts only where report computes J"),

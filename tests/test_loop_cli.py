@@ -45,6 +45,7 @@ def test_discover_confirms_with_fits_drawn_to_a_target_ess():
     """`discover --confirm` draws each NUTS fit in blocks to an ESS target (R-hat and ESS checked) by
     default; `--target-ess 0` gives the fixed lengths, and the user's lengths are kept either way."""
     from quadshank.cli import CONFIRM_FIXED_LENGTHS, CONFIRM_TARGET_ESS, TARGET_LENGTHS, build_parser, confirm_settings
+    from quadshank.inference import FitSettings
 
     def settings(*extra):
         return confirm_settings(build_parser().parse_args(["discover", "data", "--out", "o", *extra]), (1,))
@@ -52,6 +53,10 @@ def test_discover_confirms_with_fits_drawn_to_a_target_ess():
     assert settings() is None  # without --confirm, no NUTS fit
     s = settings("--confirm")
     assert (s.target_ess, s.warmup, s.draws, s.time_limit_s) == (CONFIRM_TARGET_ESS, *TARGET_LENGTHS, 1800.0)
+    assert s.target_accept == FitSettings.target_accept
+    assert settings("--confirm", "--target-accept", "0.97").target_accept == 0.97
+    with pytest.raises(ValueError, match="target_accept .*must lie between 0 and 1"):
+        settings("--confirm", "--target-accept", "1.5")
     s = settings("--confirm", "--target-ess", "0")
     assert s.target_ess is None and (s.warmup, s.draws) == CONFIRM_FIXED_LENGTHS
     s = settings("--confirm", "--target-ess", "250", "--time-limit", "60", "--warmup", "50", "--draws", "40", "--chains", "3")

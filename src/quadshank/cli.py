@@ -73,7 +73,8 @@ NEEDS_PARTNER = {
     ],
     "discover": [
         *[(option, lambda a: bool(a.confirm), _WITH_CONFIRM)
-          for option in ("--chains", "--target-ess", "--time-limit", "--warmup", "--draws", "--seed")],
+          for option in ("--chains", "--target-ess", "--time-limit", "--warmup", "--draws", "--target-accept",
+                         "--seed")],
         ("--time-limit", lambda a: a.target_ess != 0, "acts only with --target-ess above 0 (fits of fixed length "
                                                       "run to their end)"),
     ],
@@ -647,7 +648,7 @@ def confirm_settings(args, trials) -> FitSettings | None:
     target = args.target_ess or None
     warmup, draws = fit_lengths(args, target, CONFIRM_FIXED_LENGTHS)
     return FitSettings(chains=args.chains, warmup=warmup, draws=draws, target_ess=target,
-                       time_limit_s=args.time_limit, seed=args.seed, trials=trials)
+                       time_limit_s=args.time_limit, target_accept=args.target_accept, seed=args.seed, trials=trials)
 
 
 def _starts(args) -> int:
@@ -988,6 +989,10 @@ def build_parser() -> argparse.ArgumentParser:
     dc.add_argument("--draws", type=int, default=None,
                     help=f"with --confirm: the size of each block of draws per chain (default {TARGET_LENGTHS[1]}); "
                          f"with --target-ess 0 the draws per chain (default {CONFIRM_FIXED_LENGTHS[1]})")
+    dc.add_argument("--target-accept", type=float, default=FitSettings.target_accept, metavar="P",
+                    help="with --confirm: NUTS's target acceptance probability, between 0 and 1: higher takes smaller "
+                         "steps, which a fit that stopped at a divergent transition calls for "
+                         f"(default {FitSettings.target_accept})")
     dc.add_argument("--seed", type=int, default=0, help="with --confirm")
     _starts_option(dc)
     dc.add_argument("--out", required=True)
