@@ -164,7 +164,7 @@ def main(argv=None) -> int:
     lengths = [float(m) for m in args.minutes.split(",")]
     if args.target_accept is not None and not args.confirm:
         ap.error("--target-accept acts only with --confirm (the NUTS fits)")
-    confirm = (("--confirm",) + (("--target-accept", str(args.target_accept)) if args.target_accept else ())
+    confirm = (("--confirm",) + (("--target-accept", str(args.target_accept)) if args.target_accept is not None else ())
                if args.confirm else ())
     with tempfile.TemporaryDirectory(prefix="loop-hidden-") as tmp, ThreadPoolExecutor(args.jobs) as pool:
         studies = list(pool.map(lambda e: study(e, lengths, args.leg, args.seed, Path(tmp), confirm), effects))
