@@ -164,8 +164,9 @@ def main(argv=None) -> int:
     lengths = [float(m) for m in args.minutes.split(",")]
     if args.target_accept is not None and not args.confirm:
         ap.error("--target-accept acts only with --confirm (the NUTS fits)")
-    confirm = (("--confirm",) + (("--target-accept", str(args.target_accept)) if args.target_accept is not None else ())
-               if args.confirm else ())
+    confirm = ("--confirm",) if args.confirm else ()
+    if args.target_accept is not None:
+        confirm += ("--target-accept", str(args.target_accept))
     with tempfile.TemporaryDirectory(prefix="loop-hidden-") as tmp, ThreadPoolExecutor(args.jobs) as pool:
         studies = list(pool.map(lambda e: study(e, lengths, args.leg, args.seed, Path(tmp), confirm), effects))
     record = {"command": "python benchmarks/loop_hidden.py " + shlex.join(argv if argv is not None else sys.argv[1:]),

@@ -657,6 +657,12 @@ def _starts(args) -> int:
     return args.starts
 
 
+def _target_accept_option(parser, scope: str = "") -> None:
+    parser.add_argument("--target-accept", type=float, default=FitSettings.target_accept, metavar="P",
+                        help=f"{scope}NUTS's target acceptance probability, between 0 and 1: higher takes smaller "
+                             f"steps, which divergent transitions call for (default {FitSettings.target_accept})")
+
+
 def _starts_option(parser) -> None:
     parser.add_argument("--starts", type=int, default=SCREEN_STARTS, metavar="N",
                         help="prior draws tried for each candidate's new parameters, besides their prior median, "
@@ -908,9 +914,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     start_options(f)
     f.add_argument("--max-tree-depth", type=int, default=8, help="NUTS tree depth limit (at most 2^depth - 1 leapfrog steps a draw)")
-    f.add_argument("--target-accept", type=float, default=FitSettings.target_accept, metavar="P",
-                   help="NUTS's target acceptance probability, between 0 and 1: higher takes smaller steps, which "
-                        f"divergent transitions call for (default {FitSettings.target_accept})")
+    _target_accept_option(f)
 
     f.add_argument("--chain-method", choices=("auto", "vectorized", "sequential", "parallel"), default=FitSettings.chain_method,
                    help="run the chains as one batched program (faster on small data), one after another "
@@ -989,10 +993,7 @@ def build_parser() -> argparse.ArgumentParser:
     dc.add_argument("--draws", type=int, default=None,
                     help=f"with --confirm: the size of each block of draws per chain (default {TARGET_LENGTHS[1]}); "
                          f"with --target-ess 0 the draws per chain (default {CONFIRM_FIXED_LENGTHS[1]})")
-    dc.add_argument("--target-accept", type=float, default=FitSettings.target_accept, metavar="P",
-                    help="with --confirm: NUTS's target acceptance probability, between 0 and 1: higher takes smaller "
-                         "steps, which a fit that stopped at a divergent transition calls for "
-                         f"(default {FitSettings.target_accept})")
+    _target_accept_option(dc, "with --confirm: ")
     dc.add_argument("--seed", type=int, default=0, help="with --confirm")
     _starts_option(dc)
     dc.add_argument("--out", required=True)
