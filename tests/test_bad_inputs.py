@@ -305,7 +305,7 @@ CSV_CASES = {
     "truncated row": truncated_row,
     "decimal comma": decimal_comma,
     "semicolons": semicolons,
-    "missing column": drop_column(T1, "stimulation"),
+    "missing column": drop_column(T1, "angle_deg"),
     "another joint's angle": lambda folder: _with_column(folder / T1, "hip_angle_deg", "3.0")
     + [T1, "'hip_angle_deg'", "a channel quadshank does not read"],
     "a row index": lambda folder: _with_column(folder / T1, "", None, first=True) + [T1, "a row index"],
@@ -326,8 +326,6 @@ CSV_CASES = {
     "a rate as the period's column": lambda folder: _rename_column(folder / MAN, "sampling_period_s",
                                                                     "sampling_rate_hz") + [MAN, "1 over a rate in Hz"],
     "a manifest's notes": lambda folder: _with_column(folder / MAN, "notes", "ok") + [MAN, "notes or bookkeeping"],
-    "no stimulation column in a pendulum test": lambda folder: drop_column(T1, "stimulation")(folder)
-    + ["add the column stimulation with 0 on every row"],
     "a stimulation left empty where no pulse": lambda folder: cell(T1, "stimulation", 3, "")(folder)
     + ["write 0 where no pulse was delivered"],
     "the stimulation column under another name": lambda folder: _rename_column(folder / T1, "stimulation", "stim")

@@ -408,8 +408,44 @@ def test_unlisted_csv(folder):
 
 # --------------------------------------------------------------------------- rule 3: trial CSV structure
 def test_trial_missing_column(folder):
+    drop_column(folder / TN2, "angle_deg")
+    assert_problem(problems_of(folder), TN2, "angle_deg", 1, "missing column")
+
+
+def test_a_trial_without_a_stimulation_column_is_read_as_a_pendulum_test(folder):
     drop_column(folder / TN2, "stimulation")
-    assert_problem(problems_of(folder), TN2, "stimulation", 1, "missing column")
+    with pytest.warns(DataWarning, match=rf"{TN2} has no column stimulation .*read as a pendulum test without pulses"):
+        read = read_interchange(folder)
+    assert not np.any(read.get("TN-left", 2).stimulation)
+    # the other trials keep their pulses, and the leg's angle is read as written
+    assert np.count_nonzero(read.get("TN-left", 1).stimulation) == len(PULSES)
+    np.testing.assert_allclose(read.get("TN-left", 2).angle_deg, make_trial("TN", "left", 2, 0.7).angle_deg, atol=1e-9)
+
+
+def test_a_pendulum_test_beside_a_stimulators_log_is_not_a_mixed_scale(folder):
+    """A leg logged as pulse widths, with a pendulum test that has no stimulation column: no
+    warning of levels and charges mixed (a trial without pulses has no scale)."""
+    rows = read_rows(folder / TN1)
+    j = rows[0].index("stimulation")
+    rows[0][j] = "pulse_width_us"
+    write_rows(folder / TN1, [rows[0]] + [r[:j] + [str(300 * float(r[j]))] + r[j + 1:] for r in rows[1:]])
+    drop_column(folder / TN2, "stimulation")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        read = read_interchange(folder)
+    said = [str(w.message) for w in caught]
+    assert any("read as a pendulum test" in m for m in said)
+    assert not any("give every trial of a leg the same way" in m for m in said), said
+    assert np.max(read.get("TN-left", 1).stimulation) == pytest.approx(1.0)
+    # a pendulum test given as levels of 0 is not mixed up either, but pulses given as levels are
+    add_column(folder / TN2, "stimulation", "0")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        read_interchange(folder)
+    assert not any("give every trial of a leg the same way" in str(w.message) for w in caught)
+    set_cell(folder / TN2, 10, "stimulation", "0.5")
+    with pytest.warns(DataWarning, match="give every trial of a leg the same way"):
+        read_interchange(folder)
 
 
 def test_a_loggers_column_names_are_matched_to_the_formats_by_their_first_word(folder):
@@ -814,7 +850,6 @@ def test_a_stimulators_pulse_width_and_current_give_the_relative_charge(folder):
 @pytest.mark.parametrize(("change", "column", "row", "text"), [
     (lambda f: add_column(f, "pulse_width_us", "0"), "pulse_width_us", 1, "either stimulation or pulse_width_us"),
     (lambda f: (_as_stimulator(f), set_cell(f, 22, "pulse_width_us", "-300")), "pulse_width_us", 22, "negative"),
-    (lambda f: drop_column(f, "stimulation"), "stimulation", 1, "or give pulse_width_us and/or current_mA"),
 ])
 def test_a_stimulators_columns_are_checked(folder, change, column, row, text):
     change(folder / TN1)

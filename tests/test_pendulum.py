@@ -94,7 +94,13 @@ def test_identify_and_evaluate_a_cohort_of_pendulum_tests(tmp_path, capsys):
     assert "free swing" in (tmp_path / "ev" / "report.md").read_text()
     released = write_interchange(Cohort(tuple(t.replace(exclude=t.time_s < 0.35) for t in trials)),
                                  tmp_path / "released")
+    for file in released.glob("*-trial*.csv"):  # as a goniometer's log holds it: no stimulation column
+        rows = [line.split(",") for line in file.read_text().splitlines()]
+        j = rows[0].index("stimulation")
+        file.write_text("".join(",".join(r[:j] + r[j + 1:]) + "\n" for r in rows))
+    capsys.readouterr()
     assert main(["-q", "identify", str(released), "--out", str(tmp_path / "id2")]) == 0
+    assert "have no column stimulation" in capsys.readouterr().err
     assert main(["-q", "evaluate", str(released), "--out", str(tmp_path / "ev2"), "--identified",
                  str(tmp_path / "id2")]) == 0
     free = json.loads((tmp_path / "ev2" / "summary.json").read_text())["free_run"]["passive"]

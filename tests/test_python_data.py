@@ -167,6 +167,8 @@ def test_a_trial_is_refused_at_construction_where_no_rule_could_read_it(trial):
     with pytest.raises(ValueError, match=r"JM-left trial 1: stimulation has shape \(5,\), expected \(6000,\)"):
         trial.replace(stimulation=trial.stimulation[:5])
     assert trial.replace(trial="2").trial == 2
+    pendulum = Trial.from_signals("JM", "left", 2, trial.sampling_period_s, trial.angle_deg, None, None)
+    assert pendulum.stimulation.shape == trial.angle_deg.shape and not pendulum.stimulation.any()
     composed, decomposed = trial.replace(subject="Zo\u00eb"), trial.replace(subject="Zoe\u0308", trial=2)
     assert Cohort((composed, decomposed)).legs == ("Zo\u00eb-left",)  # one subject, as the reader reads it
     assert Cohort((trial.replace(trial="1"),)).get("JM-left", 1).trial == 1

@@ -325,7 +325,7 @@ class Trial:
         exclude=None,
     ) -> Trial:
         """Build a trial, deriving the velocity and the acceleration from the angle when they
-        are not given (None).  The derivation runs through excluded samples, whose angle is
+        are not given (None); ``stimulation`` None is a pendulum test, no pulses.  The derivation runs through excluded samples, whose angle is
         usually a real movement (a release, a spasm), except where an excluded angle is no
         knee's (beyond :data:`ANGLE_LIMIT_DEG` or one of :data:`MISSING_MARKERS`): there it
         runs on each side apart, so that the marker does not reach the kept samples beside it
@@ -356,7 +356,7 @@ class Trial:
             angle_deg=angle,
             velocity_deg_s=np.asarray(velocity_deg_s, dtype=float),
             acceleration_deg_s2=np.asarray(acceleration_deg_s2, dtype=float),
-            stimulation=np.asarray(stimulation, dtype=float),
+            stimulation=np.zeros(angle.size) if stimulation is None else np.asarray(stimulation, dtype=float),
             velocity_measured=measured,
             source=source,
             acceleration_measured=accelerometer,

@@ -153,8 +153,9 @@ DEFAULT_SAMPLING_PERIOD_S = 0.01
 
 _MANIFEST_REQUIRED = ("subject", "leg", "trial", "file")
 _MANIFEST_OPTIONAL = ("sampling_period_s", "start_s", "end_s")
-_TRIAL_REQUIRED = ("time_s", "angle_deg", "stimulation")
-_TRIAL_OPTIONAL = ("acceleration_deg_s2", "velocity_deg_s", "exclude", "pulse_width_us", "current_mA")
+_TRIAL_REQUIRED = ("time_s", "angle_deg")
+#: A trial without ``stimulation`` (nor a stimulator's columns) is a pendulum test: no pulses.
+_TRIAL_OPTIONAL = ("stimulation", "acceleration_deg_s2", "velocity_deg_s", "exclude", "pulse_width_us", "current_mA")
 #: Columns of a stimulator's log that may stand in for `stimulation`: the charge of each pulse.
 _STIMULATOR = ("pulse_width_us", "current_mA")
 #: Column order used when writing a trial file.
@@ -892,8 +893,8 @@ def _read_table(
 ) -> _Table | None:
     """Read a CSV file, reporting structural problems; ``None`` when it is unusable.
 
-    ``alternatives``: a required column that other (optional) columns may stand in for; a
-    file must hold the column or its stand-ins, not both.  ``missing_hints``: what to say, besides,
+    ``alternatives``: a column that other (optional) columns may stand in for; a file may hold
+    the column or its stand-ins, not both (and one of them where the column is required).  ``missing_hints``: what to say, besides,
     of a required column that is missing; ``unknown_hint``: of a column the file may not hold."""
     spanning = False
     header: list[str] | None = None
@@ -1016,12 +1017,12 @@ def _read_table(
                 problems.append(Problem(file, name, header_line, msg))
         else:
             columns[name] = i
-    for name in required:
+    for name in dict.fromkeys((*required, *(alternatives or {}))):
         instead = (alternatives or {}).get(name, ())
         given = [c for c in instead if c in columns]
         if separator is not None:
             break  # the one problem above says why every column is missing
-        if name not in columns and not given:
+        if name not in columns and not given and name in required:
             also = f"; or give {' and/or '.join(instead)}" if instead else ""
             if unknown:
                 also += f"; if {' or '.join(repr(c) for c in unknown[:3])} holds it, name that column {name}"
@@ -1810,14 +1811,13 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
     signals_of: dict[int, dict[str, np.ndarray | None]] = {}
     notes: list[str] = []  # warnings, given once the folder is known to be valid
     seen_files: set[str] = set()
+    unstimulated: list[str] = []  # trial files without a stimulation column: pendulum tests
     for i, e in enumerate(entries):
         if e.path is None or e.key in seen_files:
             continue
         seen_files.add(e.key)
         table = _read_table(e.path, e.file, _TRIAL_REQUIRED, _TRIAL_OPTIONAL, problems,
-                            alternatives={"stimulation": _STIMULATOR}, missing_hints={
-                                "stimulation": "a pendulum test without pulses: add the column stimulation with 0 on "
-                                               "every row"},
+                            alternatives={"stimulation": _STIMULATOR},
                             unknown_hint="a channel quadshank does not read (EMG, a torque, another joint's angle)? "
                                          "Remove the column")
         if table is None:
@@ -1831,6 +1831,9 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
             for name in _TRIAL_REQUIRED + _TRIAL_OPTIONAL
         }
         signals.update({name: _fill_missing(signals[name]) for name in _MAY_BE_MISSING if signals[name] is not None})
+        if not {"stimulation", *_STIMULATOR} & set(table.columns):
+            signals["stimulation"] = np.zeros(len(table.rows))
+            unstimulated.append(e.file)
         if table.well_formed:
             origin = (
                 f"in {MANIFEST_NAME} row {e.line}"
@@ -1871,6 +1874,8 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
     kept_scales = _read_charge_scale_file(folder, entries, signals_of, problems)
     if problems:
         raise InterchangeError(problems, context)
+    if unstimulated:
+        notes.insert(0, _unstimulated_note(unstimulated))
     for text in notes:
         warnings.warn(text, DataWarning, stacklevel=2)
 
@@ -1907,6 +1912,15 @@ def read_interchange(folder: str | os.PathLike, *, resample_s: float | None = No
     _warn_unselectable_subjects(entries)
     _warn_case_twins(entries)
     return cohort
+
+
+def _unstimulated_note(files: Sequence[str]) -> str:
+    """The warning for trial files without a stimulation column, read as pendulum tests."""
+    shown = ", ".join(files[:3]) + (f" and {len(files) - 3} more" if len(files) > 3 else "")
+    one = len(files) == 1
+    return (f"{shown} {'has' if one else 'have'} no column stimulation (nor pulse_width_us or current_mA): read as "
+            f"{'a pendulum test' if one else 'pendulum tests'} without pulses, stimulation 0 on every row. Where "
+            "pulses were delivered, add the column")
 
 
 def _chargeless_pulses(file: str, lines: Sequence[int], signals: dict) -> list[str]:
@@ -2121,8 +2135,10 @@ def _warn_charge_scales(entries: Sequence[_Entry], signals_of: dict, charges: di
     for (subject, leg), rows in legs.items():
         name = leg_key(subject, leg)
         given = [i for i in rows if i in charges]
-        if given and len(given) < len(rows):
-            levels = ", ".join(entries[i].file for i in rows if i not in charges)
+        # a trial without pulses (a pendulum test) has no scale to mix up
+        pulsed = [i for i in rows if i not in charges and np.any(signals_of[i].get("stimulation", np.zeros(0)))]
+        if given and pulsed:
+            levels = ", ".join(entries[i].file for i in pulsed)
             warnings.warn(f"{name}: {', '.join(entries[i].file for i in given)} give the stimulation as a stimulator's "
                           f"columns (levels are charges over the leg's largest), {levels} as levels in [0, 1]: the fit "
                           "takes them for one scale; give every trial of a leg the same way", DataWarning, stacklevel=4)
