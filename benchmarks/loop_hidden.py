@@ -19,7 +19,8 @@ With ``--confirm`` each round's leader is also fitted by hierarchical NUTS (``di
 and the table gives NUTS's ΔELPD and whether it clears the bar beside the screen's; ``--target-accept``
 is passed on to those fits (a higher one for a fit that stopped at a divergent transition).  The rows of a
 run replace those of the same effect and length in the record (same leg and seed), so that the
-lengths at which the screen found each effect can be confirmed one run at a time.
+lengths at which the screen found each effect can be confirmed one run at a time; each row keeps
+the command that made it, and the table names it.
 """
 
 from __future__ import annotations
@@ -107,23 +108,40 @@ def _commands(record: dict) -> list[str]:
     return record.get("commands", [record["command"]])
 
 
+def _covers(command: str, row: dict) -> bool:
+    """Whether ``command`` (this script's, as recorded) runs the loop on ``row``'s effect and length."""
+    args = _parser().parse_args(shlex.split(command)[2:])
+    return row["effect"] in args.effects.split(",") and row["minutes"] in [float(m) for m in args.minutes.split(",")]
+
+
+def _row_command(row: dict, commands: list[str]) -> str:
+    """The command that made ``row``: its own, or in a record made before rows kept theirs, the last
+    of the record's commands that ran it."""
+    return row.get("command") or next((c for c in reversed(commands) if _covers(c, row)), commands[-1])
+
+
 def merged(old: dict | None, record: dict) -> dict:
     """``record`` with the rows of ``old`` (an earlier record of the same leg and seed) that it
-    does not redo: a row is one effect at one length, and the new one replaces the old."""
+    does not redo: a row is one effect at one length, and the new one replaces the old.  Each row
+    keeps the command that made it; the record's ``commands`` are those of its rows."""
     if not old or (old.get("leg"), old.get("seed")) != (record["leg"], record["seed"]):
         return record
     new = {(r["effect"], r["minutes"]) for r in record["rows"]}
-    kept = [r for r in old["rows"] if (r["effect"], r["minutes"]) not in new]
+    kept = [{**r, "command": _row_command(r, _commands(old))}
+            for r in old["rows"] if (r["effect"], r["minutes"]) not in new]
     order = {e: i for i, e in enumerate(dict.fromkeys(r["effect"] for r in old["rows"] + record["rows"]))}
-    rows = sorted(kept + record["rows"], key=lambda r: (order[r["effect"]], r["minutes"]))
-    commands = list(dict.fromkeys([*_commands(old), record["command"]]))
+    made = [{**r, "command": r.get("command", record["command"])} for r in record["rows"]]
+    rows = sorted(kept + made, key=lambda r: (order[r["effect"]], r["minutes"]))
+    commands = [c for c in dict.fromkeys([*_commands(old), record["command"]]) if any(r["command"] == c for r in rows)]
     return {**record, "rows": rows, "commands": commands, "command": commands[0]}
 
 
 def render(record: dict) -> str:
     commands = _commands(record)
+    number = {c: i for i, c in enumerate(commands, start=1)}
     lines = [
-        ("Command: " if len(commands) == 1 else "Commands: ") + ", ".join(f"`{c}`" for c in commands),
+        ("Command: " if len(commands) == 1 else "Commands (the table's last column names each row's): ")
+        + ", ".join(f"({number[c]}) `{c}`" if len(commands) > 1 else f"`{c}`" for c in commands),
         "",
         f"{record['leg']}, trial 1 of the default simulated cohort (seed {record['seed']}, twitches varying by a CV "
         "of 0.2 from pulse to pulse) with one effect hidden: `quadshank simulate --out DATA --legs "
@@ -136,18 +154,19 @@ def render(record: dict) -> str:
         "give NUTS's ΔELPD ± SE of the same leader beside the screen's (`discover --confirm`: a hierarchical NUTS "
         "fit of the leader against the previous round's), and the round's verdict is then NUTS's.",
         "",
-        "| hidden | minutes | found | round 1 | round 2 | round 3 | loop [s] |",
-        "|---|---|---|---|---|---|---|",
+        "| hidden | minutes | found | round 1 | round 2 | round 3 | loop [s] |" + (" command |" if len(commands) > 1 else ""),
+        "|---|---|---|---|---|---|---|" + ("---|" if len(commands) > 1 else ""),
     ]
     for row in record["rows"]:
         cells = [_round(r) for r in row["rounds"]] + [""] * (MAX_ROUNDS - len(row["rounds"]))
         found = "yes" if row["found"] else "no"
+        by = f" ({number[_row_command(row, commands)]}) |" if len(commands) > 1 else ""
         lines.append(f"| {row['effect']} | {row['minutes']:g} | {found} | " + " | ".join(cells)
-                     + f" | {row['seconds']:.0f} |")
+                     + f" | {row['seconds']:.0f} |" + by)
     return "\n".join(lines) + "\n"
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--effects", default=",".join(("none", *EFFECTS)))
     ap.add_argument("--minutes", default="1,2,4", help="lengths tried in turn until the effect is found")
@@ -159,6 +178,11 @@ def main(argv=None) -> int:
                     help="with --confirm: NUTS's target acceptance probability (discover's default without it)")
     ap.add_argument("--out", default="results/loop-hidden.md")
     ap.add_argument("--record", default="results/loop_hidden.json")
+    return ap
+
+
+def main(argv=None) -> int:
+    ap = _parser()
     args = ap.parse_args(argv)
     effects = [e for e in args.effects.split(",") if e]
     lengths = [float(m) for m in args.minutes.split(",")]
@@ -169,9 +193,9 @@ def main(argv=None) -> int:
         confirm += ("--target-accept", str(args.target_accept))
     with tempfile.TemporaryDirectory(prefix="loop-hidden-") as tmp, ThreadPoolExecutor(args.jobs) as pool:
         studies = list(pool.map(lambda e: study(e, lengths, args.leg, args.seed, Path(tmp), confirm), effects))
-    record = {"command": "python benchmarks/loop_hidden.py " + shlex.join(argv if argv is not None else sys.argv[1:]),
-              "leg": args.leg, "seed": args.seed, "lengths": lengths,
-              "rows": [row for rows in studies for row in rows]}
+    command = "python benchmarks/loop_hidden.py " + shlex.join(argv if argv is not None else sys.argv[1:])
+    record = {"command": command, "leg": args.leg, "seed": args.seed, "lengths": lengths,
+              "rows": [{**row, "command": command} for rows in studies for row in rows]}
     old = json.loads(Path(args.record).read_text()) if Path(args.record).exists() else None
     record = stamp(merged(old, record))
     write_json(args.record, record)

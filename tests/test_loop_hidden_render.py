@@ -75,6 +75,38 @@ def test_a_new_run_replaces_the_rows_it_redoes_and_keeps_the_others():
     out = loop_hidden.merged(old, new)
     assert [(r["effect"], r["minutes"], r["seconds"]) for r in out["rows"]] == [
         ("none", 1.0, 1), ("fatigue", 1.0, 2), ("fatigue", 2.0, 30), ("hill_velocity", 1.0, 4)]
-    assert out["commands"] == ["a", "b"] and "`a`, `b`" in loop_hidden.render(out)
+    assert out["commands"] == ["a", "b"] and "(1) `a`, (2) `b`" in loop_hidden.render(out)
     other = {**new, "seed": 5}
     assert loop_hidden.merged(old, other) is other  # another leg or seed: nothing of the old is kept
+
+
+def test_each_row_names_the_command_that_made_it():
+    """A row keeps its command through merges; in a record whose rows do not yet name theirs, a
+    row's is the last of the record's commands that ran its effect at its length."""
+    def row(effect, minutes, **extra):
+        return {"effect": effect, "minutes": minutes, "rounds": [], "added": [], "found": True, "seconds": 1.0, **extra}
+
+    script = "python benchmarks/loop_hidden.py"
+    old = {"leg": "JM-left", "seed": 4, "command": f"{script} --jobs 2",
+           "commands": [f"{script} --jobs 2", f"{script} --confirm --minutes 1 --effects none,fatigue",
+                        f"{script} --confirm --minutes 2 --effects fatigue,gravity_offset"],
+           "rows": [row("none", 1.0), row("fatigue", 1.0), row("fatigue", 2.0), row("gravity_offset", 4.0),
+                    row("hill_velocity", 1.0)]}
+    last = f"{script} --confirm --target-accept 0.95 --minutes 1 --effects hill_velocity"
+    out = loop_hidden.merged(old, {"leg": "JM-left", "seed": 4, "command": last,
+                                   "rows": [row("hill_velocity", 1.0, command=last)]})
+    made_by = {(r["effect"], r["minutes"]): r["command"] for r in out["rows"]}
+    assert made_by == {("none", 1.0): old["commands"][1], ("fatigue", 1.0): old["commands"][1],
+                       ("fatigue", 2.0): old["commands"][2], ("gravity_offset", 4.0): old["commands"][0],
+                       ("hill_velocity", 1.0): last}
+    assert out["commands"] == [*old["commands"], last]
+    text = loop_hidden.render(out)
+    cells = {line.split("|")[1].strip() + line.split("|")[2].strip(): line.rstrip("|").split("|")[-1].strip()
+             for line in text.splitlines() if line.startswith("| ") and not line.startswith("| hidden")}
+    assert cells == {"none1": "(2)", "fatigue1": "(2)", "fatigue2": "(3)", "gravity_offset4": "(1)",
+                     "hill_velocity1": "(4)"}
+    # a command whose rows were all redone since is no longer listed
+    redo = f"{script} --minutes 4 --effects gravity_offset"
+    again = loop_hidden.merged(out, {"leg": "JM-left", "seed": 4, "command": redo,
+                                     "rows": [row("gravity_offset", 4.0, command=redo)]})
+    assert again["commands"] == [*old["commands"][1:], last, redo]
