@@ -325,7 +325,8 @@ class Trial:
         exclude=None,
     ) -> Trial:
         """Build a trial, deriving the velocity and the acceleration from the angle when they
-        are not given (None); ``stimulation`` None is a pendulum test, no pulses.  The derivation runs through excluded samples, whose angle is
+        are not given (None); ``stimulation`` None is a pendulum test, no pulses.  The
+        derivation runs through excluded samples, whose angle is
         usually a real movement (a release, a spasm), except where an excluded angle is no
         knee's (beyond :data:`ANGLE_LIMIT_DEG` or one of :data:`MISSING_MARKERS`): there it
         runs on each side apart, so that the marker does not reach the kept samples beside it

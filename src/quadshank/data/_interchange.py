@@ -894,8 +894,9 @@ def _read_table(
     """Read a CSV file, reporting structural problems; ``None`` when it is unusable.
 
     ``alternatives``: a column that other (optional) columns may stand in for; a file may hold
-    the column or its stand-ins, not both (and one of them where the column is required).  ``missing_hints``: what to say, besides,
-    of a required column that is missing; ``unknown_hint``: of a column the file may not hold."""
+    the column or its stand-ins, not both (and one of them where the column is required).
+    ``missing_hints``: what to say, besides, of a required column that is missing;
+    ``unknown_hint``: of a column the file may not hold."""
     spanning = False
     header: list[str] | None = None
     header_line = 1
