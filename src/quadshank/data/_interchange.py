@@ -888,15 +888,14 @@ class _Table:
 
 def _read_table(
     path: Path, file: str, required: Sequence[str], optional: Sequence[str], problems: list[Problem],
-    alternatives: dict[str, tuple[str, ...]] | None = None, missing_hints: dict[str, str] | None = None,
+    alternatives: dict[str, tuple[str, ...]] | None = None,
     unknown_hint: str = "Remove the column",
 ) -> _Table | None:
     """Read a CSV file, reporting structural problems; ``None`` when it is unusable.
 
     ``alternatives``: a column that other (optional) columns may stand in for; a file may hold
     the column or its stand-ins, not both (and one of them where the column is required).
-    ``missing_hints``: what to say, besides, of a required column that is missing;
-    ``unknown_hint``: of a column the file may not hold."""
+    ``unknown_hint``: what to say of a column the file may not hold."""
     spanning = False
     header: list[str] | None = None
     header_line = 1
@@ -1027,8 +1026,6 @@ def _read_table(
             also = f"; or give {' and/or '.join(instead)}" if instead else ""
             if unknown:
                 also += f"; if {' or '.join(repr(c) for c in unknown[:3])} holds it, name that column {name}"
-            if name in (missing_hints or {}):
-                also += f"; {'else: ' if unknown else ''}{(missing_hints or {})[name]}"
             problems.append(Problem(file, name, header_line, f"missing column (header is: {','.join(header)}){also}"))
         elif name in columns and given:
             problems.append(Problem(file, given[0], header_line, f"give either {name} or {' and/or '.join(instead)}, "
@@ -2137,7 +2134,7 @@ def _warn_charge_scales(entries: Sequence[_Entry], signals_of: dict, charges: di
         name = leg_key(subject, leg)
         given = [i for i in rows if i in charges]
         # a trial without pulses (a pendulum test) has no scale to mix up
-        pulsed = [i for i in rows if i not in charges and np.any(signals_of[i].get("stimulation", np.zeros(0)))]
+        pulsed = [i for i in rows if i not in charges and np.any(signals_of[i]["stimulation"])]
         if given and pulsed:
             levels = ", ".join(entries[i].file for i in pulsed)
             warnings.warn(f"{name}: {', '.join(entries[i].file for i in given)} give the stimulation as a stimulator's "
