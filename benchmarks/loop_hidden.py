@@ -110,7 +110,7 @@ def _commands(record: dict) -> list[str]:
 
 def _covers(command: str, row: dict) -> bool:
     """Whether ``command`` (this script's, as recorded) runs the loop on ``row``'s effect and length."""
-    args = _parser().parse_args(shlex.split(command)[2:])
+    args, _ = _parser().parse_known_args(shlex.split(command)[2:])  # a flag since dropped does not stop it
     return row["effect"] in args.effects.split(",") and row["minutes"] in [float(m) for m in args.minutes.split(",")]
 
 
