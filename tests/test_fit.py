@@ -792,3 +792,50 @@ def test_parameters_the_data_barely_inform_are_named_and_so_is_one_that_holds_th
     informed.posterior["a_s_leg"] = informed.posterior["a_s_leg"] * 0.1
     assert weakly_informed(informed) == {}
     assert not any("barely inform" in w for w in diagnose_sampling(informed)["warnings"])
+
+
+def test_divergent_transitions_gathered_at_one_end_of_a_posterior_are_located():
+    """Where every divergent draw lies in one outer tail of a leg's parameter (the end of a ridge),
+    the fit names the leg and parameter with the divergent draws' mean quantile, and its advice says
+    that smaller steps seldom mend that; divergent draws spread over the posterior, or fewer than
+    three, name nothing and keep the advice of smaller steps."""
+    import arviz as az
+
+    from quadshank.inference._fitio import DIVERGENT_MIN, diagnose_sampling, divergence_location
+
+    rng = np.random.default_rng(4)
+    n = 300
+    k1_s = rng.normal(size=(2, n, 2))  # legs A-left, B-left
+    k2_s = -0.9 * k1_s + 0.2 * rng.normal(size=(2, n, 2))  # a ridge: k2 falls as k1 rises
+    a_s = rng.normal(size=(2, n, 2, 2))
+
+    def idata_with(diverging):
+        return az.from_dict(
+            posterior={"k1_s_leg": k1_s, "k2_s_leg": k2_s, "a_s_leg": a_s},
+            sample_stats={"diverging": diverging, "energy": rng.standard_normal((2, n))},
+            coords={"leg": ["A-left", "B-left"], "a_dim": [0, 1]},
+            dims={"k1_s_leg": ["leg"], "k2_s_leg": ["leg"], "a_s_leg": ["a_dim", "leg"]},
+        )
+
+    # the divergent draws: the four with A-left's highest k1 (so, on the ridge, its lowest k2)
+    flat = k1_s[..., 0].reshape(-1)
+    at_end = np.zeros(2 * n, bool)
+    at_end[np.argsort(flat)[-4:]] = True
+    where = divergence_location(idata_with(at_end.reshape(2, n)))
+    assert where == {"A-left": {"k1": pytest.approx(where["A-left"]["k1"]), "k2": pytest.approx(where["A-left"]["k2"])}}
+    assert where["A-left"]["k1"] > 0.98 and where["A-left"]["k2"] < 0.1
+    diag = diagnose_sampling(idata_with(at_end.reshape(2, n)))
+    assert diag["divergences_at"] == where
+    (said,) = [a for a in diag["advice"] if "divergent transitions all lie" in a]
+    assert "A-left's k1 is high (" in said and " and k2 low (0.0" in said and "seldom mend" in said
+    assert not any(a.startswith("raise the target acceptance") for a in diag["advice"])
+
+    spread = np.zeros(2 * n, bool)
+    spread[rng.choice(2 * n, 8, replace=False)] = True  # anywhere in the posterior
+    diag = diagnose_sampling(idata_with(spread.reshape(2, n)))
+    assert diag["divergences_at"] == {}
+    assert any(a.startswith("raise the target acceptance") for a in diag["advice"])
+
+    few = np.zeros(2 * n, bool)
+    few[np.argsort(flat)[-(DIVERGENT_MIN - 1):]] = True  # at the end, but too few to say so
+    assert divergence_location(idata_with(few.reshape(2, n))) == {}

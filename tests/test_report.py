@@ -550,3 +550,20 @@ def test_a_long_plans_figure_adds_a_view_of_its_first_pulses():
     fig = plot_plan_predictions(t[:3000], u[:3000], {"TN-left": {"median": m[:3000], "lo": m[:3000], "hi": m[:3000]}})
     assert len(fig.axes) == 2
     plt.close(fig)
+
+
+def test_the_divergent_transitions_row_says_where_they_lie():
+    """A fit whose divergent transitions the checks located (``divergences_at``) says in its row of
+    the checks where they lie; one without (or saved before the check) shows the count alone."""
+    base = {"rhat_max": 1.0, "ess_bulk_min": 900.0, "ess_tail_min": 900.0, "divergences": 5, "bfmi_min": 0.9,
+            "ok": False, "chains": 2, "draws": 500, "thresholds": {"rhat_max": 1.01, "ess_min": 200, "bfmi_min": 0.3}}
+
+    def row(d):
+        html = report._diagnostics_section(d)
+        r = html[html.index("divergent transitions"):]
+        return r[: r.index("</tr>")]
+
+    located = row({**base, "divergences_at": {"JM-left": {"k1": 0.97, "k2": 0.04}}})
+    assert "5 (all where JM-left&#x27;s k1 is high (0.97) and k2 low (0.04))" in located, located  # HTML-escaped
+    assert "FAIL" in located
+    assert "all where" not in row({**base, "divergences_at": {}}) and "all where" not in row(base)

@@ -24,6 +24,7 @@ from typing import ClassVar
 import arviz as az
 import jax.numpy as jnp
 import numpy as np
+from scipy.stats import rankdata
 
 from ..common._io import atomic_path
 from ..common._provenance import code_provenance
@@ -295,6 +296,57 @@ def weakly_informed(idata) -> dict[str, dict[str, float]]:
     return {leg: out[leg] for leg in order if leg in out}
 
 
+#: Where a fit's divergent transitions are located: a parameter is named when every divergent draw
+#: lies in the same outer tail of the leg's draws, below this quantile or above one minus it, and
+#: there are at least :data:`DIVERGENT_MIN` of them.  Divergent draws that fall anywhere do so with
+#: probability 2·0.1ⁿ per parameter, at most 0.002 for n ≥ 3.
+DIVERGENT_TAIL = 0.1
+DIVERGENT_MIN = 3
+
+
+def divergence_location(idata) -> dict[str, dict[str, float]]:
+    """Where the divergent transitions lie: ``{leg: {parameter: q}}``, q the divergent draws' mean
+    quantile among all the leg's draws of that parameter (near 0: where it is low; near 1: high),
+    for the parameters whose divergent draws all lie in one outer tail (:data:`DIVERGENT_TAIL`;
+    at least :data:`DIVERGENT_MIN` divergent draws, else nothing is named).
+
+    Divergences gathered at one end of a parameter's posterior mark where the posterior bends or
+    narrows (the end of a ridge, a funnel), a geometry that shorter steps seldom mend; divergences
+    spread over the posterior are rather a step too long everywhere.  Components are named as in
+    :func:`weakly_informed`; legs and parameters in the posterior's order, the most extreme first."""
+    diverging = np.asarray(idata.sample_stats["diverging"], bool).reshape(-1)
+    if diverging.sum() < DIVERGENT_MIN:
+        return {}
+    post = idata.posterior
+    out: dict[str, dict[str, float]] = {}
+    for v in post.data_vars:
+        if not str(v).endswith("_s_leg") or "leg" not in post[v].dims:
+            continue
+        name = str(v)[: -len("_s_leg")]
+        da = post[v].transpose("chain", "draw", "leg", ...)
+        a = np.asarray(da, np.float64).reshape(diverging.size, da.sizes["leg"], -1)  # (draws, legs, components)
+        q = (rankdata(a, axis=0) - 0.5) / a.shape[0]  # each draw's quantile among the leg's draws (ties: mean rank)
+        at = q[diverging]  # (divergent draws, legs, components)
+        low, high = (at <= DIVERGENT_TAIL).all(axis=0), (at >= 1.0 - DIVERGENT_TAIL).all(axis=0)
+        for (i, c) in zip(*np.nonzero(low | high)):
+            index = np.unravel_index(c, da.shape[3:]) if da.ndim > 3 else ()
+            label = name + "".join(f"[{k + 1}]" for k in index)
+            out.setdefault(str(da["leg"].values[i]), {})[label] = round(float(at[:, i, c].mean()), 3)
+    order = [str(leg) for leg in post["leg"].values] if "leg" in post.coords else sorted(out)
+    return {leg: dict(sorted(out[leg].items(), key=lambda kv: -abs(kv[1] - 0.5))) for leg in order if leg in out}
+
+
+def located_words(where: dict[str, dict[str, float]]) -> str:
+    """"JM-left's k1 is high (0.97) and k2 low (0.03)": :func:`divergence_location` in words."""
+
+    def leg_words(leg, params):
+        said = [f"{p} {'high' if q > 0.5 else 'low'} ({q:.2f})" for p, q in params.items()]
+        said[0] = said[0].replace(" ", " is ", 1)
+        return f"{leg}'s " + (said[0] if len(said) == 1 else ", ".join(said[:-1]) + " and " + said[-1])
+
+    return "; ".join(leg_words(leg, params) for leg, params in where.items())
+
+
 def _weak_lagging(worst: dict | None, weak: dict) -> str | None:
     """``"k1 of AA-left"`` where a failing check's worst entry is a parameter the data barely
     inform (of that leg, or of its subject where the entry is a subject's value)."""
@@ -458,9 +510,16 @@ def diagnose_sampling(idata) -> dict:
         problems.append(f"tail ESS {ess_tail_min:.0f}{_named(worst['ess_tail'])} < {ess_needed}: the 90 % intervals "
                         "are unreliable")
         advice.append("draw more (--draws)")
+    located = divergence_location(idata)
     if divergences > THRESHOLDS["divergences"]:
         problems.append(f"{divergences} divergent transitions: the sampler missed part of the posterior")
-        advice.append("raise the target acceptance (--target-accept 0.95) or lengthen the warm-up (--warmup)")
+        if located:
+            advice.append(
+                f"the divergent transitions all lie where {located_words(located)} (in parentheses, their mean quantile "
+                "among the draws): the posterior bends or narrows at that end, which smaller steps seldom mend. "
+                "Recordings that inform those parameters do; --target-accept 0.95 may lessen them")
+        else:
+            advice.append("raise the target acceptance (--target-accept 0.95) or lengthen the warm-up (--warmup)")
     if not bfmi_min > THRESHOLDS["bfmi_min"]:
         problems.append(f"E-BFMI {bfmi_min:.2f} ≤ {THRESHOLDS['bfmi_min']}: poor exploration of the energy")
         advice.append("lengthen the warm-up (--warmup) and let it adapt the metric (--adapt-metric), or fit more data")
@@ -481,6 +540,7 @@ def diagnose_sampling(idata) -> dict:
         "delay_at_edge": edge,
         "delay_at_zero": zero,
         "weakly_informed": weak,
+        "divergences_at": located,
         "mode_jumps": mode_jumps,
         "chains": int(chains),
         "draws": int(idata.posterior.sizes["draw"]),

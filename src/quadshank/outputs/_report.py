@@ -45,6 +45,7 @@ import numpy as np
 from ..common._io import atomic_write_text, figure_bytes, file_stems, write_json
 from ..common._progress import progress_bar
 from ..data._paper import SAMPLING_PERIOD_S, TABLE_V
+from ..inference._fitio import located_words
 from ..inference._summaries import INTERVAL, interval
 from ..model._effects import registered_effects, to_standard
 from ._figures import horizon_axis, plot_delay_angle
@@ -280,7 +281,9 @@ def _diagnostics_section(d: dict) -> str:
          verdict(finite(d.get("ess_bulk_min")) and d["ess_bulk_min"] >= th.get("ess_min", 0))],
         ["tail ESS, smallest", value("ess_tail_min", "ess_tail"), f"≥ {_num(th.get('ess_min'))}",
          verdict(finite(d.get("ess_tail_min")) and d["ess_tail_min"] >= th.get("ess_min", 0))],
-        ["divergent transitions", _e(d.get("divergences")), f"≤ {_e(th.get('divergences', 0))}",
+        ["divergent transitions", _e(d.get("divergences")) + (f" (all where {_e(located_words(d['divergences_at']))})"
+                                                             if d.get("divergences_at") else ""),
+         f"≤ {_e(th.get('divergences', 0))}",
          verdict(d.get("divergences", 0) <= th.get("divergences", 0))],
         ["E-BFMI, smallest", _num(d.get("bfmi_min")), f"&gt; {_num(th.get('bfmi_min'))}",
          verdict(finite(d.get("bfmi_min")) and d["bfmi_min"] > th.get("bfmi_min", 0.3))],
