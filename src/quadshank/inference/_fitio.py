@@ -267,6 +267,13 @@ def delay_missed(idata) -> dict[str, dict[int, list[float]]]:
 WEAK_SD = 0.5
 
 
+def _leg_sites(post):
+    """A posterior's standardised leg sites ``NAME_s_leg``: ``(NAME, its values)``."""
+    for v in post.data_vars:
+        if str(v).endswith("_s_leg") and "leg" in post[v].dims:
+            yield str(v)[: -len("_s_leg")], post[v]
+
+
 def weakly_informed(idata) -> dict[str, dict[str, float]]:
     """Legs' parameters the data barely inform: ``{leg: {parameter: posterior sd in prior scales}}``.
 
@@ -280,11 +287,8 @@ def weakly_informed(idata) -> dict[str, dict[str, float]]:
     """
     post = idata.posterior
     out: dict[str, dict[str, float]] = {}
-    for v in post.data_vars:
-        if not str(v).endswith("_s_leg") or "leg" not in post[v].dims:
-            continue
-        name = str(v)[: -len("_s_leg")]
-        sd = post[v].std(dim=("chain", "draw"))
+    for name, site in _leg_sites(post):
+        sd = site.std(dim=("chain", "draw"))
         others = [d for d in sd.dims if d != "leg"]
         sd = sd.transpose("leg", *others)
         for leg, row in zip(sd["leg"].values, np.asarray(sd, np.float64)):
@@ -319,11 +323,8 @@ def divergence_location(idata) -> dict[str, dict[str, float]]:
         return {}
     post = idata.posterior
     out: dict[str, dict[str, float]] = {}
-    for v in post.data_vars:
-        if not str(v).endswith("_s_leg") or "leg" not in post[v].dims:
-            continue
-        name = str(v)[: -len("_s_leg")]
-        da = post[v].transpose("chain", "draw", "leg", ...)
+    for name, site in _leg_sites(post):
+        da = site.transpose("chain", "draw", "leg", ...)
         a = np.asarray(da, np.float64).reshape(diverging.size, da.sizes["leg"], -1)  # (draws, legs, components)
         q = (rankdata(a, axis=0) - 0.5) / a.shape[0]  # each draw's quantile among the leg's draws (ties: mean rank)
         at = q[diverging]  # (divergent draws, legs, components)
