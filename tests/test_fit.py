@@ -822,7 +822,7 @@ def test_divergent_transitions_gathered_at_one_end_of_a_posterior_are_located():
     at_end = np.zeros(2 * n, bool)
     at_end[np.argsort(flat)[-4:]] = True
     where = divergence_location(idata_with(at_end.reshape(2, n)))
-    assert where == {"A-left": {"k1": pytest.approx(where["A-left"]["k1"]), "k2": pytest.approx(where["A-left"]["k2"])}}
+    assert set(where) == {"A-left"} and set(where["A-left"]) == {"k1", "k2"}
     assert where["A-left"]["k1"] > 0.98 and where["A-left"]["k2"] < 0.1
     diag = diagnose_sampling(idata_with(at_end.reshape(2, n)))
     assert diag["divergences_at"] == where

@@ -274,6 +274,17 @@ def _leg_sites(post):
             yield str(v)[: -len("_s_leg")], post[v]
 
 
+def _component(name: str, index: tuple) -> str:
+    """A parameter's component as the report names it, counted from 1: ``a[2]`` (``name`` for a scalar)."""
+    return name + "".join(f"[{i + 1}]" for i in index)
+
+
+def _in_leg_order(post, per_leg: dict) -> dict:
+    """``per_leg`` with its legs in the posterior's order."""
+    order = [str(leg) for leg in post["leg"].values] if "leg" in post.coords else sorted(per_leg)
+    return {leg: per_leg[leg] for leg in order if leg in per_leg}
+
+
 def weakly_informed(idata) -> dict[str, dict[str, float]]:
     """Legs' parameters the data barely inform: ``{leg: {parameter: posterior sd in prior scales}}``.
 
@@ -294,10 +305,8 @@ def weakly_informed(idata) -> dict[str, dict[str, float]]:
         for leg, row in zip(sd["leg"].values, np.asarray(sd, np.float64)):
             for index, value in np.ndenumerate(row):
                 if np.isfinite(value) and value >= WEAK_SD:
-                    label = name + "".join(f"[{i + 1}]" for i in index)  # counted from 1, as the report's a[1], a[2]
-                    out.setdefault(str(leg), {})[label] = round(float(value), 2)
-    order = [str(leg) for leg in post["leg"].values] if "leg" in post.coords else sorted(out)
-    return {leg: out[leg] for leg in order if leg in out}
+                    out.setdefault(str(leg), {})[_component(name, index)] = round(float(value), 2)
+    return _in_leg_order(post, out)
 
 
 #: Where a fit's divergent transitions are located: a parameter is named when every divergent draw
@@ -331,10 +340,9 @@ def divergence_location(idata) -> dict[str, dict[str, float]]:
         low, high = (at <= DIVERGENT_TAIL).all(axis=0), (at >= 1.0 - DIVERGENT_TAIL).all(axis=0)
         for (i, c) in zip(*np.nonzero(low | high)):
             index = np.unravel_index(c, da.shape[3:]) if da.ndim > 3 else ()
-            label = name + "".join(f"[{k + 1}]" for k in index)
-            out.setdefault(str(da["leg"].values[i]), {})[label] = round(float(at[:, i, c].mean()), 3)
-    order = [str(leg) for leg in post["leg"].values] if "leg" in post.coords else sorted(out)
-    return {leg: dict(sorted(out[leg].items(), key=lambda kv: -abs(kv[1] - 0.5))) for leg in order if leg in out}
+            out.setdefault(str(da["leg"].values[i]), {})[_component(name, index)] = round(float(at[:, i, c].mean()), 3)
+    extreme_first = {leg: dict(sorted(ps.items(), key=lambda kv: -abs(kv[1] - 0.5))) for leg, ps in out.items()}
+    return _in_leg_order(post, extreme_first)
 
 
 def located_words(where: dict[str, dict[str, float]]) -> str:
