@@ -386,6 +386,7 @@ def test_screen_start_puts_each_chain_at_a_laplace_draw_with_the_laplace_metric(
 
     from quadshank.inference._nuts import fit_screen, screen_start
     from quadshank.inference._density import numpyro_model
+    from quadshank.inference._priors import STIFFNESS_SITE, stiffness_jacobian, stiffness_params
     from quadshank.model._likelihood import prepare
     from quadshank.inference._screen import _values_np
 
@@ -421,8 +422,18 @@ def test_screen_start_puts_each_chain_at_a_laplace_draw_with_the_laplace_metric(
     a1_leg1, b0_leg1, b0_leg0 = at["a_s_leg"] + 1 * 2 + 1, at["b_s_leg"] + 0 * 2 + 1, at["b_s_leg"] + 0 * 2 + 0
     assert metric[a1_leg1, b0_leg1] == pytest.approx(scr.covariance[1, j_a1, j_b0], rel=1e-5)
     assert metric[a1_leg1, b0_leg0] == 0.0
-    # the levels above the legs are summed out: the legs' values and noise are the whole vector
-    assert all(k.endswith("_s_leg") or k in ("sigma", "nu") for k in names)
+    # the levels above the legs are summed out: the legs' values and noise are the whole vector,
+    # G′ sampled through the stiffness at rest
+    assert all(k.endswith("_s_leg") or k in ("sigma", "nu", STIFFNESS_SITE) for k in names)
+    assert "gravity_s_leg" not in names
+    # whose entry of the metric is the leg's Laplace covariance carried by the Jacobian at its mode
+    params = stiffness_params(model)
+    start = dict(zip([s.name for s in scr.specs], np.cumsum([0] + [s.size for s in scr.specs])))
+    j = [int(start[p.name]) for p in params]  # their entries of the screen's vector
+    row = stiffness_jacobian(*scr.mode[1, j], params)
+    t1 = at[STIFFNESS_SITE] + 1
+    assert metric[t1, t1] == pytest.approx(row @ scr.covariance[1][np.ix_(j, j)] @ row, rel=1e-5)
+    assert metric[t1, at["damping_s_leg"] + 1] == pytest.approx(row @ scr.covariance[1][j, j[0] - 1], rel=1e-5)
 
 
 def _two_chain_fit(p_delay, evidence=None):

@@ -81,6 +81,8 @@ from ._priors import (
     log_shift_prior,
     model_params,
     step_param,
+    stiffness_leg_values,
+    stiffness_params,
 )
 
 
@@ -106,7 +108,12 @@ def numpyro_model(
     n_legs, n_subjects = data.n_legs, len(data.subjects)
     leg_subject = np.asarray(data.leg_subject)  # a constant: the spread grid is built from it
     step = step_param(model, data)
-    values = {p.name: _hierarchical(p, n_legs, n_subjects, leg_subject, centred) for p in model_params(model) if step is None or p.name != step.name}
+    stiffness = stiffness_params(model, centred)
+    values = {p.name: _hierarchical(p, n_legs, n_subjects, leg_subject, centred) for p in model_params(model)
+              if (step is None or p.name != step.name) and (stiffness is None or p.name != stiffness[0].name)}
+    if stiffness is not None:  # G′ through the stiffness at rest (see stiffness_params)
+        s_k1, s_k2 = ((jnp.log(values[p.name]) - p.prior[1]) / p.prior[2] for p in stiffness[1:])
+        values[stiffness[0].name] = stiffness_leg_values(n_legs, leg_subject, stiffness, s_k1, s_k2)
     if step is not None:  # summed out in the likelihood; the value is never read
         values[step.name] = jnp.zeros((n_legs, *step.shape), jnp.float32)
     with numpyro.plate("legs", n_legs):

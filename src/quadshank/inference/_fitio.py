@@ -43,7 +43,7 @@ from ._draws import (
     sample_step_states,
 )
 from ._nuts import FitSettings, chain_method
-from ._priors import NOISE_PARAMS, SIGMA_UNITS, model_params, step_param
+from ._priors import NOISE_PARAMS, SIGMA_UNITS, STIFFNESS_SITE, model_params, step_param
 from ._summaries import INTERVAL, THRESHOLDS, interval, pooled_draws
 
 __all__ = [
@@ -145,7 +145,7 @@ def to_inference_data(
     legs = list(data.legs)
     subjects = list(data.subjects)
     coords = {"leg": legs, "subject": subjects, "delay_samples": np.arange(N_DELAYS)}
-    dims = {"delay_logp": ["leg", "delay_samples"], "delay": ["leg"], "sigma": ["leg"], "nu": ["leg"]}
+    dims = {"delay_logp": ["leg", "delay_samples"], "delay": ["leg"], "sigma": ["leg"], "nu": ["leg"], STIFFNESS_SITE: ["leg"]}
     if data.max_shift:
         coords["shift_samples"] = np.arange(data.max_shift + 1)
         dims["delay_shift_logp"] = ["leg", "delay_samples", "shift_samples"]
@@ -393,8 +393,8 @@ def _where(ds, largest: bool) -> dict | None:
     holds it back, not only by how much."""
     best = None
     for v in ds.data_vars:
-        if str(v).endswith("_s_leg") and str(v)[: -len("_s_leg")] in ds.data_vars:
-            continue  # a parameter's standardised site: the parameter itself is named
+        if (str(v).endswith("_s_leg") and str(v)[: -len("_s_leg")] in ds.data_vars) or v == STIFFNESS_SITE:
+            continue  # a parameter's standardised site, or the stiffness G′ is sampled by: the parameter is named
         a = np.asarray(ds[v], np.float64)
         if not np.isfinite(a).any():
             continue

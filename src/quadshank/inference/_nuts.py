@@ -45,7 +45,15 @@ from ..model._likelihood import (
 from ..model._model import Model
 from ._density import numpyro_model
 from ._draws import hyper_draws
-from ._priors import model_params, step_param
+from ._priors import (
+    STIFFNESS_SITE,
+    model_params,
+    standard_from_stiffness,
+    step_param,
+    stiffness_from_standard,
+    stiffness_jacobian,
+    stiffness_params,
+)
 from ._jumps import JumpBlocks, ModeJumpNUTS, refine_blocks
 from ._screen import DelayModes, _hessian, delay_modes, laplace_fit, restart_screen
 from ._starts import _init_near, classical_start
@@ -286,14 +294,18 @@ def screen_start(model: Model, data: LikelihoodData, settings: FitSettings, cond
                          f"the fit needs {', '.join(data.legs)} and {chains}: make it with fit_screen()")
     names, shapes, offsets, kept, positions = _latent_layout(data, settings, conditioned, arrays, scr)
     n, L = sum(math.prod(s) for s in shapes.values()), data.n_legs
+    draws, covariance = scr.draws[:, :chains], scr.covariance
+    carry = _stiffness_carrier(scr, settings)
+    if carry is not None:
+        draws, covariance = carry(draws), carry.covariance(covariance, scr.mode)
 
     inits = np.zeros((chains, n))
     imm = np.zeros((n, n))
     covered = np.zeros(n, bool)
     for i in range(L):
         idx = positions(i)
-        imm[np.ix_(idx, idx)] = scr.covariance[i][np.ix_(kept, kept)]
-        inits[:, idx] = scr.draws[i, :chains][:, kept]
+        imm[np.ix_(idx, idx)] = covariance[i][np.ix_(kept, kept)]
+        inits[:, idx] = draws[i][:, kept]
         covered[idx] = True
     if not covered.all():
         missing = [k for k in names if not covered[offsets[k] : offsets[k] + math.prod(shapes[k])].all()]
@@ -330,20 +342,83 @@ def _latent_layout(data: LikelihoodData, settings: FitSettings, conditioned, arr
         offsets[k] = n
         n += math.prod(shapes[k])
     L = data.n_legs
+
+    def site(s):
+        """The latent site of a screen parameter: G′'s is the stiffness at rest where the fit samples
+        that (:func:`_stiffness_carrier` carries the screen's entry there)."""
+        return STIFFNESS_SITE if STIFFNESS_SITE in offsets and s.name == "gravity" else f"{s.name}_s_leg"
+
     # a parameter the fit sums out (a step delay effect's threshold) has no site: its entries of
     # the screen's vector are dropped, and the Laplace covariance of the rest is the block of it
-    kept = np.concatenate([np.full(s.size, f"{s.name}_s_leg" in offsets) for s in scr.specs] + [np.ones(2, bool)])
+    kept = np.concatenate([np.full(s.size, site(s) in offsets) for s in scr.specs] + [np.ones(2, bool)])
 
     def positions(i):
         """Where leg i's screen vector (z per parameter, log σ, log ν; kept entries) sits in the latent vector."""
         out = []
         for s in scr.specs:
-            site = f"{s.name}_s_leg"
-            if site in offsets:
-                out += [offsets[site] + (c * L + i if s.shape else i) for c in range(s.size)]
+            site_ = site(s)
+            if site_ in offsets:
+                out += [offsets[site_] + (c * L + i if s.shape else i) for c in range(s.size)]
         return np.asarray(out + [offsets["sigma"] + i, offsets["nu"] + i])
 
     return names, shapes, offsets, kept, positions
+
+
+@dataclasses.dataclass(frozen=True)
+class _StiffnessCarrier:
+    """Carries the screen's vectors (z per parameter, log σ, log ν) to the fit's coordinates where the
+    fit samples the stiffness at rest in place of G′ (:func:`quadshank.inference._priors.stiffness_params`):
+    G′'s entry becomes the stiffness coordinate; a covariance is carried by the Jacobian at a point."""
+
+    params: tuple
+    index: tuple  # the screen vector's entries of G′, k1 and k2
+
+    def __call__(self, vectors: np.ndarray) -> np.ndarray:
+        out = np.array(vectors, np.float64, copy=True)
+        g, a, b = self.index
+        out[..., g] = stiffness_from_standard(out[..., g], out[..., a], out[..., b], self.params)
+        return out
+
+    def back(self, vectors: np.ndarray) -> np.ndarray:
+        """The inverse: the fit's coordinates to the screen's."""
+        out = np.array(vectors, np.float64, copy=True)
+        g, a, b = self.index
+        out[..., g] = standard_from_stiffness(out[..., g], out[..., a], out[..., b], self.params)[0]
+        return out
+
+    def covariance(self, covariances: np.ndarray, at: np.ndarray) -> np.ndarray:
+        """Covariances (..., dim, dim) in the screen's coordinates, carried at the points ``at`` (..., dim)."""
+        cov = np.array(covariances, np.float64, copy=True)
+        flat_cov, flat_at = cov.reshape(-1, *cov.shape[-2:]), np.asarray(at, np.float64).reshape(-1, cov.shape[-1])
+        g, a, b = self.index
+        for c, x in zip(flat_cov, flat_at):
+            jac = np.eye(c.shape[0])
+            jac[g, [g, a, b]] = stiffness_jacobian(x[g], x[a], x[b], self.params)
+            c[...] = jac @ c @ jac.T
+        return flat_cov.reshape(cov.shape)
+
+
+def _stiffness_carrier(scr, settings: FitSettings) -> _StiffnessCarrier | None:
+    """The carrier from the screen ``scr``'s coordinates to the fit's, or None where they are the same."""
+    params = stiffness_params(scr.model, settings.centred)
+    if params is None:
+        return None
+    offsets = np.cumsum([0] + [s.size for s in scr.specs])
+    where = {s.name: int(offsets[j]) for j, s in enumerate(scr.specs)}
+    return _StiffnessCarrier(params, tuple(where[p.name] for p in params))
+
+
+def _at_sites(model: Model, start: dict, n_legs: int) -> dict:
+    """Standardised leg values ``{p}_s_leg`` as the fit's latent sites: G′'s as the stiffness at rest
+    where the fit samples that (:func:`quadshank.inference._priors.stiffness_params`)."""
+    params = stiffness_params(model)
+    if params is None or f"{params[0].name}_s_leg" not in start:
+        return start
+    out = dict(start)
+    s_g = np.asarray(out.pop(f"{params[0].name}_s_leg"))
+    s_k1, s_k2 = (np.asarray(out.get(f"{p.name}_s_leg", np.zeros(n_legs))) for p in params[1:])
+    out[STIFFNESS_SITE] = stiffness_from_standard(s_g, s_k1, s_k2, params)
+    return out
 
 
 def jump_blocks(data: LikelihoodData, settings: FitSettings, conditioned, arrays, scr, modes: DelayModes,
@@ -365,6 +440,7 @@ def jump_blocks(data: LikelihoodData, settings: FitSettings, conditioned, arrays
     if modes is None or modes.covariances is None or evidence is None:
         return None
     _, _, _, kept, positions = _latent_layout(data, settings, conditioned, arrays, scr)
+    carry = _stiffness_carrier(scr, settings)
     K = data.max_shift
     params = kept.copy()
     params[-2:] = False  # log σ, log ν
@@ -375,14 +451,17 @@ def jump_blocks(data: LikelihoodData, settings: FitSettings, conditioned, arrays
         wanted = (ev >= floor) | (np.abs(np.arange(N_DELAYS) - best) == 1)
         found = []
         for d in np.flatnonzero(wanted & np.isfinite(modes.log_evidence[i])):
-            cov = modes.covariances[i, d][np.ix_(params, params)]
+            mode, cov = modes.modes[i, d], modes.covariances[i, d]
+            if carry is not None:
+                mode, cov = carry(mode), carry.covariance(cov, mode)
+            cov = cov[np.ix_(params, params)]
             try:
                 chol = np.linalg.cholesky(0.5 * (cov + cov.T))
             except np.linalg.LinAlgError:
                 continue
             # a delay effect that shortens d by a shift: each (d, shift) can hold a mode of its own,
             # all started from the delay's (refine_blocks moves each to its own)
-            found += [(int(d) * (K + 1) + s, modes.modes[i, d][params], chol) for s in range(min(K, int(d)) + 1)]
+            found += [(int(d) * (K + 1) + s, mode[params], chol) for s in range(min(K, int(d)) + 1)]
         if len(found) >= 2:
             rows.append((i, positions(i)[:-2], found))
     if not rows:
@@ -595,7 +674,7 @@ def _fit(cohort, model, settings, legs, progress, log_delay_prior, screen, start
         if not settings.dense_mass:
             imm = {k: jnp.diagonal(v) for k, v in imm.items()}
     elif settings.start in ("screen", "classical") and settings.centred:
-        start = classical_start(cohort, model, data, settings.trials[0])
+        start = _at_sites(model, classical_start(cohort, model, data, settings.trials[0]), data.n_legs)
         init = functools.partial(_init_near, values=start, fallback=init)
     jumping = {} if blocks is None else {"blocks": blocks, "split": split}
     kernel = (NUTS if blocks is None else functools.partial(ModeJumpNUTS, **jumping))(

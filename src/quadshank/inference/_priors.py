@@ -225,3 +225,92 @@ def _with_discrete_axes(model: Model, lead: tuple) -> Model:
     zeros = jnp.zeros(lead, jnp.int32)
     model = model.with_params(delay=zeros)
     return model.with_delay_shift(zeros) if model.delay_effect is not None else model
+
+
+# ============================================================ the stiffness at rest as a coordinate
+
+#: The latent site that holds each leg's stiffness at rest where the fit samples it in place of
+#: the gravity term (:func:`stiffness_params`); ``gravity_s_leg`` is then recorded as a deterministic.
+STIFFNESS_SITE = "stiffness_t_leg"
+#: The built-in effects whose parameters the stiffness at rest combines, and those parameters.
+_STIFFNESS_EFFECTS = {"gravity": ("gravity",), "elasticity": ("k1", "k2")}
+_DEG = math.pi / 180.0
+
+
+def stiffness_params(model: Model, centred: bool = True) -> tuple[Param, Param, Param] | None:
+    """``(gravity, k1, k2)`` where the fit samples the passive system's stiffness at rest in place
+    of the gravity term G′, else None (a model without the built-in gravity and elasticity, or
+    the non-centred form).
+
+    A swing pins the passive torque's slope at rest, K₀ = G′·π/180 + k1·k2 (the gravity term's and
+    the elasticity's, per degree), to a fraction of a per cent, and where the knee stays out of
+    deep flexion it leaves how K₀ splits between the two to the prior: G′ trades with k1·k2, and
+    k1 with k2.  In the standardised coordinates (log G′, log k1, log k2) that constraint,
+    log(e^{log G′}·π/180 + e^{log k1 + log k2}) fixed, is curved, and a dense metric follows it
+    along a straight line only: on 1 min of a leg the line leaves the curve by several of its
+    widths within two posterior sds along the ridge, where the curvature the sampler meets is
+    30–60 times that at the mode and its trajectories diverge.  Sampling K₀ itself
+    (:func:`stiffness_from_standard`) keeps the pinned direction straight; G′ follows as
+    (K₀ − k1·k2)·180/π, and its prior stays the declared one, carried over with the Jacobian.
+    """
+    if not centred or not set(_STIFFNESS_EFFECTS) <= {e.name for e in model.effects}:
+        return None
+    by_name = {p.name: p for e in model.effects if e.name in _STIFFNESS_EFFECTS for p in e.declared_params()}
+    params = tuple(by_name.get(n) for names in _STIFFNESS_EFFECTS.values() for n in names)
+    if any(p is None or p.level != "leg" or p.shape or p.prior[0] != "lognormal" for p in params):
+        return None
+    return params
+
+
+def _stiffness_centre(params) -> float:
+    """log K₀ at the priors' medians, the centre of the stiffness coordinate."""
+    g, k1, k2 = (float(p.prior[1]) for p in params)
+    return float(np.logaddexp(g + math.log(_DEG), k1 + k2))
+
+
+def stiffness_from_standard(s_gravity, s_k1, s_k2, params, xp=np):
+    """The stiffness coordinate t = (log K₀ − log K₀,median)/scale_G′ from the standardised
+    values of G′, k1 and k2 (:func:`stiffness_params`); near s_gravity where G′ dominates K₀."""
+    g, k1, k2 = params
+    log_g = g.prior[1] + g.prior[2] * s_gravity
+    log_s = k1.prior[1] + k1.prior[2] * s_k1 + k2.prior[1] + k2.prior[2] * s_k2
+    return (xp.logaddexp(log_g + math.log(_DEG), log_s) - _stiffness_centre(params)) / g.prior[2]
+
+
+def standard_from_stiffness(t, s_k1, s_k2, params, xp=np):
+    """The inverse of :func:`stiffness_from_standard` in s_gravity: ``(s_gravity, log_jacobian,
+    valid)``, with log |∂s_gravity/∂t| = log K₀/(K₀ − k1·k2); ``valid`` is False where
+    k1·k2 ≥ K₀ (no positive G′), and s_gravity is then finite but meaningless."""
+    g, k1, k2 = params
+    log_k0 = _stiffness_centre(params) + g.prior[2] * t
+    log_s = k1.prior[1] + k1.prior[2] * s_k1 + k2.prior[1] + k2.prior[2] * s_k2
+    share = xp.exp(log_s - log_k0)  # k1·k2 / K₀
+    valid = share < 1.0
+    rest = xp.log1p(-xp.where(valid, share, 0.5))  # log (K₀ − k1·k2)/K₀
+    s_gravity = (log_k0 + rest - math.log(_DEG) - g.prior[1]) / g.prior[2]
+    return s_gravity, -rest, valid
+
+
+def stiffness_jacobian(s_gravity, s_k1, s_k2, params) -> np.ndarray:
+    """∂t/∂(s_gravity, s_k1, s_k2) at one point: the row by which a covariance in the standardised
+    coordinates is carried to the stiffness coordinate."""
+    g, k1, k2 = params
+    log_g = g.prior[1] + g.prior[2] * s_gravity + math.log(_DEG)
+    log_s = k1.prior[1] + k1.prior[2] * s_k1 + k2.prior[1] + k2.prior[2] * s_k2
+    w_s = float(np.exp(log_s - np.logaddexp(log_g, log_s)))  # k1·k2's share of K₀
+    return np.array([1.0 - w_s, w_s * k1.prior[2] / g.prior[2], w_s * k2.prior[2] / g.prior[2]])
+
+
+def stiffness_leg_values(n_legs: int, leg_subject, params, s_k1, s_k2):
+    """Inside the numpyro model: sample each leg's stiffness coordinate (site :data:`STIFFNESS_SITE`)
+    and return G′'s leg values, recording ``gravity_s_leg`` and ``gravity``.  The site is drawn
+    with G′'s own prior and that prior is then replaced, by a factor, with the declared one at the
+    implied G′ times the Jacobian, so the posterior is the same as when G′ is sampled."""
+    g = params[0]
+    prior = SpreadMixture(np.asarray(leg_subject))
+    t = numpyro.sample(STIFFNESS_SITE, prior)
+    s_g, log_jac, valid = standard_from_stiffness(t, s_k1, s_k2, params, xp=jnp)
+    correction = prior.log_prob(s_g) - prior.log_prob(t) + jnp.sum(log_jac)
+    numpyro.factor("stiffness_prior", jnp.where(jnp.all(valid), correction, -jnp.inf))
+    s_g = numpyro.deterministic(f"{g.name}_s_leg", s_g)
+    return numpyro.deterministic(g.name, g.from_standard(jnp.reshape(s_g, (n_legs,)), xp=jnp, dtype=np.float32))
