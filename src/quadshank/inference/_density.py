@@ -33,6 +33,12 @@ the trajectories run to the tree's depth with divergences.  Summed out, the
 prior of s_leg is smooth and bounded (its peak at agreeing legs is at most a few
 times its height elsewhere), and r is drawn afterwards from its conditional on
 the grid (:func:`spread_draws`).
+Where the model has the built-in gravity and elasticity, G' is not sampled
+itself: the standardised passive stiffness at rest, K₀ = G'·π/180 + k1'·k2,
+is (:func:`~quadshank.inference._priors.stiffness_leg_values`), and G' with
+its declared prior follows through the Jacobian, because a swing pins K₀ and
+leaves its split between gravity and elasticity to the prior, a constraint
+that is curved in (log G', log k1', log k2) and straight in K₀.
 Population means and subject values are drawn afterwards from their Gaussian
 conditional given each draw and its spreads (:func:`hyper_draws`).  A dense mass matrix absorbs the remaining linear correlations
 (k1 with k2, gain with the gain factors).  Noise (Student-t, see
