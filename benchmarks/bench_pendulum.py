@@ -172,11 +172,13 @@ def main(argv=None) -> int:
         f"{worst_ratio('output error'):.3f} times the reference's, and that of `fit --model passive` (posterior "
         f"medians, likelihood on the angle) at most {worst_ratio('Bayesian fit, angle'):.3f} times. A calibrated "
         f"90 % interval holds the truth {0.9 * 4 * len(trials):.0f} times in {4 * len(trials)} on average.",
+        "",
+        *(f"- The checks of the fit on the {lik}: {fits[lik].banner or 'passed'}." for lik in ("angle", "acceleration")),
     ])
     write_section(args.out, "bench_pendulum", text)
     record = Path(args.out).with_name("bench_pendulum.json")
     write_json(record, {"command": command, "methods": methods, "scores": scores, "seconds": seconds,
-                        "covered": covered})
+                        "covered": covered, "banners": {lik: f.banner for lik, f in fits.items()}})
     print(text)
     return 0
 
