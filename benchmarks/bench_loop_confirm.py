@@ -1,7 +1,7 @@
 """Benchmark: the modelling loop on twitches that vary from pulse to pulse, confirmed by NUTS.
 
-One leg, one trial, the simulator's `twitch_variability` (a random gain per pulse, CV 0.2) on
-and one effect hidden besides (or none): `quadshank discover DATA --confirm` from the default
+One leg, one trial, its twitches varying from pulse to pulse as the simulator's are by default (a
+random gain per pulse, CV 0.2) and one effect hidden besides (or none): `quadshank discover DATA --confirm` from the default
 model with every registered candidate, as a user runs it.  Each round's screen leader is refitted
 by hierarchical NUTS against the previous round's NUTS fit and added only where NUTS agrees.  The
 record keeps, round by round, the screen's leader and its ΔELPD, NUTS's ΔELPD and whether it
@@ -73,7 +73,8 @@ def render(record: dict) -> str:
         f"Command: `{record['command']}`",
         "",
         f"{record['leg']}, {MINUTES:g} min of trial 1 (longer where a row says; seed {record['seed']}), simulated with "
-        "`twitch_variability` (a log-normal gain per pulse, CV 0.2) and the hidden effect besides; "
+        "its twitches varying from pulse to pulse (the simulator's default: a log-normal gain per pulse, CV 0.2) and "
+        "the hidden effect besides; "
         "`quadshank discover DATA --confirm` (model3s, every registered candidate, up to three rounds; each NUTS "
         "fit of 2 chains drawn in blocks to an ESS of 400). Each round: the screen's leader with its ΔELPD ± SE, then NUTS's ΔELPD ± SE for it "
         "against the previous round's NUTS fit and whether it clears the bar there (✓ added, ✗ not); "
@@ -143,9 +144,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for hidden in hidden_now:
             data, out = Path(tmp) / f"data-{hidden}", Path(tmp) / f"discover-{hidden}"
-            effects = "twitch_variability" + ("" if hidden == "none" else f",{hidden}")
+            # the simulated twitches vary by default: only the hidden effect is named
+            effects = [] if hidden == "none" else ["--effects", hidden]
             run_quadshank("simulate", "--out", str(data), "--legs", args.leg, "--minutes", str(args.minutes),
-                          "--trials", "1", "--seed", str(args.seed), "--effects", effects)
+                          "--trials", "1", "--seed", str(args.seed), *effects)
             seconds = run_quadshank("discover", str(data), "--confirm", "--out", str(out))
             summary = json.loads((out / "summary.json").read_text())
             passed, banner = start_fit(out)
