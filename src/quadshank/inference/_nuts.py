@@ -48,7 +48,6 @@ from ._draws import hyper_draws
 from ._priors import (
     STIFFNESS_SITE,
     model_params,
-    standard_from_stiffness,
     step_param,
     stiffness_from_standard,
     stiffness_jacobian,
@@ -377,13 +376,6 @@ class _StiffnessCarrier:
         out = np.array(vectors, np.float64, copy=True)
         g, a, b = self.index
         out[..., g] = stiffness_from_standard(out[..., g], out[..., a], out[..., b], self.params)
-        return out
-
-    def back(self, vectors: np.ndarray) -> np.ndarray:
-        """The inverse: the fit's coordinates to the screen's."""
-        out = np.array(vectors, np.float64, copy=True)
-        g, a, b = self.index
-        out[..., g] = standard_from_stiffness(out[..., g], out[..., a], out[..., b], self.params)[0]
         return out
 
     def covariance(self, covariances: np.ndarray, at: np.ndarray) -> np.ndarray:
