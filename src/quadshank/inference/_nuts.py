@@ -341,11 +341,12 @@ def _latent_layout(data: LikelihoodData, settings: FitSettings, conditioned, arr
         offsets[k] = n
         n += math.prod(shapes[k])
     L = data.n_legs
+    stiffness = stiffness_params(scr.model, settings.centred)
 
     def site(s):
         """The latent site of a screen parameter: G′'s is the stiffness at rest where the fit samples
         that (:func:`_stiffness_carrier` carries the screen's entry there)."""
-        return STIFFNESS_SITE if STIFFNESS_SITE in offsets and s.name == "gravity" else f"{s.name}_s_leg"
+        return STIFFNESS_SITE if stiffness is not None and s.name == stiffness[0].name else f"{s.name}_s_leg"
 
     # a parameter the fit sums out (a step delay effect's threshold) has no site: its entries of
     # the screen's vector are dropped, and the Laplace covariance of the rest is the block of it

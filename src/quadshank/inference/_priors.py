@@ -262,28 +262,37 @@ def stiffness_params(model: Model, centred: bool = True) -> tuple[Param, Param, 
     return params
 
 
+def _log_gravity_part(s_gravity, params):
+    """log G′·π/180, the gravity term's part of K₀, from G′'s standardised value."""
+    g = params[0]
+    return g.prior[1] + g.prior[2] * s_gravity + math.log(_DEG)
+
+
+def _log_elastic_part(s_k1, s_k2, params):
+    """log k1·k2, the elasticity's part of K₀, from the standardised values of k1 and k2."""
+    _, k1, k2 = params
+    return k1.prior[1] + k1.prior[2] * s_k1 + k2.prior[1] + k2.prior[2] * s_k2
+
+
 def _stiffness_centre(params) -> float:
     """log K₀ at the priors' medians, the centre of the stiffness coordinate."""
-    g, k1, k2 = (float(p.prior[1]) for p in params)
-    return float(np.logaddexp(g + math.log(_DEG), k1 + k2))
+    return float(np.logaddexp(_log_gravity_part(0.0, params), _log_elastic_part(0.0, 0.0, params)))
 
 
 def stiffness_from_standard(s_gravity, s_k1, s_k2, params, xp=np):
     """The stiffness coordinate t = (log K₀ − log K₀,median)/scale_G′ from the standardised
     values of G′, k1 and k2 (:func:`stiffness_params`); near s_gravity where G′ dominates K₀."""
-    g, k1, k2 = params
-    log_g = g.prior[1] + g.prior[2] * s_gravity
-    log_s = k1.prior[1] + k1.prior[2] * s_k1 + k2.prior[1] + k2.prior[2] * s_k2
-    return (xp.logaddexp(log_g + math.log(_DEG), log_s) - _stiffness_centre(params)) / g.prior[2]
+    log_g, log_s = _log_gravity_part(s_gravity, params), _log_elastic_part(s_k1, s_k2, params)
+    return (xp.logaddexp(log_g, log_s) - _stiffness_centre(params)) / params[0].prior[2]
 
 
 def standard_from_stiffness(t, s_k1, s_k2, params, xp=np):
     """The inverse of :func:`stiffness_from_standard` in s_gravity: ``(s_gravity, log_jacobian,
     valid)``, with log |∂s_gravity/∂t| = log K₀/(K₀ − k1·k2); ``valid`` is False where
     k1·k2 ≥ K₀ (no positive G′), and s_gravity is then finite but meaningless."""
-    g, k1, k2 = params
+    g = params[0]
     log_k0 = _stiffness_centre(params) + g.prior[2] * t
-    log_s = k1.prior[1] + k1.prior[2] * s_k1 + k2.prior[1] + k2.prior[2] * s_k2
+    log_s = _log_elastic_part(s_k1, s_k2, params)
     share = xp.exp(log_s - log_k0)  # k1·k2 / K₀
     valid = share < 1.0
     rest = xp.log1p(-xp.where(valid, share, 0.5))  # log (K₀ − k1·k2)/K₀
@@ -295,8 +304,7 @@ def stiffness_jacobian(s_gravity, s_k1, s_k2, params) -> np.ndarray:
     """∂t/∂(s_gravity, s_k1, s_k2) at one point: the row by which a covariance in the standardised
     coordinates is carried to the stiffness coordinate."""
     g, k1, k2 = params
-    log_g = g.prior[1] + g.prior[2] * s_gravity + math.log(_DEG)
-    log_s = k1.prior[1] + k1.prior[2] * s_k1 + k2.prior[1] + k2.prior[2] * s_k2
+    log_g, log_s = _log_gravity_part(s_gravity, params), _log_elastic_part(s_k1, s_k2, params)
     w_s = float(np.exp(log_s - np.logaddexp(log_g, log_s)))  # k1·k2's share of K₀
     return np.array([1.0 - w_s, w_s * k1.prior[2] / g.prior[2], w_s * k2.prior[2] / g.prior[2]])
 
