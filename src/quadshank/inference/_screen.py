@@ -12,7 +12,10 @@ candidate takes many minutes; this screen takes seconds per leg:
    (x = loc + scale·z for each declared parameter, log σ, log ν), started at
    the classical identification (or another screen's mode) and, for the
    parameters that start has no value for, at the prior median and at
-   ``n_starts`` draws from the prior; the best mode wins.  Started from another
+   ``n_starts`` draws from the prior; the best mode wins.  A delay effect's
+   step parameter (``angle_delay``'s threshold), on whose staircase L-BFGS
+   cannot move far, starts at the best point of a profile over its prior
+   (:func:`_step_profile_start`).  Started from another
    screen, L-BFGS runs in the coordinates that screen's Laplace covariance
    whitens for the parameters the two share (:func:`_start_whitening`).
 3. The Laplace approximation there: a Gaussian with the inverse Hessian as
@@ -227,6 +230,11 @@ _COMPILED: dict = {}
 #: coordinates) is kept for ``benchmarks/bench_discover.py``, which measures the difference.
 WHITEN_FROM_START = True
 
+#: Standardised values (prior sds about the prior median) at which the profile of a delay effect's
+#: step parameter is evaluated before L-BFGS, where the start has no value for it
+#: (:func:`_step_profile_start`): 0.1 prior sd apart, 2.5° for ``angle_delay``'s threshold.
+STEP_PROFILE_Z = np.linspace(-2.0, 2.0, 41)
+
 
 def _compiled(model: Model, specs: list[_Spec], R: int, K: int, n_segments: int, objective: str = "acceleration"):
     """The jitted functions of one model structure and its priors, made once per process
@@ -304,9 +312,24 @@ def _start_whitening(start: LaplaceFit, leg: str, specs: list[_Spec]) -> np.ndar
     return S
 
 
+#: L-BFGS is started again from where it stopped, with its curvature memory cleared, until a
+#: restart gains less than LBFGS_RESTART_GAIN in the log posterior, at most this often (within
+#: the one iteration budget).  Its stopping rule (the objective's relative reduction) ends a run
+#: wherever the line search makes a tiny step: on the screen's badly scaled posteriors (an offset
+#: of gravity that moves every passive parameter, say) that was hundreds of units short of the
+#: mode, at a point that moved with the start's last digits; a fresh memory goes on from there.
+LBFGS_RESTARTS = 4
+LBFGS_RESTART_GAIN = 1e-2
+#: After the Hessian at the mode is computed, L-BFGS goes on from the mode in the coordinates that
+#: curvature whitens (the posterior's scales span decades; whitened, they are all one), at most
+#: this often, each time the mode moves by more than LBFGS_RESTART_GAIN in the log posterior.
+CURVATURE_POLISH = 2
+
+
 def _minimize_from(value_and_grad, v0: np.ndarray, S: np.ndarray, x: dict, max_iter: int):
     """L-BFGS of ``value_and_grad`` (the negative log posterior and its gradient) over
-    v = v0 + S u from u = 0; returns scipy's result (in u) and the v it ends at."""
+    v = v0 + S u from u = 0, restarted as :data:`LBFGS_RESTARTS` says; returns scipy's result
+    (in u) and the v it ends at."""
 
     def f(u):
         val, g = value_and_grad(jnp.asarray(v0 + S @ u, jnp.float64), x)
@@ -318,7 +341,45 @@ def _minimize_from(value_and_grad, v0: np.ndarray, S: np.ndarray, x: dict, max_i
         return val, S.T @ g
 
     res = optimize.minimize(f, np.zeros(v0.size), jac=True, method="L-BFGS-B", options={"maxiter": max_iter})
+    used = res.nit
+    for _ in range(LBFGS_RESTARTS):
+        if used >= max_iter or not np.isfinite(res.fun):
+            break
+        again = optimize.minimize(f, res.x, jac=True, method="L-BFGS-B", options={"maxiter": max_iter - used})
+        used += again.nit
+        gained = res.fun - again.fun
+        if again.fun <= res.fun:
+            res = again
+        if not gained > LBFGS_RESTART_GAIN:
+            break
     return res, v0 + S @ res.x
+
+
+def _step_profile_start(value_and_grad, v0: np.ndarray, specs, model: Model, x: dict) -> np.ndarray:
+    """``v0`` with the delay effect's step parameter (``angle_delay``'s threshold) moved to the best
+    of :data:`STEP_PROFILE_Z`, the other parameters held at ``v0``.
+
+    The likelihood is a staircase in a step parameter: between two neighbouring pulse angles
+    every threshold splits the pulses alike, and the smoothed step (a degree wide) gives a
+    gradient only from pulses within a degree or two of it.  From one start L-BFGS therefore
+    stays on the stair it starts on (the prior median, typically); the profile over the prior's
+    central range finds the stair where the data place the step, and L-BFGS refines it there."""
+    name = getattr(model.delay_effect, "step_param", None)
+    at, _ = _positions(specs)
+    if name is None or name not in at or len(at[name]) != 1:
+        return v0
+    i = at[name][0]
+    values = []
+    for z in STEP_PROFILE_Z:
+        v = v0.copy()
+        v[i] = z
+        values.append(float(value_and_grad(jnp.asarray(v, jnp.float64), x)[0]))
+    values = np.where(np.isfinite(values), values, np.inf)
+    if not np.isfinite(values).any():
+        return v0
+    out = v0.copy()
+    out[i] = STEP_PROFILE_Z[int(np.argmin(values))]
+    return out
 
 
 def _start_vector(specs, known: dict, log_sigma: float, log_nu: float, rng, draw_unknown: bool) -> np.ndarray:
@@ -407,6 +468,8 @@ def _laplace_fit(
         best = None
         for j in range(n_try):
             v0 = _start_vector(specs, known, log_sigma, log_nu, rng, draw_unknown=j > 0)
+            if j == 0 and any(s.name == getattr(model.delay_effect, "step_param", None) for s in unknown):
+                v0 = _step_profile_start(value_and_grad, v0, specs, model, x)
 
             res, v = _minimize_from(value_and_grad, v0, S, x, max_iter)
             if np.isfinite(res.fun) and (best is None or res.fun < best[0].fun):
@@ -421,6 +484,14 @@ def _laplace_fit(
         H = _hessian(value_and_grad, mode, x)
         w, V = np.linalg.eigh(np.where(np.isfinite(H), H, 0.0))
         w = np.maximum(w, 1.0)  # never wider than the prior (unit precision on the standardised scale)
+        for _ in range(CURVATURE_POLISH):  # on from the mode in the coordinates its curvature whitens
+            res, v = _minimize_from(value_and_grad, mode, V / np.sqrt(w)[None, :], x, max_iter)
+            if not (np.isfinite(res.fun) and res.fun < best.fun - LBFGS_RESTART_GAIN):
+                break
+            best, mode = res, np.asarray(v, np.float64)
+            H = _hessian(value_and_grad, mode, x)
+            w, V = np.linalg.eigh(np.where(np.isfinite(H), H, 0.0))
+            w = np.maximum(w, 1.0)
         eps = rng.standard_normal((n_draws, dim))
         all_draws.append(mode[None, :] + (eps / np.sqrt(w)[None, :]) @ V.T)
         covs.append((V / w[None, :]) @ V.T)
