@@ -126,18 +126,35 @@ def test_evidence_that_rests_on_unreliable_segments_is_not_counted():
     assert row2["supported"] and row2["clears_bar"]
 
 
-def test_where_most_segments_are_unreliable_the_approximation_is_named_not_the_segments():
-    """Every segment's k high alike (the screen's Gaussian against a step in the delay) says the
-    approximation fails as a whole, not that a few segments carry the evidence: the evidence is
-    kept, and the sentence sends the candidate to NUTS."""
+def test_where_most_segments_are_unreliable_the_approximation_is_named_and_the_rest_must_hold():
+    """Most segments' k high says the approximation stands poorly as a whole, not that a few segments
+    carry the evidence: the sentence names the approximation and sends the candidate to NUTS, and
+    the evidence must still hold on the reliable segments.  A share just above one half decides
+    nothing: with the same reliable evidence the row reads the same on either side of it."""
     from quadshank.loop._diagnose import K_SHARE_MAX
 
-    row = {"effect": "angle_delay",
-           **evidence_bar(708.0, 170.0, BEFORE, DELAY_LIKE, True, (100, 250), (0.0, 0.0, 1.0))}
-    assert K_SHARE_MAX < 1.0 and row["supported"] and row["clears_bar"] and row["pareto_k_high_share"] == 1.0
-    text = verdict_sentence(_ranking([row], "angle_delay"))
-    assert "stands poorly for the posterior with angle_delay (Pareto k > 0.7 in 100 % of the segments)" in text
+    def row(checked):
+        return {"effect": "accel_resonance",
+                **evidence_bar(6.4, 2.4, BEFORE, BEFORE, False, (500, 1000), checked)}
+
+    weak_above, weak_below = row((2.3, 1.4, K_SHARE_MAX + 0.02)), row((2.3, 1.4, K_SHARE_MAX - 0.02))
+    assert not weak_above["supported"] and not weak_above["clears_bar"]
+    assert (weak_below["supported"], weak_below["clears_bar"]) == (weak_above["supported"], weak_above["clears_bar"])
+    text = verdict_sentence(_ranking([weak_above], "none"))
+    assert "stands poorly for the posterior with accel_resonance (Pareto k > 0.7 in 52 % of the segments)" in text
+    assert "on the other segments it is 2 ± 1, not counted as supported" in text and "NUTS (--confirm)" in text
     assert "rests on segments" not in text
+    # no reliable segment at all: nothing is counted, and the sentence says why
+    none_left = {"effect": "angle_delay",
+                 **evidence_bar(708.0, 170.0, BEFORE, DELAY_LIKE, True, (100, 250), (0.0, 0.0, 1.0))}
+    assert not none_left["supported"] and not none_left["clears_bar"]
+    assert "no segment is estimated reliably" in verdict_sentence(_ranking([none_left], "none"))
+    # where the reliable segments carry the evidence, the approximation is named and the evidence stands
+    strong = {"effect": "angle_delay",
+              **evidence_bar(708.0, 170.0, BEFORE, DELAY_LIKE, True, (100, 250), (300.0, 60.0, 0.8))}
+    assert strong["supported"] and strong["clears_bar"]
+    text = verdict_sentence(_ranking([strong], "angle_delay"))
+    assert "(Pareto k > 0.7 in 80 % of the segments)" in text and "not counted" not in text
 
 
 def test_candidates_that_cannot_change_the_likelihood_are_named_with_the_reason():

@@ -71,9 +71,10 @@ ELPD_SE_BAR = 2.0
 #: smoothed importance sampling", 2024): the evidence must hold without such segments too.
 PARETO_K_MAX = 0.7
 #: Where more than this share of the segments is above PARETO_K_MAX, it is the approximation of the
-#: whole posterior that fails (the screen's Laplace Gaussian for a step in the delay, say: every
-#: segment's k alike), not a few influential segments: the segment check is then not applied, and
-#: the row says the candidate needs NUTS (``--confirm``).
+#: whole posterior that stands poorly (the screen's Laplace Gaussian on a curved ridge, say), not a
+#: few influential segments: the sentence says so and sends the candidate to NUTS (``--confirm``).
+#: The evidence must still hold on the reliable segments: an estimate that fails on most of the
+#: data is no support, and a share just above or below this value must not decide the verdict.
 K_SHARE_MAX = 0.5
 #: Horizons [ms] at which J bands are drawn; each candidate is judged at its own (``Effect.acts_at_ms``).
 J_HORIZONS_MS = HORIZONS_MS
@@ -405,8 +406,7 @@ def evidence_bar(d: float, se: float, J0: np.ndarray, J1: np.ndarray, predicts_a
         d_k, se_k, share = k_checked
         out["delta_elpd_k_checked"], out["delta_elpd_k_checked_se"] = float(d_k), float(se_k)
         out["pareto_k_high_share"] = float(share)
-        if share <= K_SHARE_MAX:
-            out["supported"] = bool(out["supported"] and d_k > ELPD_SE_BAR * se_k)
+        out["supported"] = bool(out["supported"] and d_k > ELPD_SE_BAR * se_k)
     out["clears_bar"] = bool(out["supported"] and (out["J_lowered_beyond_bands"] or not predicts_angle)
                              and not sensor_raises_J)
     return out
@@ -419,6 +419,16 @@ def _j_change(r: dict, horizons) -> str:
         j = r[f"J_{h}ms"]
         parts.append(f"{j['before']['median']:.2f}° → {j['after']['median']:.2f}° at {h} ms")
     return ", ".join(parts)
+
+
+def _unreliable_rest(r: dict) -> str:
+    """What a row's evidence comes to on its reliable segments, where that leaves it unsupported."""
+    if r["supported"] or "delta_elpd_k_checked" not in r:
+        return ""
+    if r["pareto_k_high_share"] >= 1.0:
+        return ", and no segment is estimated reliably, so it is not counted as supported"
+    return (f", and on the other segments it is {r['delta_elpd_k_checked']:.0f} ± {r['delta_elpd_k_checked_se']:.0f}, "
+            "not counted as supported")
 
 
 def evidence_notes(ranking: Ranking) -> str:
@@ -438,13 +448,14 @@ def evidence_notes(ranking: Ranking) -> str:
             "not called missing; more data, or a look at its residual signature, can settle it."
         )
     strong = [r for r in rows if r["delta_elpd"] > ELPD_SE_BAR * r["delta_elpd_se"]]
-    shaky = [r for r in strong if not r["supported"] and "delta_elpd_k_checked" in r]
     loose = [r for r in strong if r.get("pareto_k_high_share", 0.0) > K_SHARE_MAX]
+    shaky = [r for r in strong if not r["supported"] and "delta_elpd_k_checked" in r and r not in loose]
     for r in loose[:2]:
         notes.append(
             f"The screen's Laplace approximation stands poorly for the posterior with {r['effect']} (Pareto k > "
             f"{PARETO_K_MAX:g} in {100 * r['pareto_k_high_share']:.0f} % of the segments), so its ΔELPD is an "
-            "approximation's; NUTS (--confirm) checks it."
+            "approximation's" + _unreliable_rest(r)
+            + "; NUTS (--confirm) checks it."
         )
     for r in shaky[:2]:
         notes.append(
