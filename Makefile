@@ -26,12 +26,13 @@ $(CHROMIUM):
 
 browser: $(CHROMIUM)
 
-## the test suite: two workers, each test file whole on one of them (module fixtures run once);
+## the test suite: two workers, each test file whole on one of them (module fixtures run once),
+## in the order tests/conftest.py gives (the longest files first: --no-loadscope-reorder);
 ## XLA compiles on one thread, so two files compiling at once use both cores.
 ## A worker that crashes is not replaced: with --dist loadfile a replacement would rerun the
 ## crashing test, and its file's module fixtures, until the restart budget is spent.
 test: $(BIN)/.installed $(CHROMIUM)
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile --max-worker-restart=0 --durations=15
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder --max-worker-restart=0 --durations=15
 
 ## the notebooks executed at full size from their sources (notebooks/*.py), written as .ipynb with outputs
 notebooks: $(BIN)/.installed

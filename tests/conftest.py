@@ -51,17 +51,18 @@ def _release_compiled_programs():
 
 
 #: Test files by their time in a profile of the suite (``pytest --durations``), longest first.
-#: ``--dist loadfile`` hands whole files to the two workers in collection order, so the
-#: long ones start at once and the short ones fill in behind them.
+#: ``--dist loadfile`` with ``--no-loadscope-reorder`` (the Makefile's) hands whole files to the
+#: two workers in collection order, so the long ones start at once and the short ones fill in
+#: behind them; without that flag xdist orders the files by their number of tests instead.
 LONGEST_FIRST = (
     "test_loop_none.py",
+    "test_loop.py",
     "test_loop_cli.py",
     "test_effects.py",
     "test_notebooks.py",
     "test_fit.py",
     "test_cli.py",
     "test_posterior_eval.py",
-    "test_loop.py",
     "test_recovery.py",
     "test_report.py",
     "test_user_effects.py",
