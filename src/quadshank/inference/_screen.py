@@ -17,7 +17,9 @@ candidate takes many minutes; this screen takes seconds per leg:
    cannot move far, starts at the best point of a profile over its prior
    (:func:`_step_profile_start`).  Started from another
    screen, L-BFGS runs in the coordinates that screen's Laplace covariance
-   whitens for the parameters the two share (:func:`_start_whitening`).
+   whitens for the parameters the two share (:func:`_start_whitening`).  A run
+   that stops short is restarted (:data:`LBFGS_RESTARTS`), and the mode is
+   polished in the coordinates its own curvature whitens (:data:`CURVATURE_POLISH`).
 3. The Laplace approximation there: a Gaussian with the inverse Hessian as
    covariance (eigenvalues floored at the prior precision, so no direction is
    wider than its prior), ``n_draws`` draws, and for each a (d, shift) drawn
