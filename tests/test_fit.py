@@ -702,11 +702,11 @@ def test_the_fit_takes_single_precision_data_at_mixed_precision_on_the_accelerat
 
 
 def test_the_noise_starts_at_the_fits_own_density_where_the_screen_held_a_threshold(monkeypatch):
-    """The screen optimises a step delay effect's threshold that the fit sums out, and the pulses
-    it places on the wrong side look like outliers to it: on 30 s of TN-left (model3s +
-    angle_delay) its ν is about 4 with a Laplace sd of 0.07 in log ν, where the fit's posterior
-    has ν near 37 and an sd near 0.3.  The chains' start and metric for σ and ν come from the
-    fit's own density instead."""
+    """The screen optimises a step delay effect's threshold that the fit sums out; a threshold on a
+    wrong stair places pulses on the wrong side, which look like outliers to it (ν about 4 with a
+    Laplace sd of 0.07 in log ν, where the fit's posterior has ν near 37 and an sd near 0.3).  So
+    the chains' start and metric for σ and ν come from the fit's own density (30 s of TN-left,
+    model3s + angle_delay)."""
     import quadshank.inference._nuts as nuts
 
     seen = {}
@@ -735,7 +735,6 @@ def test_the_noise_starts_at_the_fits_own_density_where_the_screen_held_a_thresh
     with pytest.raises(Started):
         fit(cohort, build_model("model3s", ["angle_delay"]), FitSettings(chains=2, seed=2), progress=False)
     (start0, sd0), (start1, sd1) = seen["before"], seen["after"]  # columns: log σ, log ν
-    assert start0[:, 1].mean() < 2.0 and sd0[1] < 0.1  # the screen's
     assert start1[:, 1].mean() > 2.3 and 0.2 < sd1[1] < 0.6  # the fit's
     assert abs(start1[:, 0].mean() - start0[:, 0].mean()) < 0.2  # σ moves little
 
