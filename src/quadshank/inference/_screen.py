@@ -284,6 +284,15 @@ def _hessian(value_and_grad, mode: np.ndarray, x: dict, step: float = 1e-5) -> n
     return 0.5 * (H + H.T)
 
 
+def _floored_curvature(value_and_grad, mode: np.ndarray, x: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues and eigenvectors of the Hessian at ``mode`` (entries that are not finite taken as
+    0), the eigenvalues floored at 1: never wider than the prior (unit precision on the
+    standardised scale)."""
+    H = _hessian(value_and_grad, mode, x)
+    w, V = np.linalg.eigh(np.where(np.isfinite(H), H, 0.0))
+    return np.maximum(w, 1.0), V
+
+
 def _positions(specs: list[_Spec]) -> tuple[dict[str, range], int]:
     """Where each parameter's components lie in the screen's vector, and where log σ starts."""
     at, k = {}, 0
@@ -357,20 +366,19 @@ def _minimize_from(value_and_grad, v0: np.ndarray, S: np.ndarray, x: dict, max_i
     return res, v0 + S @ res.x
 
 
-def _step_profile_start(value_and_grad, v0: np.ndarray, specs, model: Model, x: dict) -> np.ndarray:
-    """``v0`` with the delay effect's step parameter (``angle_delay``'s threshold) moved to the best
-    of :data:`STEP_PROFILE_Z`, the other parameters held at ``v0``.
+def _step_profile_start(value_and_grad, v0: np.ndarray, specs, step: str, x: dict) -> np.ndarray:
+    """``v0`` with the delay effect's step parameter ``step`` (``angle_delay``'s threshold) moved to
+    the best of :data:`STEP_PROFILE_Z`, the other parameters held at ``v0``.
 
     The likelihood is a staircase in a step parameter: between two neighbouring pulse angles
     every threshold splits the pulses alike, and the smoothed step (a degree wide) gives a
     gradient only from pulses within a degree or two of it.  From one start L-BFGS therefore
     stays on the stair it starts on (the prior median, typically); the profile over the prior's
     central range finds the stair where the data place the step, and L-BFGS refines it there."""
-    name = getattr(model.delay_effect, "step_param", None)
     at, _ = _positions(specs)
-    if name is None or name not in at or len(at[name]) != 1:
+    if len(at[step]) != 1:
         return v0
-    i = at[name][0]
+    i = at[step][0]
     values = []
     for z in STEP_PROFILE_Z:
         v = v0.copy()
@@ -443,6 +451,7 @@ def _laplace_fit(
     arrays = _leg_arrays64(data)
     dim = sum(s.size for s in specs) + 2
     rng = np.random.default_rng(seed)  # the root seed's own stream: the starts and the Laplace draws
+    step = getattr(model.delay_effect, "step_param", None)  # profiled where no start has it
 
     if start is None:
         with warnings.catch_warnings():
@@ -470,8 +479,8 @@ def _laplace_fit(
         best = None
         for j in range(n_try):
             v0 = _start_vector(specs, known, log_sigma, log_nu, rng, draw_unknown=j > 0)
-            if j == 0 and any(s.name == getattr(model.delay_effect, "step_param", None) for s in unknown):
-                v0 = _step_profile_start(value_and_grad, v0, specs, model, x)
+            if j == 0 and step in {s.name for s in unknown}:
+                v0 = _step_profile_start(value_and_grad, v0, specs, step, x)
 
             res, v = _minimize_from(value_and_grad, v0, S, x, max_iter)
             if np.isfinite(res.fun) and (best is None or res.fun < best[0].fun):
@@ -483,17 +492,13 @@ def _laplace_fit(
                 "diverges on these data from every start" + (f", or an effect ({', '.join(own)}) returns a value that "
                                                             "is not finite" if own else ""))
         best, mode = best[0], np.asarray(best[1], np.float64)
-        H = _hessian(value_and_grad, mode, x)
-        w, V = np.linalg.eigh(np.where(np.isfinite(H), H, 0.0))
-        w = np.maximum(w, 1.0)  # never wider than the prior (unit precision on the standardised scale)
+        w, V = _floored_curvature(value_and_grad, mode, x)
         for _ in range(CURVATURE_POLISH):  # on from the mode in the coordinates its curvature whitens
             res, v = _minimize_from(value_and_grad, mode, V / np.sqrt(w)[None, :], x, max_iter)
             if not (np.isfinite(res.fun) and res.fun < best.fun - LBFGS_RESTART_GAIN):
                 break
             best, mode = res, np.asarray(v, np.float64)
-            H = _hessian(value_and_grad, mode, x)
-            w, V = np.linalg.eigh(np.where(np.isfinite(H), H, 0.0))
-            w = np.maximum(w, 1.0)
+            w, V = _floored_curvature(value_and_grad, mode, x)
         eps = rng.standard_normal((n_draws, dim))
         all_draws.append(mode[None, :] + (eps / np.sqrt(w)[None, :]) @ V.T)
         covs.append((V / w[None, :]) @ V.T)
